@@ -1,0 +1,204 @@
+r"""The latent force model: a system, a GP force kernel and sensors joined.
+
+State vector (column convention, ``x_next = A @ x``)::
+
+    x = [ z (ndof) | zdot (ndof) | force states of force 0 | force 1 | ... ]
+
+Each latent force :math:`u_j = H_k x^{(j)}_f` is an independent GP with the
+same kernel family and hyperparameters (``force_variance``,
+``force_lengthscale`` in the parameter dict). The augmented continuous
+model (Eq. 21-22 of ISMA 2018, Eq. 18 and 20 of Vibration 2020) is
+
+.. math::
+    \dot x = \begin{pmatrix} 0 & I & 0 \\ -M^{-1}K & -M^{-1}C & M^{-1} B H_k \\
+             0 & 0 & F_k \end{pmatrix} x + \begin{pmatrix}0\\0\\L_k\end{pmatrix} w
+
+for linear systems, and :math:`\dot x = f(x) + L w` with
+:math:`f = (\dot z,\; M^{-1}(B u - h(z,\dot z)),\; F_k x_f)` in general.
+
+Erratum: ISMA 2018 writes the input matrix as :math:`[0, -1/m]^T` in the
+text and Vibration 2020 puts :math:`-1/m` on :math:`u` in Eq. (18); both
+contradict their own equations of motion (Eq. 19 / Eq. 8), where the force
+enters with a plus sign, as here. Eq. (23) of ISMA 2018 adds
+":math:`+\sigma_n^2`" to the observation; the noise is
+:math:`v \sim N(0, \sigma_n^2)`.
+
+Sensors measure displacement, velocity or acceleration at a DOF; the
+acceleration row carries the force feed-through of Eq. (23b):
+:math:`\ddot z = M^{-1}(B u - C\dot z - K z)`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from latentforce.kernels import Kernel, KernelParams
+from latentforce.linalg import solve_lyapunov, symmetrise, van_loan
+from latentforce.systems import System
+
+QUANTITIES = ("displacement", "velocity", "acceleration")
+
+
+class Sensor(NamedTuple):
+    """One measured channel: ``quantity`` at ``dof`` with known Gaussian noise."""
+
+    quantity: str
+    dof: int
+    noise_std: float
+    name: str = ""
+
+
+class LatentForceModel:
+    """Static structure of a latent force model (numbers live in a params dict).
+
+    Parameters are a ``dict`` with the system's names (``m, c, k`` ...) plus
+    ``force_variance`` and ``force_lengthscale``.
+    """
+
+    def __init__(self, system: System, kernel: Kernel, sensors: list[Sensor] | tuple[Sensor, ...]):
+        self.system = system
+        self.kernel = kernel
+        self.sensors = tuple(sensors)
+        for s in self.sensors:
+            if s.quantity not in QUANTITIES:
+                raise ValueError(f"unknown sensor quantity {s.quantity!r}; valid: {QUANTITIES}")
+            if not 0 <= s.dof < system.ndof:
+                raise ValueError(f"sensor dof {s.dof} outside the system's DOFs 0..{system.ndof - 1}")
+            if not s.noise_std > 0:
+                raise ValueError(f"sensor noise_std must be positive, got {s.noise_std}")
+        self.ndof = system.ndof
+        self.nforce = system.nforce
+        self.n_mech = 2 * self.ndof
+        self.n_state = self.n_mech + self.nforce * kernel.dim
+        self.n_obs = len(self.sensors)
+
+    def __repr__(self) -> str:
+        return f"LatentForceModel({self.system!r}, {self.kernel!r}, {len(self.sensors)} sensors)"
+
+    # ----- indices into the state vector --------------------------------
+    def displacement_index(self) -> np.ndarray:
+        return np.arange(self.ndof)
+
+    def velocity_index(self) -> np.ndarray:
+        return np.arange(self.ndof, 2 * self.ndof)
+
+    def force_index(self) -> np.ndarray:
+        """Index of each force value ``u_j`` (first state of each force block)."""
+        return self.n_mech + self.kernel.dim * np.arange(self.nforce)
+
+    def force_matrix(self) -> jnp.ndarray:
+        """``Hu`` with ``u = Hu @ x`` (``nforce x n_state``)."""
+        Hu = np.zeros((self.nforce, self.n_state))
+        Hu[np.arange(self.nforce), self.force_index()] = 1.0
+        return jnp.asarray(Hu)
+
+    # ----- the force GP ----------------------------------------------------
+    def kernel_params(self, params) -> KernelParams:
+        return KernelParams(jnp.asarray(params["force_variance"], dtype=float),
+                            jnp.asarray(params["force_lengthscale"], dtype=float))
+
+    def force_state_space(self, params):
+        """Block-diagonal ``(F_f, W_f, H_f, Pinf_f)`` for all latent forces."""
+        ss = self.kernel.state_space(self.kernel_params(params))
+        eye = jnp.eye(self.nforce)
+        W = ss.L @ ss.Qc @ ss.L.T
+        return (jnp.kron(eye, ss.F), jnp.kron(eye, W), jnp.kron(eye, ss.H), jnp.kron(eye, ss.Pinf))
+
+    # ----- linear (or linearised) continuous model -------------------------
+    def continuous(self, params, linear_part: bool = False):
+        r"""Continuous ``(F, W)`` with ``W = L Qc L^T`` of the augmented system.
+
+        Exact for linear systems; for nonlinear ones pass ``linear_part=True``
+        to get the system linearised about rest.
+        """
+        if not (self.system.is_linear or linear_part):
+            raise TypeError(f"{self.system!r} is nonlinear: it has no linear state-space form")
+        M, C, K = self.system.linear_part(params)
+        Ff, Wf, Hf, _ = self.force_state_space(params)
+        n, nd, nm = self.n_state, self.ndof, self.n_mech
+        Minv = jnp.linalg.inv(M)
+        B = self.system.input_matrix()
+        F = jnp.zeros((n, n))
+        F = F.at[:nd, nd:nm].set(jnp.eye(nd))
+        F = F.at[nd:nm, :nd].set(-Minv @ K)
+        F = F.at[nd:nm, nd:nm].set(-Minv @ C)
+        F = F.at[nd:nm, nm:].set(Minv @ B @ Hf)
+        F = F.at[nm:, nm:].set(Ff)
+        W = jnp.zeros((n, n)).at[nm:, nm:].set(Wf)
+        return F, W
+
+    def discretise(self, params, dt: float, linear_part: bool = False):
+        """Exact discrete ``(A, Q)`` of the (linear part of the) augmented model."""
+        F, W = self.continuous(params, linear_part)
+        return van_loan(F, W, dt)
+
+    def observation(self, params, linear_part: bool = False):
+        """Linear observation ``y = H x + v``, ``v ~ N(0, R)``: returns ``(H, R)``."""
+        if not (self.system.is_linear or linear_part):
+            raise TypeError(f"{self.system!r} is nonlinear: its observation is not linear")
+        F, _ = self.continuous(params, linear_part)
+        nd = self.ndof
+        rows = []
+        for s in self.sensors:
+            if s.quantity == "displacement":
+                rows.append(jnp.zeros(self.n_state).at[s.dof].set(1.0))
+            elif s.quantity == "velocity":
+                rows.append(jnp.zeros(self.n_state).at[nd + s.dof].set(1.0))
+            else:  # acceleration: the velocity row of the drift, Eq. (23b)
+                rows.append(F[nd + s.dof])
+        H = jnp.stack(rows)
+        return H, self.noise_covariance()
+
+    def noise_covariance(self):
+        return jnp.diag(jnp.asarray([s.noise_std**2 for s in self.sensors], dtype=float))
+
+    def stationary_initial(self, params, linear_part: bool = False):
+        """Zero mean and the stationary covariance solving ``F P + P F^T + W = 0``."""
+        F, W = self.continuous(params, linear_part)
+        return jnp.zeros(self.n_state), solve_lyapunov(F, W)
+
+    # ----- general (nonlinear) model ---------------------------------------
+    def drift(self, params, x):
+        r"""Deterministic drift :math:`f(x)` of the augmented SDE, one state ``x``."""
+        nd, nm = self.ndof, self.n_mech
+        Ff, _, Hf, _ = self.force_state_space(params)
+        z, v, xf = x[:nd], x[nd:nm], x[nm:]
+        a = self.system.acceleration(params, z, v, Hf @ xf)
+        return jnp.concatenate([v, a, Ff @ xf])
+
+    def observe(self, params, x):
+        """Noise-free measurement vector for one state ``x`` (any system)."""
+        nd, nm = self.ndof, self.n_mech
+        _, _, Hf, _ = self.force_state_space(params)
+        z, v = x[:nd], x[nd:nm]
+        out = []
+        acc = None
+        for s in self.sensors:
+            if s.quantity == "displacement":
+                out.append(z[s.dof])
+            elif s.quantity == "velocity":
+                out.append(v[s.dof])
+            else:
+                if acc is None:
+                    acc = self.system.acceleration(params, z, v, Hf @ x[nm:])
+                out.append(acc[s.dof])
+        return jnp.stack(out)
+
+    def default_initial(self, params):
+        r"""Default prior of the first state (INTERFACE.md).
+
+        Linear systems: the stationary distribution of the augmented system.
+        Nonlinear systems: zero mean, force states at their stationary GP
+        distribution and small variances on the mechanical states: the
+        stationary variances of the system linearised about rest, scaled by
+        1e-2, which keeps the start near rest without pinning it.
+        """
+        if self.system.is_linear:
+            return self.stationary_initial(params)
+        _, P = self.stationary_initial(params, linear_part=True)
+        nm = self.n_mech
+        P = P.at[:nm, :].multiply(0.1).at[:, :nm].multiply(0.1)
+        return jnp.zeros(self.n_state), symmetrise(P)
