@@ -1,0 +1,188 @@
+"""Command line: ``latentforce demo | estimate | simulate | report``.
+
+A thin layer (STYLE 7): it reads files, calls the library and writes the
+result folder. Every user error becomes one paragraph on stderr and a
+non-zero exit code, never a traceback (set ``LATENTFORCE_DEBUG=1`` to see
+tracebacks of internal errors).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from latentforce.errors import LatentForceError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Bayesian estimation of unmeasured forces and states of structures from measured response, "
+         "with Gaussian-process latent force models.",
+)
+
+
+def _fail(message: str, code: int = 1) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code)
+
+
+def handle_errors(fn):
+    """Turn user errors into a one-paragraph message and exit code 1."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except LatentForceError as err:
+            _fail(str(err))
+        except KeyboardInterrupt:
+            _fail("interrupted; nothing more was written.", 130)
+        except typer.Exit:
+            raise
+        except Exception as err:  # an internal error: say so briefly, no traceback
+            if os.environ.get("LATENTFORCE_DEBUG"):
+                raise
+            _fail(f"internal error ({type(err).__name__}: {err}). This is a bug in latentforce; "
+                  "rerun with LATENTFORCE_DEBUG=1 for the traceback and report it.", 2)
+
+    return wrapper
+
+
+class Progress:
+    """Progress on stderr (iterations, rate, ETA, acceptance); silent when stderr is not a terminal."""
+
+    def __init__(self, label: str):
+        self.label = label
+        self.bar = None
+        self.enabled = sys.stderr.isatty()
+
+    def __call__(self, done: int, total: int, acceptance: float) -> None:
+        if not self.enabled:
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc=self.label, unit="it", file=sys.stderr, leave=False)
+        self.bar.update(done - self.bar.n)
+        self.bar.set_postfix(acceptance=f"{acceptance:.2f}")
+        if done >= total:
+            self.close()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+@app.command()
+@handle_errors
+def estimate(
+    config: Path = typer.Argument(..., help="TOML configuration file."),
+    data: Optional[Path] = typer.Option(None, "--data", help="Data file; overrides [data].path."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Result folder (default: CONFIG-NAME-results)."),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Random seed; overrides [inference].seed."),
+    force: bool = typer.Option(False, "--force", help="Replace the results in an existing result folder."),
+):
+    """Estimate the force, states and parameters from measured data (the main job)."""
+    from latentforce import estimate as estimate_mod
+    from latentforce.io.config import data_path, load_config
+    from latentforce.io.data import load_data
+    from latentforce.results import check_out_dir, write_results
+
+    problem = load_config(config, data_override=str(data) if data is not None else None)
+    out = out if out is not None else Path(f"{config.stem}-results")
+    check_out_dir(out, force)
+    settings = problem.data
+    dataset = load_data(data_path(problem), problem.columns, time_column=settings.time_column,
+                        sample_rate=settings.sample_rate, missing=settings.missing)
+    progress = Progress(problem.inference.method)
+    try:
+        result, _ = estimate_mod.run(problem, dataset, seed=seed, progress=progress)
+    finally:
+        progress.close()
+    write_results(out, result, overwrite=force)
+    typer.echo(f"{problem.inference.method}: results written to {out}/ "
+               f"(summary.csv, summary.json, posterior.nc, figures/) in {result.wall_time_s:.1f} s")
+
+
+@app.command()
+@handle_errors
+def simulate(
+    config: Path = typer.Argument(..., help="TOML configuration file (system, force, sensors)."),
+    out: Path = typer.Option(..., "--out", help="Data file to write (.csv, .h5, .mat or .nc)."),
+    seed: int = typer.Option(0, "--seed", help="Random seed."),
+    duration: float = typer.Option(10.0, "--duration", help="Length of the record in seconds."),
+    sample_rate: Optional[float] = typer.Option(
+        None, "--sample-rate", help="Samples per second (default: [data].sample_rate, else 100)."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing file."),
+):
+    """Simulate measurements (with truth columns) from a configuration's model.
+
+    Inferred parameters take their ``init`` values; the force is a sample of
+    the configured GP; each sensor gets its configured noise.
+    """
+    import jax
+
+    from latentforce.io.config import initial_params, load_config
+    from latentforce.io.data import write_data
+    from latentforce.simulate import measure, simulate as simulate_fn, truth_columns
+
+    problem = load_config(config)
+    if out.exists() and not force:
+        raise LatentForceError(f"The file {str(out)!r} already exists; nothing was written. "
+                               "Pass --force to replace it or choose another --out.")
+    rate = sample_rate or problem.data.sample_rate or 100.0
+    if not (rate > 0 and duration > 0):
+        raise LatentForceError("--duration and --sample-rate must be positive.")
+    n = int(round(duration * rate)) + 1
+    params = initial_params(problem)
+    key_force, key_noise = jax.random.split(jax.random.key(seed))
+    sim = simulate_fn(key_force, problem.model, params, n, 1.0 / rate)
+    y = measure(key_noise, sim, problem.model.sensors)
+    columns = {(problem.data.time_column or "time"): sim.time}
+    columns.update({c: y[:, i] for i, c in enumerate(problem.columns)})
+    columns.update({k: v for k, v in truth_columns(sim).items() if k not in columns})
+    write_data(out, columns)
+    typer.echo(f"wrote {n} samples at {rate:g} Hz to {out} "
+               f"(channels: {', '.join(problem.columns)}; truth: displacement, velocity, force)")
+
+
+@app.command()
+@handle_errors
+def demo(
+    name: str = typer.Argument(..., help="oma | duffing | sine"),
+    out: Optional[Path] = typer.Option(None, "--out", help="Result folder (default: demo-NAME)."),
+    quick: bool = typer.Option(False, "--quick", help="A short run (under a minute)."),
+    seed: int = typer.Option(0, "--seed", help="Random seed."),
+    force: bool = typer.Option(False, "--force", help="Replace results in an existing folder."),
+):
+    """Run a built-in case end to end: simulate, estimate, write results, print NMSE."""
+    from latentforce.demos import DEMOS
+
+    if name not in DEMOS:
+        raise LatentForceError(f"Unknown demo {name!r}; available demos: {', '.join(DEMOS)}.")
+    out = out if out is not None else Path(f"demo-{name}")
+    DEMOS[name](out=out, quick=quick, seed=seed, overwrite=force, echo=typer.echo, progress=Progress)
+
+
+@app.command()
+@handle_errors
+def report(out_dir: Path = typer.Argument(..., help="A result folder written by estimate or demo.")):
+    """Redraw the figures and rewrite the summaries of a result folder."""
+    from latentforce.results import redraw
+
+    redraw(out_dir)
+    typer.echo(f"redrew {out_dir}/figures and rewrote summary.csv, summary.json")
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,76 @@
+"""Helpers shared by the demos: config files, tables and the run-and-write step."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from latentforce import estimate
+from latentforce.io.config import config_from_dict
+from latentforce.io.data import load_data, write_csv
+from latentforce.results import check_out_dir, write_results
+
+
+def toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + " }"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    return repr(float(v)) if isinstance(v, float) else str(v)
+
+
+def to_toml(config: dict) -> str:
+    """TOML text for a config dict of our (flat) shape; ``sensors`` is an array of tables."""
+    lines = []
+    for section, body in config.items():
+        tables = body if isinstance(body, list) else [body]
+        for table in tables:
+            lines.append(f"[[{section}]]" if isinstance(body, list) else f"[{section}]")
+            lines.extend(f"{k} = {toml_value(v)}" for k, v in table.items())
+            lines.append("")
+    return "\n".join(lines)
+
+
+def write_case(folder: Path, config: dict, columns: dict, *, overwrite: bool, progress=None, seed=0):
+    """Write ``data.csv`` and ``config.toml``, run the estimate on them, write the results.
+
+    The estimate reads the data file back through the same loader as
+    ``latentforce estimate``, so the demo exercises the user's path.
+    """
+    folder = Path(folder)
+    check_out_dir(folder, overwrite)
+    folder.mkdir(parents=True, exist_ok=True)
+    data_file = folder / "data.csv"
+    config = dict(config)
+    config["data"] = dict(config["data"], path="data.csv")
+    write_csv(data_file, columns)
+    (folder / "config.toml").write_text(to_toml(config), encoding="utf-8")
+    problem = config_from_dict(config, source=str(folder / "config.toml"), base_dir=folder)
+    settings = problem.data
+    dataset = load_data(data_file, problem.columns, time_column=settings.time_column,
+                        sample_rate=settings.sample_rate, missing=settings.missing)
+    result, extras = estimate.run(problem, dataset, seed=seed, progress=progress)
+    # data.csv and config.toml are ours: the folder check above already passed.
+    write_results(folder, result, overwrite=True)
+    return problem, dataset, result, extras
+
+
+def pct_error(est: float, true: float) -> str:
+    return f"{100.0 * (est - true) / true:+.1f}%"
+
+
+def table(rows: list[list[str]], header: list[str]) -> str:
+    widths = [max(len(str(r[i])) for r in rows + [header]) for i in range(len(header))]
+    fmt = "  ".join(f"{{:<{w}}}" for w in widths)
+    out = [fmt.format(*header), fmt.format(*["-" * w for w in widths])]
+    out += [fmt.format(*[str(c) for c in r]) for r in rows]
+    return "\n".join(out)
+
+
+def fmt(x: float) -> str:
+    return f"{x:.4g}"

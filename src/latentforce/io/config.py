@@ -1,0 +1,566 @@
+"""The TOML configuration file: read, validate, and turn into a :class:`Problem`.
+
+The schema is INTERFACE.md's ``[data]``, ``[system]``, ``[force]``,
+``[[sensors]]``, ``[initial]`` and ``[inference]`` sections. Validation has
+two stages:
+
+1. *shape*: pydantic v2 models (strict types, unknown keys refused, no NaN
+   or inf) check each key on its own;
+2. *meaning*: plain Python checks what depends on several keys (a positive
+   mass, matrices of one size, a sensor DOF inside the system, an initial
+   state of the right length, a method that suits the system).
+
+Every problem becomes a one-paragraph
+:class:`~latentforce.errors.LatentForceError` naming the config file and the
+key (``[system].m``, ``[[sensors]][1].dof``; sensors count from 0); no
+pydantic ``ValidationError`` or ``KeyError`` escapes. A mistyped section or
+key gets the closest valid name as a suggestion.
+
+A scalar parameter is either a number (known and fixed) or a table with a
+prior and an initial value (inferred); the resulting :class:`Problem` keeps
+them apart in ``fixed`` and ``free`` under the names the rest of the package
+uses (``m, c, k, k3`` or ``M, C, K``, ``force_variance``,
+``force_lengthscale``).
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import re
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal, NamedTuple, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError
+
+from latentforce.errors import LatentForceError
+from latentforce.kernels import KERNELS, kernel_from_name
+from latentforce.models import LatentForceModel, Sensor
+from latentforce.priors import PRIOR_PARAMS, Prior, prior_from_spec
+from latentforce.systems import SYSTEM_TYPES, Duffing, LinearSystem
+
+__all__ = [
+    "DataSettings",
+    "InferenceSettings",
+    "ParamSpec",
+    "Problem",
+    "config_from_dict",
+    "data_path",
+    "initial_params",
+    "load_config",
+]
+
+METHODS = ("kalman", "kalman-mcmc", "pgas")
+# In the interface but without an implementation yet.
+PLANNED_SYSTEM_TYPES = ("bouc-wen",)
+# Parameters PGAS may infer in this version (Algorithm 4, Vibration 2020,
+# with Metropolis-within-Gibbs on the force hyperparameters only).
+PGAS_FREE_OK = ("force_variance", "force_lengthscale")
+
+
+# ----- the result ------------------------------------------------------------
+class ParamSpec(NamedTuple):
+    """An inferred parameter: its prior on the physical value and a starting value."""
+
+    prior: Prior
+    init: float
+
+
+class InferenceSettings(NamedTuple):
+    """``[inference]`` with defaults filled in and ``method`` resolved."""
+
+    method: str
+    particles: int
+    iterations: int
+    burn_in: int
+    state_every: int
+    chains: int
+    seed: int
+    mh_steps: int
+    discretisation: str
+    proposal: str
+    resampling: str
+    thin_draws: int
+
+
+class DataSettings(NamedTuple):
+    """``[data]``: ``path`` is absolute (None when the config gives none);
+    exactly one of ``time_column`` and ``sample_rate`` is set."""
+
+    path: Path | None
+    time_column: str | None
+    sample_rate: float | None
+    missing: str
+
+
+class Problem(NamedTuple):
+    """Everything a run needs from a config file, validated."""
+
+    model: LatentForceModel
+    fixed: dict[str, float | np.ndarray]
+    free: dict[str, ParamSpec]
+    columns: list[str]
+    initial: tuple[np.ndarray, np.ndarray] | None
+    inference: InferenceSettings
+    data: DataSettings
+    config_path: Path
+
+
+# ----- stage 1: shape, by pydantic -------------------------------------------
+class _Strict(BaseModel):
+    # strict: "1.0" is not a number and 2.0 is not an integer (ints are still
+    # accepted as floats); allow_inf_nan=False because TOML can spell nan/inf.
+    model_config = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False)
+
+
+class _PriorTable(BaseModel):
+    # The prior's own parameters (mean, sd, ...) depend on its name, so they
+    # arrive as extras and are checked in stage 2 with a proper suggestion.
+    model_config = ConfigDict(strict=True, extra="allow", allow_inf_nan=False)
+
+    prior: str
+    init: float | None = None
+
+
+def _param_kind(value: Any) -> str:
+    return "table" if isinstance(value, (dict, _PriorTable)) else "number"
+
+
+# A number (fixed) or a prior table (inferred); the discriminator keeps
+# pydantic from reporting both failed branches of the union.
+_Param = Annotated[
+    Union[Annotated[float, Tag("number")], Annotated[_PriorTable, Tag("table")]],
+    Discriminator(_param_kind),
+]
+_UNION_TAGS = ("number", "table")
+
+
+class _DataSection(_Strict):
+    path: str | None = None
+    time_column: str | None = None
+    sample_rate: float | None = Field(default=None, gt=0)
+    missing: Literal["error", "skip"] = "error"
+
+
+class _SystemSection(_Strict):
+    type: str
+    m: _Param | None = None
+    c: _Param | None = None
+    k: _Param | None = None
+    k3: _Param | None = None
+    M: list[list[float]] | None = None
+    C: list[list[float]] | None = None
+    K: list[list[float]] | None = None
+    force_dofs: list[int] | None = None
+
+
+class _ForceSection(_Strict):
+    kernel: str
+    variance: _Param
+    lengthscale: _Param
+
+
+class _SensorSection(_Strict):
+    column: str
+    quantity: Literal["displacement", "velocity", "acceleration"]
+    dof: int = Field(default=0, ge=0)
+    noise_std: float = Field(gt=0)
+
+
+class _InitialSection(_Strict):
+    mean: list[float]
+    sd: list[Annotated[float, Field(ge=0)]]
+
+
+class _InferenceSection(_Strict):
+    method: Literal["kalman", "kalman-mcmc", "pgas"] | None = None
+    particles: int = Field(default=50, ge=2)
+    iterations: int = Field(default=10000, ge=1)
+    burn_in: int = Field(default=1000, ge=0)
+    state_every: int = Field(default=5, ge=1)
+    chains: int = Field(default=4, ge=1)
+    seed: int = 0
+    mh_steps: int = Field(default=1, ge=1)
+    discretisation: Literal["rk4", "euler"] = "rk4"
+    proposal: Literal["optimal", "bootstrap"] = "optimal"
+    resampling: Literal["systematic", "multinomial"] = "systematic"
+    thin_draws: int = Field(default=200, ge=1)
+
+
+class _ConfigFile(_Strict):
+    data: _DataSection = Field(default_factory=_DataSection)
+    system: _SystemSection
+    force: _ForceSection
+    sensors: list[_SensorSection] = Field(min_length=1)
+    initial: _InitialSection | None = None
+    inference: _InferenceSection = Field(default_factory=_InferenceSection)
+
+
+_SECTIONS: dict[str, type[BaseModel]] = {
+    "data": _DataSection,
+    "system": _SystemSection,
+    "force": _ForceSection,
+    "sensors": _SensorSection,
+    "initial": _InitialSection,
+    "inference": _InferenceSection,
+}
+
+
+# ----- error messages ------------------------------------------------------------
+def _key(loc: tuple) -> str:
+    """``('sensors', 1, 'dof')`` -> ``[[sensors]][1].dof``; union tags dropped."""
+    if not loc:
+        return "(top level)"
+    head, rest = loc[0], list(loc[1:])
+    # The discriminated union puts its tag after the parameter name.
+    if head in ("system", "force") and len(rest) >= 2 and rest[1] in _UNION_TAGS:
+        del rest[1]
+    out = "[[sensors]]" if head == "sensors" else f"[{head}]"
+    for part in rest:
+        out += f"[{part}]" if isinstance(part, int) else f".{part}"
+    return out
+
+
+def _did_you_mean(name: str, valid: list[str] | tuple[str, ...], fmt: str = "`{}`") -> str:
+    close = difflib.get_close_matches(str(name), list(valid), n=1, cutoff=0.5)
+    return f"; did you mean {fmt.format(close[0])}?" if close else "."
+
+
+def _unknown_key_message(source: str, loc: tuple) -> str:
+    name = loc[-1]
+    prefix = loc[:-1]
+    if not prefix:
+        valid = list(_SECTIONS)
+        return (f"unknown section [{name}] in {source}{_did_you_mean(name, valid, '[{}]')} "
+                f"Valid sections: {', '.join(valid)}.")
+    model = _SECTIONS.get(prefix[0])
+    valid = list(model.model_fields) if model is not None else []
+    return (f"unknown key `{name}` in {_key(prefix)} of {source}{_did_you_mean(name, valid)} "
+            f"Valid keys: {', '.join(valid)}.")
+
+
+def _from_validation_error(source: str, exc: ValidationError) -> LatentForceError:
+    """The first (most telling) pydantic error as one paragraph naming the key."""
+    errors = exc.errors()
+    # A typo explains the "missing" errors it causes, so report it first.
+    errors.sort(key=lambda e: e["type"] != "extra_forbidden")
+    err = errors[0]
+    loc, kind, msg = tuple(err["loc"]), err["type"], err["msg"]
+    if kind == "extra_forbidden":
+        return LatentForceError(_unknown_key_message(source, loc))
+    key = _key(loc)
+    if kind == "missing":
+        what = f"section {key}" if len(loc) == 1 else key
+        return LatentForceError(f"{source}: {what} is required but missing.")
+    if kind in ("model_type", "dict_type"):
+        return LatentForceError(f"{source}: {key} must be a table.")
+    if kind == "list_type" and loc == ("sensors",):
+        return LatentForceError(f"{source}: {key} must be an array of tables: write each sensor "
+                                f"under its own [[sensors]] header.")
+    if kind == "too_short" and loc == ("sensors",):
+        return LatentForceError(f"{source}: at least one [[sensors]] table is required.")
+    shown = "" if isinstance(err.get("input"), (dict, list)) else f" = {err.get('input')!r}"
+    if kind == "float_type" and len(loc) >= 3 and loc[0] in ("system", "force") and loc[2] == "number":
+        msg = ("must be a number (known and fixed) or a prior table such as "
+               "{ prior = \"normal\", mean = 1.0, sd = 0.1, init = 1.0 } (inferred)")
+    return LatentForceError(f"{source}: {key}{shown}: {msg}.")
+
+
+class _Fail:
+    """Raises stage-2 errors in the common format ``FILE: KEY: message``."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def __call__(self, key: str, message: str) -> LatentForceError:
+        return LatentForceError(f"{self.source}: {key}: {message}")
+
+
+# ----- stage 2: meaning ------------------------------------------------------
+def _prior_spec(fail: _Fail, key: str, table: _PriorTable) -> ParamSpec:
+    name = table.prior
+    if name not in PRIOR_PARAMS:
+        raise fail(f"{key}.prior", f"unknown prior {name!r}{_did_you_mean(name, tuple(PRIOR_PARAMS), '{!r}')} "
+                                   f"Valid priors: {', '.join(PRIOR_PARAMS)}.")
+    wanted = PRIOR_PARAMS[name]
+    extras = dict(table.model_extra or {})
+    for extra in extras:
+        if extra not in wanted:
+            valid = ("prior", "init") + wanted
+            raise fail(f"{key}.{extra}", f"unknown key for a {name!r} prior"
+                                         f"{_did_you_mean(extra, valid)} Valid keys: {', '.join(valid)}.")
+    missing = [p for p in wanted if p not in extras]
+    if missing:
+        raise fail(key, f"a {name!r} prior needs {' and '.join(wanted)}; missing: {', '.join(missing)}.")
+    for p, v in extras.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise fail(f"{key}.{p}", f"must be a finite number, got {v!r}.")
+    try:
+        prior = prior_from_spec(name, **extras)
+    except ValueError as exc:
+        raise fail(key, f"{exc}.") from None
+    init = table.init if table.init is not None else prior.default_init()
+    if init is None:
+        raise fail(f"{key}.init", f"a {name!r} prior has no natural starting value: give init "
+                                  f"(a positive number).")
+    if not (math.isfinite(init) and init > 0):
+        raise fail(f"{key}.init", f"the initial value must be positive and finite, got {init!r}"
+                                  + ("" if table.init is not None else " (from the prior; give init)") + ".")
+    return ParamSpec(prior=prior, init=float(init))
+
+
+def _scalar(fail: _Fail, key: str, value: float, rule: str) -> float:
+    """Check a fixed scalar: ``rule`` is "positive", "nonnegative" or "any"."""
+    words = {"m": "mass", "c": "damping", "k": "stiffness", "variance": "force variance",
+             "lengthscale": "force lengthscale"}
+    what = words.get(key.rsplit(".", 1)[-1], "value")
+    if rule == "positive" and not value > 0:
+        raise fail(key, f"the {what} must be positive, got {value!r}.")
+    if rule == "nonnegative" and not value >= 0:
+        raise fail(key, f"the {what} must be non-negative, got {value!r}.")
+    return float(value)
+
+
+def _split(fail: _Fail, key: str, name: str, value, rule: str, fixed: dict, free: dict) -> None:
+    if isinstance(value, _PriorTable):
+        free[name] = _prior_spec(fail, key, value)
+    else:
+        fixed[name] = _scalar(fail, key, value, rule)
+
+
+def _matrix(fail: _Fail, key: str, rows: list[list[float]]) -> np.ndarray:
+    n = len(rows)
+    if n == 0 or any(len(r) != n for r in rows):
+        raise fail(key, f"must be a square matrix (a list of {n} rows of {n} numbers each).")
+    return np.asarray(rows, dtype=float)
+
+
+def _check_psd(fail: _Fail, key: str, A: np.ndarray, name: str, definite: bool) -> None:
+    scale = max(float(np.abs(A).max()), np.finfo(float).tiny)
+    if not np.allclose(A, A.T, rtol=0.0, atol=1e-10 * scale):
+        raise fail(key, f"the {name} matrix must be symmetric.")
+    eig = np.linalg.eigvalsh(A)
+    if definite and not eig.min() > 0:
+        raise fail(key, f"the {name} matrix must be positive definite (smallest eigenvalue {eig.min():.6g}).")
+    if not definite and eig.min() < -1e-10 * scale:
+        raise fail(key, f"the {name} matrix must be positive semi-definite (smallest eigenvalue "
+                        f"{eig.min():.6g}).")
+
+
+def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
+    """Build the system object and sort its parameters into fixed and free."""
+    if s.type in PLANNED_SYSTEM_TYPES:
+        raise fail("[system].type", f"system type {s.type!r} is not available yet; available system "
+                                    f"types: {', '.join(SYSTEM_TYPES)}.")
+    if s.type not in SYSTEM_TYPES:
+        raise fail("[system].type", f"unknown system type {s.type!r}"
+                                    f"{_did_you_mean(s.type, SYSTEM_TYPES + PLANNED_SYSTEM_TYPES, '{!r}')} "
+                                    f"Available system types: {', '.join(SYSTEM_TYPES)}.")
+    given = {n for n in ("m", "c", "k", "k3", "M", "C", "K", "force_dofs") if getattr(s, n) is not None}
+
+    def require(names):
+        for n in names:
+            if getattr(s, n) is None:
+                raise fail(f"[system].{n}", f"is required for a {s.type} system.")
+
+    def refuse(names, why):
+        for n in names:
+            if n in given:
+                raise fail(f"[system].{n}", why)
+
+    def scalars(names):
+        rules = {"m": "positive", "c": "nonnegative", "k": "positive", "k3": "any"}
+        for n in names:
+            _split(fail, f"[system].{n}", n, getattr(s, n), rules[n], fixed, free)
+
+    if s.type == "duffing":
+        refuse(("M", "C", "K", "force_dofs"), "a duffing system is single-DOF: give m, c, k and k3.")
+        require(("m", "c", "k", "k3"))
+        scalars(("m", "c", "k", "k3"))
+        return Duffing()
+
+    refuse(("k3",), "k3 (cubic stiffness) belongs to a duffing system; use type = \"duffing\".")
+    matrices = given & {"M", "C", "K"}
+    if not matrices:  # linear SDOF
+        require(("m", "c", "k"))
+        if s.force_dofs is not None and s.force_dofs != [0]:
+            raise fail("[system].force_dofs", f"a single-DOF system has only DOF 0, got {s.force_dofs}.")
+        scalars(("m", "c", "k"))
+        return LinearSystem(ndof=1, force_dofs=(0,))
+
+    # Linear MDOF: matrices are fixed numbers in this version.
+    refuse(("m", "c", "k"), "give either scalars m, c, k (one DOF) or matrices M, C, K, not both.")
+    require(("M", "C", "K"))
+    M, C, K = (_matrix(fail, f"[system].{n}", getattr(s, n)) for n in ("M", "C", "K"))
+    n = M.shape[0]
+    for name, A in (("C", C), ("K", K)):
+        if A.shape != M.shape:
+            raise fail(f"[system].{name}", f"is {A.shape[0]}x{A.shape[0]} but M is {n}x{n}; "
+                                           f"all three matrices must have the same size.")
+    _check_psd(fail, "[system].M", M, "mass", definite=True)
+    _check_psd(fail, "[system].K", K, "stiffness", definite=False)
+    # Damping need not be symmetric, but it must dissipate energy.
+    _check_psd(fail, "[system].C", 0.5 * (C + C.T), "damping (symmetric part of the)", definite=False)
+    force_dofs = s.force_dofs if s.force_dofs is not None else [0]
+    if not force_dofs:
+        raise fail("[system].force_dofs", "must list at least one DOF.")
+    for d in force_dofs:
+        if not 0 <= d < n:
+            raise fail("[system].force_dofs", f"DOF {d} is outside the system's DOFs 0..{n - 1}.")
+    if len(set(force_dofs)) != len(force_dofs):
+        raise fail("[system].force_dofs", f"lists a DOF more than once: {force_dofs}.")
+    if n == 1:
+        # One DOF in matrix form: the model reads scalars m, c, k.
+        fixed.update(m=float(M[0, 0]), c=float(C[0, 0]), k=float(K[0, 0]))
+    else:
+        fixed.update(M=M, C=C, K=K)
+    return LinearSystem(ndof=n, force_dofs=tuple(force_dofs))
+
+
+def _default_method(is_linear: bool, free: dict) -> str:
+    if not is_linear:
+        return "pgas"
+    return "kalman-mcmc" if free else "kalman"
+
+
+def _free_key(name: str) -> str:
+    return f"[force].{name.removeprefix('force_')}" if name.startswith("force_") else f"[system].{name}"
+
+
+def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | None = None,
+                     data_override: str | Path | None = None) -> Problem:
+    """Validate a config given as a dict (as parsed from TOML) and build the :class:`Problem`.
+
+    ``source`` names the config in messages; relative data paths are resolved
+    against ``base_dir`` (default: the current folder). ``data_override``
+    replaces ``[data].path`` and is resolved against the current folder.
+    """
+    base_dir = Path.cwd() if base_dir is None else Path(base_dir)
+    fail = _Fail(source)
+    if not isinstance(d, dict):
+        raise LatentForceError(f"{source}: a config must be a table of sections, got {type(d).__name__}.")
+    try:
+        cfg = _ConfigFile.model_validate(d)
+    except ValidationError as exc:
+        raise _from_validation_error(source, exc) from None
+
+    fixed: dict[str, float | np.ndarray] = {}
+    free: dict[str, ParamSpec] = {}
+    system = _system(fail, cfg.system, fixed, free)
+
+    f = cfg.force
+    if f.kernel not in KERNELS:
+        raise fail("[force].kernel", f"unknown kernel {f.kernel!r}{_did_you_mean(f.kernel, tuple(KERNELS), '{!r}')} "
+                                     f"Valid kernels: {', '.join(KERNELS)}.")
+    kernel = kernel_from_name(f.kernel)
+    _split(fail, "[force].variance", "force_variance", f.variance, "positive", fixed, free)
+    _split(fail, "[force].lengthscale", "force_lengthscale", f.lengthscale, "positive", fixed, free)
+
+    sensors = []
+    seen: dict[str, int] = {}
+    for i, sen in enumerate(cfg.sensors):
+        if sen.dof >= system.ndof:
+            valid = "only DOF 0" if system.ndof == 1 else f"DOFs 0..{system.ndof - 1}"
+            raise fail(f"[[sensors]][{i}].dof", f"sensor {i} (column {sen.column!r}) measures DOF {sen.dof} "
+                                                f"but the system has {valid}.")
+        if sen.column in seen:
+            raise fail(f"[[sensors]][{i}].column", f"column {sen.column!r} is already used by sensor "
+                                                   f"{seen[sen.column]}.")
+        seen[sen.column] = i
+        sensors.append(Sensor(sen.quantity, sen.dof, float(sen.noise_std), name=sen.column))
+    model = LatentForceModel(system, kernel, sensors)
+
+    initial = None
+    if cfg.initial is not None:
+        layout = (f"{model.ndof} displacement(s), {model.ndof} velocity(ies), then "
+                  f"{model.nforce} x {kernel.dim} force state(s) of the {kernel.name} kernel")
+        for name in ("mean", "sd"):
+            got = len(getattr(cfg.initial, name))
+            if got != model.n_state:
+                raise fail(f"[initial].{name}", f"has {got} entries but the state vector has "
+                                                f"{model.n_state}: {layout}.")
+        initial = (np.asarray(cfg.initial.mean, dtype=float), np.asarray(cfg.initial.sd, dtype=float))
+
+    inf = cfg.inference
+    method = inf.method or _default_method(system.is_linear, free)
+    if method in ("kalman", "kalman-mcmc") and not system.is_linear:
+        raise fail("[inference].method", f"method {method!r} needs a linear system but [system].type is "
+                                         f"{cfg.system.type!r}; use method = \"pgas\".")
+    if method == "kalman" and free:
+        names = ", ".join(_free_key(n) for n in free)
+        raise fail("[inference].method", f"method \"kalman\" needs every parameter fixed, but {names} "
+                                         f"has a prior; use method = \"kalman-mcmc\" to infer it, or give "
+                                         f"a number.")
+    if method == "kalman-mcmc" and not free:
+        raise fail("[inference].method", "method \"kalman-mcmc\" needs at least one inferred parameter "
+                                         "(a prior table), but every parameter is fixed; use "
+                                         "method = \"kalman\".")
+    if method == "pgas":
+        for name in free:
+            if name not in PGAS_FREE_OK:
+                raise fail(_free_key(name), f"method \"pgas\" can infer only the force variance and "
+                                            f"lengthscale in this version; give {name} as a number, or "
+                                            f"use method = \"kalman-mcmc\" for a linear system.")
+    settings = InferenceSettings(
+        method=method, particles=inf.particles, iterations=inf.iterations, burn_in=inf.burn_in,
+        state_every=inf.state_every, chains=inf.chains, seed=inf.seed, mh_steps=inf.mh_steps,
+        discretisation=inf.discretisation, proposal=inf.proposal, resampling=inf.resampling,
+        thin_draws=inf.thin_draws)
+
+    dat = cfg.data
+    if dat.time_column is not None and dat.sample_rate is not None:
+        raise fail("[data].sample_rate", "give either [data].time_column or [data].sample_rate, not both.")
+    if data_override is not None:
+        path: Path | None = Path(data_override).expanduser().resolve()
+    elif dat.path is not None:
+        path = (base_dir / Path(dat.path).expanduser()).resolve()
+    else:
+        path = None
+    # With a sample rate the time axis is implicit; otherwise default to "time".
+    time_column = None if dat.sample_rate is not None else (dat.time_column or "time")
+    data = DataSettings(path=path, time_column=time_column, sample_rate=dat.sample_rate, missing=dat.missing)
+
+    return Problem(model=model, fixed=fixed, free=free, columns=[s.name for s in sensors],
+                   initial=initial, inference=settings, data=data, config_path=Path(source))
+
+
+_TOML_POSITION = re.compile(r"\(at line (\d+), column (\d+)\)")
+
+
+def load_config(path: str | Path, data_override: str | None = None) -> Problem:
+    """Read and validate a TOML config file; ``data_override`` replaces ``[data].path``."""
+    path = Path(path)
+    if not path.exists():
+        raise LatentForceError(f"config file {str(path)!r} not found.")
+    if not path.is_file():
+        raise LatentForceError(f"config file {str(path)!r} is not a file.")
+    try:
+        with open(path, "rb") as fh:
+            raw = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        text = str(exc)
+        pos = _TOML_POSITION.search(text)
+        where = f" at line {pos.group(1)}, column {pos.group(2)}" if pos else ""
+        reason = _TOML_POSITION.sub("", text).strip()
+        raise LatentForceError(f"{path}: invalid TOML{where}: {reason}.") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise LatentForceError(f"config file {str(path)!r} cannot be read ({exc}).") from None
+    problem = config_from_dict(raw, source=str(path), base_dir=path.resolve().parent,
+                               data_override=data_override)
+    return problem._replace(config_path=path.resolve())
+
+
+# ----- small helpers for the commands ------------------------------------------
+def data_path(problem: Problem) -> Path:
+    """The data file to read, or an error when neither the config nor ``--data`` gives one."""
+    if problem.data.path is None:
+        raise LatentForceError(f"{problem.config_path}: [data].path is missing; give it in the config "
+                               f"or pass --data FILE.")
+    return problem.data.path
+
+
+def initial_params(problem: Problem) -> dict[str, float | np.ndarray]:
+    """All parameters at their starting point: fixed values plus each free ``init``."""
+    return {**problem.fixed, **{name: spec.init for name, spec in problem.free.items()}}

@@ -1,0 +1,390 @@
+"""Measured data in and out: channels over an evenly sampled time axis.
+
+``load_data`` reads the sensor channels named in the config from a CSV file
+(header row), an HDF5 file (one 1-D dataset per channel, nested paths such as
+``"group/acc"`` allowed), a MATLAB file (v5 via :func:`scipy.io.loadmat`, v7.3
+via h5py since those are HDF5 files) or a netCDF file (variables by name). It
+checks everything a user can get wrong (missing file or column, text in a
+numeric column, NaN/inf, an uneven time axis, channels of different lengths)
+and turns each into a one-paragraph :class:`~latentforce.errors.LatentForceError`
+naming the file and the column. Truth columns (``displacement``,
+``velocity``, ``force``, or with ``_0``, ``_1`` ... suffixes for MDOF), as
+written by ``simulate``, are picked up when present for the NMSE table.
+
+This module only moves numbers between files and arrays; it does no
+numerics beyond the checks (STYLE.md, rule 7).
+"""
+
+from __future__ import annotations
+
+import csv
+import difflib
+import math
+import re
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from latentforce.errors import LatentForceError
+
+__all__ = ["Dataset", "SUPPORTED_EXTENSIONS", "TRUTH_NAMES", "load_data", "write_csv"]
+
+SUPPORTED_EXTENSIONS = (".csv", ".h5", ".hdf5", ".mat", ".nc")
+TRUTH_NAMES = ("displacement", "velocity", "force")
+_TRUTH_PATTERN = re.compile(r"^(displacement|velocity|force)(_\d+)?$")
+# Relative tolerance on the spread of the time steps: tighter than any
+# sensible acquisition jitter, looser than float64 round-off of t = i * dt.
+_UNEVEN_RTOL = 1e-6
+
+
+class Dataset(NamedTuple):
+    """Measured channels on an even time grid.
+
+    ``values[:, j]`` is channel ``columns[j]`` (NaN where not observed) and
+    ``mask[:, j]`` is True where it was observed. ``truth`` maps truth column
+    names found in the file to their ``(T,)`` arrays.
+    """
+
+    time: np.ndarray  # (T,)
+    dt: float
+    values: np.ndarray  # (T, n_channels) float64
+    mask: np.ndarray  # (T, n_channels) bool
+    columns: list[str]
+    truth: dict[str, np.ndarray]
+
+
+# ----- readers: one per format, each a table of named 1-D channels -----------
+class _Table:
+    """Channels of one file: ``names`` and ``read(name) -> 1-D array``.
+
+    ``row_label(i)`` says where data row ``i`` lives in the file, so messages
+    point at a line a user can find (CSV) or an index (array formats).
+    """
+
+    names: list[str]
+
+    def read(self, name: str) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def row_label(self, i: int) -> str:
+        return f"row {i}"
+
+    def close(self) -> None:
+        pass
+
+
+def _err(path: Path, message: str) -> LatentForceError:
+    return LatentForceError(f"data file {str(path)!r}: {message}")
+
+
+def _suggest(name: str, names: list[str]) -> str:
+    close = difflib.get_close_matches(name, names, n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+class _CsvTable(_Table):
+    def __init__(self, path: Path):
+        self.path = path
+        # utf-8-sig drops the byte-order mark spreadsheet programs add.
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            rows = list(csv.reader(f))
+        # Blank lines (e.g. a trailing newline pair) are not data.
+        numbered = [(i + 1, r) for i, r in enumerate(rows) if any(cell.strip() for cell in r)]
+        if not numbered:
+            raise _err(path, "the file is empty (a CSV data file needs a header row and data rows)")
+        _, header = numbered[0]
+        self.names = [h.strip() for h in header]
+        self._lines = [n for n, _ in numbered[1:]]
+        self._rows = [r for _, r in numbered[1:]]
+        if not self._rows:
+            raise _err(path, "the file has a header row but no data rows")
+        for line, row in zip(self._lines, self._rows):
+            if len(row) != len(self.names):
+                raise _err(path, f"line {line} has {len(row)} fields but the header has {len(self.names)}")
+        dupes = sorted({n for n in self.names if self.names.count(n) > 1})
+        if dupes:
+            raise _err(path, f"the header names column(s) {', '.join(map(repr, dupes))} more than once")
+
+    def row_label(self, i: int) -> str:
+        return f"row {i} (line {self._lines[i]} of the file)"
+
+    def read(self, name: str) -> np.ndarray:
+        j = self.names.index(name)
+        out = np.empty(len(self._rows))
+        for i, row in enumerate(self._rows):
+            cell = row[j].strip()
+            # An empty cell is a missing sample, treated like NaN.
+            if not cell:
+                out[i] = math.nan
+                continue
+            try:
+                out[i] = float(cell)
+            except ValueError:
+                raise _err(self.path, f"column {name!r} holds a non-numeric entry {cell!r} at "
+                                      f"{self.row_label(i)}") from None
+        return out
+
+
+class _Hdf5Table(_Table):
+    """HDF5 (and MATLAB v7.3) files: every dataset, by its path inside the file."""
+
+    def __init__(self, path: Path, skip_prefix: str | None = None):
+        import h5py
+
+        self.path = path
+        self._file = h5py.File(path, "r")
+        names: list[str] = []
+
+        def visit(name, obj):
+            # MATLAB v7.3 keeps cell/struct internals under "#refs#"; not channels.
+            if isinstance(obj, h5py.Dataset) and not (skip_prefix and name.startswith(skip_prefix)):
+                names.append(name)
+
+        self._file.visititems(visit)
+        self.names = names
+
+    def read(self, name: str) -> np.ndarray:
+        return np.asarray(self._file[name][()])
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class _DictTable(_Table):
+    def __init__(self, arrays: dict[str, np.ndarray]):
+        self._arrays = arrays
+        self.names = list(arrays)
+
+    def read(self, name: str) -> np.ndarray:
+        return np.asarray(self._arrays[name])
+
+
+def _open_mat(path: Path) -> _Table:
+    import h5py
+    from scipy import io as sio
+
+    try:
+        contents = sio.loadmat(path)
+    except (NotImplementedError, ValueError) as exc:
+        # v7.3 files are HDF5; loadmat refuses them with NotImplementedError
+        # (or ValueError when the MATLAB header is absent).
+        if h5py.is_hdf5(path):
+            return _Hdf5Table(path, skip_prefix="#")
+        raise _err(path, f"not a readable MATLAB file ({exc})") from None
+    return _DictTable({k: v for k, v in contents.items() if not k.startswith("__")})
+
+
+def _open_netcdf(path: Path) -> _Table:
+    import xarray as xr
+
+    last: Exception | None = None
+    for engine in ("h5netcdf", "netcdf4"):
+        try:
+            ds = xr.open_dataset(path, engine=engine)
+        except (ValueError, OSError, ImportError) as exc:
+            last = exc
+            continue
+        try:
+            arrays = {str(n): ds[n].values for n in list(ds.data_vars) + list(ds.coords)}
+        finally:
+            ds.close()
+        return _DictTable(arrays)
+    raise _err(path, f"not a readable netCDF file ({last})")
+
+
+def _open(path: Path) -> _Table:
+    ext = path.suffix.lower()
+    try:
+        if ext == ".csv":
+            return _CsvTable(path)
+        if ext in (".h5", ".hdf5"):
+            return _Hdf5Table(path)
+        if ext == ".mat":
+            return _open_mat(path)
+        if ext == ".nc":
+            return _open_netcdf(path)
+    except LatentForceError:
+        raise
+    except (OSError, UnicodeDecodeError) as exc:
+        raise _err(path, f"cannot be read as a {ext} file ({exc})") from None
+    raise _err(path, f"unknown file type {ext or '(no extension)'!r}; supported: "
+                     f"{', '.join(SUPPORTED_EXTENSIONS)}")
+
+
+def _as_vector(path: Path, name: str, raw: np.ndarray) -> np.ndarray:
+    """A float64 1-D channel, or a LatentForceError naming the column."""
+    arr = np.asarray(raw)
+    if np.issubdtype(arr.dtype, np.datetime64) or np.issubdtype(arr.dtype, np.timedelta64):
+        # netCDF time coordinates decode to datetimes: make them seconds.
+        arr = (arr - arr.reshape(-1)[0]) / np.timedelta64(1, "s") if arr.size else arr.astype(float)
+    # MATLAB and HDF5 store vectors as (1, T) or (T, 1) matrices.
+    arr = np.squeeze(arr)
+    if arr.ndim == 0:
+        arr = arr.reshape(1)
+    if arr.ndim != 1:
+        raise _err(path, f"column {name!r} is not a 1-D channel (shape {tuple(np.shape(raw))})")
+    if arr.dtype.kind not in "biuf":
+        raise _err(path, f"column {name!r} holds non-numeric data (type {arr.dtype})")
+    return arr.astype(np.float64)
+
+
+def _first(mask: np.ndarray) -> int:
+    return int(np.flatnonzero(mask)[0])
+
+
+def _check_time(path: Path, table: _Table, name: str, t: np.ndarray) -> float:
+    """Check the time column is finite, increasing and even; return the step."""
+    bad = ~np.isfinite(t)
+    if bad.any():
+        raise _err(path, f"time column {name!r} holds NaN/inf at {table.row_label(_first(bad))}")
+    d = np.diff(t)
+    if np.any(d <= 0):
+        i = _first(d <= 0) + 1
+        raise _err(path, f"time column {name!r} is not increasing at {table.row_label(i)} "
+                         f"({t[i - 1]!r} then {t[i]!r})")
+    dt = float(np.median(d))
+    off = np.abs(d - dt) > _UNEVEN_RTOL * dt
+    if off.any():
+        i = _first(off) + 1
+        raise _err(path, f"time column {name!r} is not evenly sampled: the step before "
+                         f"{table.row_label(i)} is {d[i - 1]!r} but the nominal step is {dt!r}; "
+                         f"resample the data, or give [data].sample_rate if the time stamps "
+                         f"are only rounded")
+    return dt
+
+
+def load_data(path: str | Path, columns: list[str], time_column: str | None = "time",
+              sample_rate: float | None = None, missing: str = "error") -> Dataset:
+    """Read the sensor ``columns`` (and truth columns if present) from a data file.
+
+    With ``sample_rate`` the time axis is ``arange(T) / sample_rate`` and no
+    time column is read; otherwise ``time_column`` must exist and be evenly
+    sampled. ``missing="error"`` refuses NaN/inf samples; ``"skip"`` keeps
+    them as unobserved (``mask`` False, value NaN).
+    """
+    path = Path(path)
+    if missing not in ("error", "skip"):
+        raise ValueError(f"missing must be 'error' or 'skip', got {missing!r}")
+    if not path.exists():
+        raise _err(path, "file not found")
+    if not path.is_file():
+        raise _err(path, "is not a file")
+    if path.stat().st_size == 0:
+        raise _err(path, "the file is empty")
+    if not columns:
+        raise ValueError("load_data needs at least one column")
+
+    table = _open(path)
+    try:
+        return _load(path, table, list(columns), time_column, sample_rate, missing)
+    finally:
+        table.close()
+
+
+def _load(path: Path, table: _Table, columns: list[str], time_column: str | None,
+          sample_rate: float | None, missing: str) -> Dataset:
+    available = table.names
+    listing = ", ".join(repr(n) for n in available) or "(none)"
+    for name in columns:
+        if name not in available:
+            raise _err(path, f"column {name!r} not found{_suggest(name, available)}. "
+                             f"Available columns: {listing}.")
+
+    use_time = sample_rate is None
+    if use_time:
+        time_column = time_column or "time"
+        if time_column not in available:
+            raise _err(path, f"time column {time_column!r} not found{_suggest(time_column, available)}. "
+                             f"Available columns: {listing}. Give [data].time_column, or "
+                             f"[data].sample_rate for data without a time column")
+    elif not sample_rate > 0:
+        raise ValueError(f"sample_rate must be positive, got {sample_rate!r}")
+
+    truth_names = [n for n in available
+                   if _TRUTH_PATTERN.match(n) and n not in columns and n != time_column]
+
+    # Read everything and check lengths against the first sensor channel.
+    channels = {name: _as_vector(path, name, table.read(name)) for name in columns}
+    T = channels[columns[0]].size
+    extra = ([time_column] if use_time else []) + truth_names
+    for name in extra:
+        channels[name] = _as_vector(path, name, table.read(name))
+    for name, arr in channels.items():
+        if arr.size != T:
+            raise _err(path, f"column {name!r} has {arr.size} samples but column "
+                             f"{columns[0]!r} has {T}; all channels must have the same length")
+    if T == 0:
+        raise _err(path, f"column {columns[0]!r} has no samples")
+    if T < 2:
+        raise _err(path, f"column {columns[0]!r} has {T} sample; at least 2 are needed")
+
+    if use_time:
+        time = channels[time_column]
+        dt = _check_time(path, table, time_column, time)
+    else:
+        dt = 1.0 / float(sample_rate)
+        time = np.arange(T) / float(sample_rate)
+
+    values = np.column_stack([channels[n] for n in columns])
+    mask = np.isfinite(values)
+    if missing == "error":
+        for j, name in enumerate(columns):
+            bad = ~mask[:, j]
+            if bad.any():
+                raise _err(path, f"column {name!r} holds {int(bad.sum())} NaN/inf value(s), the first "
+                                 f"at {table.row_label(_first(bad))}; set missing = \"skip\" in [data] "
+                                 f"to treat them as missing observations.")
+    values = np.where(mask, values, np.nan)
+    truth = {n: channels[n] for n in truth_names}
+    return Dataset(time=time, dt=dt, values=values, mask=mask, columns=list(columns), truth=truth)
+
+
+def write_csv(path: str | Path, columns: dict[str, np.ndarray]) -> None:
+    """Write equal-length 1-D ``columns`` to a CSV file with a header row.
+
+    Values are written with Python's shortest round-trip ``repr``, so reading
+    the file back gives the same float64 numbers bit for bit.
+    """
+    names = list(columns)
+    arrays = [np.asarray(columns[n], dtype=np.float64).reshape(-1) for n in names]
+    lengths = {a.size for a in arrays}
+    if len(lengths) > 1:
+        raise ValueError(f"columns differ in length: "
+                         f"{ {n: a.size for n, a in zip(names, arrays)} }")
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(names)
+        for row in zip(*(a.tolist() for a in arrays)):
+            writer.writerow([repr(v) for v in row])
+
+
+def write_data(path: str | Path, columns: dict[str, np.ndarray]) -> None:
+    """Write channels in the format given by the extension (the formats ``load_data`` reads).
+
+    ``.csv``: header row; ``.h5``/``.hdf5``: one dataset per column;
+    ``.mat``: MATLAB v5, one variable per column; ``.nc``: netCDF, one
+    variable per column on the dimension ``time``.
+    """
+    path = Path(path)
+    ext = path.suffix.lower()
+    arrays = {n: np.asarray(v, dtype=np.float64).reshape(-1) for n, v in columns.items()}
+    if ext == ".csv":
+        write_csv(path, arrays)
+    elif ext in (".h5", ".hdf5"):
+        import h5py
+
+        with h5py.File(path, "w") as f:
+            for n, a in arrays.items():
+                f.create_dataset(n, data=a)
+    elif ext == ".mat":
+        from scipy.io import savemat
+
+        savemat(path, {n: a[:, None] for n, a in arrays.items()})
+    elif ext == ".nc":
+        import xarray as xr
+
+        xr.Dataset({n: ("time", a) for n, a in arrays.items()}).to_netcdf(path, engine="h5netcdf")
+    else:
+        raise LatentForceError(
+            f"Cannot write {str(path)!r}: unknown extension {ext!r}. Supported: .csv, .h5, .hdf5, .mat, .nc.")

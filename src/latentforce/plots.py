@@ -1,0 +1,305 @@
+"""Figures of a result folder (``figures/``), drawn from a :class:`RunResult`.
+
+* ``measured.png`` -- each observed channel against time;
+* ``displacement.png``, ``velocity.png``, ``force.png`` -- posterior mean with
+  shaded 1, 2 and 3 sd bands and the truth in red when known, one subplot
+  per DOF / force;
+* ``paths.png`` -- a few dozen sampled trajectories per state (cf. Fig. 4,
+  Vibration 2020);
+* ``traces.png`` -- parameter traces, one colour per chain;
+* ``histograms.png`` -- marginal histogram and empirical CDF per parameter
+  with the posterior mean and the CDF median (cf. Figs. 1 and 3, ISMA 2018);
+* ``joint_hyperparameters.png`` -- 2-D histogram and contours of
+  (force_variance, force_lengthscale), the truth as a red x when
+  ``result.diagnostics["true_params"]`` gives it.
+
+Figures are built as bare :class:`matplotlib.figure.Figure` objects and
+saved with the Agg renderer, so nothing touches pyplot's global state or
+opens a window, and each figure is released once saved.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from matplotlib.figure import Figure
+
+if TYPE_CHECKING:
+    from latentforce.results import RunResult
+
+__all__ = [
+    "FIGURE_NAMES",
+    "draw_figures",
+    "plot_measured",
+    "plot_state",
+    "plot_paths",
+    "plot_traces",
+    "plot_histograms",
+    "plot_joint_hyperparameters",
+]
+
+#: Every file name ``draw_figures`` may write (a redraw removes these first).
+FIGURE_NAMES: tuple[str, ...] = (
+    "measured.png",
+    "displacement.png",
+    "velocity.png",
+    "force.png",
+    "paths.png",
+    "traces.png",
+    "histograms.png",
+    "joint_hyperparameters.png",
+)
+
+DPI = 110
+_STATES = ("displacement", "velocity", "force")
+_STATE_UNITS = {"displacement": "m", "velocity": "m/s", "force": "N"}
+_QUANTITY_UNITS = {
+    "displacement": "m",
+    "velocity": "m/s",
+    "acceleration": "m/s$^2$",
+    "force": "N",
+}
+_PARAM_UNITS = {
+    "m": "kg",
+    "c": "N s/m",
+    "k": "N/m",
+    "k3": "N/m$^3$",
+    "force_variance": "N$^2$",
+    "force_lengthscale": "s",
+}
+_MEAN_COLOUR = "C0"
+_TRUTH_COLOUR = "red"
+
+
+def draw_figures(result: RunResult, fig_dir: Path) -> list[Path]:
+    """Draw every figure that ``result`` has data for into ``fig_dir``."""
+    fig_dir = Path(fig_dir)
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    if result.observed:
+        written.append(plot_measured(result, fig_dir / "measured.png"))
+    for state in _STATES:
+        if state in result.state_mean:
+            written.append(plot_state(result, state, fig_dir / f"{state}.png"))
+    if result.path_draws:
+        written.append(plot_paths(result, fig_dir / "paths.png"))
+    if result.param_draws:
+        written.append(plot_traces(result, fig_dir / "traces.png"))
+        written.append(plot_histograms(result, fig_dir / "histograms.png"))
+        if {"force_variance", "force_lengthscale"} <= set(result.param_draws):
+            written.append(plot_joint_hyperparameters(result, fig_dir / "joint_hyperparameters.png"))
+    return written
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    fig.clear()
+    return Path(path)
+
+
+def _columns(array: np.ndarray) -> np.ndarray:
+    a = np.asarray(array, dtype=float)
+    return a[:, None] if a.ndim == 1 else a
+
+
+def _component_title(state: str, i: int, width: int) -> str:
+    if width == 1:
+        return state.capitalize()
+    where = "DOF" if state in ("displacement", "velocity") else "force"
+    return f"{state.capitalize()}, {where} {i}"
+
+
+def _state_label(state: str) -> str:
+    unit = _STATE_UNITS.get(state)
+    return f"{state} [{unit}]" if unit else state
+
+
+def _channel_unit(result: RunResult, column: str) -> str:
+    """Units of a measured channel: from ``diagnostics["channel_quantities"]``
+    (column -> quantity) when the caller recorded it, else from the name."""
+    quantities = result.diagnostics.get("channel_quantities") or {}
+    quantity = quantities.get(column)
+    if quantity is None:
+        lowered = column.lower()
+        for prefix, name in (("acc", "acceleration"), ("vel", "velocity"), ("disp", "displacement")):
+            if lowered.startswith(prefix):
+                quantity = name
+                break
+    return _QUANTITY_UNITS.get(quantity or "", "")
+
+
+def _param_label(name: str) -> str:
+    unit = _PARAM_UNITS.get(name)
+    return f"{name} [{unit}]" if unit else name
+
+
+def _true_params(result: RunResult) -> dict[str, float]:
+    true_params = result.diagnostics.get("true_params") or {}
+    return {k: float(v) for k, v in true_params.items() if v is not None}
+
+
+def plot_measured(result: RunResult, path: Path) -> Path:
+    """Each observed channel against time, one subplot per channel."""
+    n = len(result.observed)
+    fig = Figure(figsize=(9, 2.4 * n + 0.6))
+    axes = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
+    for ax, (column, values) in zip(axes, result.observed.items()):
+        ax.plot(result.time, np.asarray(values, dtype=float), lw=0.7, color="0.2")
+        unit = _channel_unit(result, column)
+        ax.set_ylabel(f"{column} [{unit}]" if unit else column)
+        ax.set_title(f"Measured channel '{column}'")
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time [s]")
+    return _save(fig, path)
+
+
+def plot_state(result: RunResult, state: str, path: Path) -> Path:
+    """Posterior mean with 1, 2, 3 sd bands; truth in red when known."""
+    mean = _columns(result.state_mean[state])
+    sd = _columns(result.state_sd[state])
+    truth = _columns(result.truth[state]) if state in result.truth else None
+    width = mean.shape[1]
+    time = np.asarray(result.time, dtype=float)
+    fig = Figure(figsize=(9, 2.8 * width + 0.6))
+    axes = fig.subplots(width, 1, sharex=True, squeeze=False)[:, 0]
+    for i, ax in enumerate(axes):
+        for k, alpha in ((3, 0.12), (2, 0.2), (1, 0.3)):
+            ax.fill_between(
+                time,
+                mean[:, i] - k * sd[:, i],
+                mean[:, i] + k * sd[:, i],
+                color=_MEAN_COLOUR,
+                alpha=alpha,
+                lw=0,
+                label=f"$\\pm{k}$ sd",
+            )
+        ax.plot(time, mean[:, i], color=_MEAN_COLOUR, lw=1.0, label="posterior mean")
+        if truth is not None:
+            ax.plot(time, truth[:, i], color=_TRUTH_COLOUR, lw=0.9, ls="--", label="truth")
+        ax.set_ylabel(_state_label(state))
+        ax.set_title(f"{_component_title(state, i, width)}: posterior ({result.method})")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize="small", ncol=5)
+    axes[-1].set_xlabel("time [s]")
+    return _save(fig, path)
+
+
+def plot_paths(result: RunResult, path: Path, max_paths: int = 30) -> Path:
+    """Up to ``max_paths`` sampled trajectories per state, spread evenly over
+    chains and draws, with the truth in red when known."""
+    rows = []
+    for state in _STATES + tuple(s for s in result.path_draws if s not in _STATES):
+        if state not in result.path_draws:
+            continue
+        draws = np.asarray(result.path_draws[state], dtype=float)
+        if draws.ndim == 3:
+            draws = draws[..., None]
+        flat = draws.reshape(-1, draws.shape[2], draws.shape[3])
+        pick = np.unique(np.linspace(0, flat.shape[0] - 1, min(max_paths, flat.shape[0])).astype(int))
+        for i in range(draws.shape[3]):
+            rows.append((state, i, draws.shape[3], flat[pick, :, i]))
+    time = np.asarray(result.time, dtype=float)
+    fig = Figure(figsize=(9, 2.6 * len(rows) + 0.6))
+    axes = fig.subplots(len(rows), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, (state, i, width, paths) in zip(axes, rows):
+        ax.plot(time, paths.T, color="0.35", lw=0.5, alpha=0.35)
+        ax.plot([], [], color="0.35", lw=0.8, label=f"{paths.shape[0]} sampled paths")
+        if state in result.truth:
+            ax.plot(time, _columns(result.truth[state])[:, i], color=_TRUTH_COLOUR, lw=0.9, label="truth")
+        ax.set_ylabel(_state_label(state))
+        ax.set_title(f"{_component_title(state, i, width)}: sampled trajectories ({result.method})")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize="small")
+    axes[-1].set_xlabel("time [s]")
+    return _save(fig, path)
+
+
+def plot_traces(result: RunResult, path: Path) -> Path:
+    """Trace of each sampled parameter, one colour per chain."""
+    names = list(result.param_draws)
+    truth = _true_params(result)
+    fig = Figure(figsize=(9, 2.2 * len(names) + 0.6))
+    axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, name in zip(axes, names):
+        draws = np.atleast_2d(np.asarray(result.param_draws[name], dtype=float))
+        for chain, trace in enumerate(draws):
+            ax.plot(trace, lw=0.6, color=f"C{chain % 10}", alpha=0.8, label=f"chain {chain}")
+        if name in truth:
+            ax.axhline(truth[name], color=_TRUTH_COLOUR, lw=1.0, ls="--", label="truth")
+        ax.set_ylabel(_param_label(name))
+        ax.set_title(f"Trace of {name}")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize="small", ncol=min(6, len(axes[0].lines)))
+    axes[-1].set_xlabel("draw (after burn-in)")
+    return _save(fig, path)
+
+
+def plot_histograms(result: RunResult, path: Path) -> Path:
+    """Marginal histogram and empirical CDF per parameter, with the posterior
+    mean, the CDF median (where the ECDF crosses 1/2) and the truth if known."""
+    names = list(result.param_draws)
+    truth = _true_params(result)
+    fig = Figure(figsize=(10, 2.8 * len(names) + 0.6))
+    axes = fig.subplots(len(names), 2, squeeze=False)
+    for (ax_hist, ax_cdf), name in zip(axes, names):
+        samples = np.sort(np.asarray(result.param_draws[name], dtype=float).ravel())
+        samples = samples[np.isfinite(samples)]
+        mean, median = float(np.mean(samples)), float(np.median(samples))
+        ax_hist.hist(samples, bins=_bins(samples.size), density=True, color="0.6", edgecolor="0.35")
+        ecdf = np.arange(1, samples.size + 1) / samples.size
+        ax_cdf.step(samples, ecdf, where="post", color="0.2", lw=1.0)
+        ax_cdf.axhline(0.5, color="0.5", lw=0.6, ls=":")
+        for ax in (ax_hist, ax_cdf):
+            ax.axvline(mean, color=_MEAN_COLOUR, lw=1.2, label=f"mean {mean:.4g}")
+            ax.axvline(median, color="C2", lw=1.2, ls="--", label=f"CDF median {median:.4g}")
+            if name in truth:
+                ax.axvline(truth[name], color=_TRUTH_COLOUR, lw=1.2, ls=":", label=f"truth {truth[name]:.4g}")
+            ax.set_xlabel(_param_label(name))
+            ax.grid(alpha=0.3)
+        ax_hist.set_ylabel("density")
+        ax_hist.set_title(f"Posterior of {name}")
+        ax_hist.legend(fontsize="small")
+        ax_cdf.set_ylabel("empirical CDF")
+        ax_cdf.set_ylim(0, 1.02)
+        ax_cdf.set_title(f"Empirical CDF of {name}")
+    return _save(fig, path)
+
+
+def _bins(n: int) -> int:
+    return int(np.clip(np.sqrt(max(n, 1)), 10, 60))
+
+
+def plot_joint_hyperparameters(result: RunResult, path: Path) -> Path:
+    """Joint 2-D histogram with contours of the force variance and lengthscale."""
+    x = np.asarray(result.param_draws["force_lengthscale"], dtype=float).ravel()
+    y = np.asarray(result.param_draws["force_variance"], dtype=float).ravel()
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    fig = Figure(figsize=(6.4, 5.4))
+    ax = fig.subplots()
+    bins = _bins(x.size) // 2 + 5
+    counts, x_edges, y_edges, image = ax.hist2d(x, y, bins=bins, cmap="Greys")
+    fig.colorbar(image, ax=ax, label="draws per bin")
+    if np.count_nonzero(counts) > 1 and counts.max() > counts[counts > 0].min():
+        x_mid = 0.5 * (x_edges[1:] + x_edges[:-1])
+        y_mid = 0.5 * (y_edges[1:] + y_edges[:-1])
+        ax.contour(x_mid, y_mid, counts.T, levels=5, colors=_MEAN_COLOUR, linewidths=0.8)
+    truth = _true_params(result)
+    if "force_lengthscale" in truth and "force_variance" in truth:
+        ax.plot(
+            truth["force_lengthscale"],
+            truth["force_variance"],
+            "x",
+            color=_TRUTH_COLOUR,
+            ms=12,
+            mew=2.5,
+            label="truth",
+        )
+        ax.legend(loc="upper right")
+    ax.set_xlabel(_param_label("force_lengthscale"))
+    ax.set_ylabel(_param_label("force_variance"))
+    ax.set_title("Joint posterior of the force hyperparameters")
+    return _save(fig, path)

@@ -1,0 +1,692 @@
+"""The in-memory result of an inference run and the result folder it becomes.
+
+Every inference method returns a :class:`RunResult`; :func:`write_results`
+turns it into the result folder of INTERFACE.md and :func:`read_results`
+reads one back (``latentforce report DIR``).
+
+Result folder layout
+--------------------
+``posterior.nc``
+    An :class:`xarray.DataTree` written with h5netcdf, readable by both
+    ``arviz.from_netcdf`` and ``xarray.open_datatree``. Groups:
+
+    ``posterior``
+        Sampled scalar parameters under their config names (``k``, ``c``,
+        ``force_variance``, ``force_lengthscale``, ...) with dims
+        ``(chain, draw)``. Sampled trajectories ``displacement``,
+        ``velocity`` and ``force`` with dims ``(chain, path_draw, time)``:
+        the trajectories are thinned (a few hundred per chain at most) while
+        the parameters are not, so they live on their own draw dimension
+        ``path_draw`` and the parameters keep ``draw``. MDOF systems add a
+        trailing ``dof`` dim to displacement and velocity; several latent
+        forces add a trailing ``force_index`` dim to force.
+        For ``method = "kalman"`` nothing is sampled: the group holds the
+        smoother's ``displacement_mean``, ``displacement_sd``,
+        ``velocity_mean``, ... with dims ``(time[, dof|force_index])``.
+    ``observed_data``
+        The measured channels by column name, dim ``time``; NaN where a
+        sample was missing.
+    ``sample_stats``
+        The sampler statistics (``accepted``, ``log_likelihood``, ...) with
+        dims ``(chain, draw)``.
+    ``constant_data``
+        Only when the truth is known: ``true_displacement``,
+        ``true_velocity``, ``true_force`` with the same trailing dims as the
+        posterior trajectories.
+
+    Root attributes record ``method``, ``ndof``, ``nforce``, ``seed`` and
+    ``latentforce_version``.
+``summary.csv``
+    One row per time step: ``time`` then ``NAME_mean``, ``NAME_sd`` for
+    displacement, velocity and force (``displacement_0_mean``, ... for MDOF;
+    ``force_0_mean``, ... for several forces), written at full (round-trip)
+    precision.
+``summary.json``
+    The layout of INTERFACE.md, plus ``point_estimate``, ``fixed`` and
+    ``diagnostics``. Non-finite numbers are written as ``null``.
+``figures/``
+    PNG plots drawn by :mod:`latentforce.plots`.
+
+I/O never does inference numerics (STYLE.md, item 7); the only numbers
+computed here are posterior summaries (mean, quantiles, R-hat, ESS) and the
+error measures :func:`nmse` and :func:`coverage`.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import os
+import re
+import warnings
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import xarray as xr
+
+from latentforce.errors import LatentForceError
+
+__all__ = [
+    "RunResult",
+    "write_results",
+    "read_results",
+    "redraw",
+    "nmse",
+    "coverage",
+    "summarise_parameters",
+    "summary_columns",
+    "STATE_NAMES",
+    "RESULT_FILES",
+]
+
+#: The mechanical and force states, in the order the summaries list them.
+STATE_NAMES: tuple[str, ...] = ("displacement", "velocity", "force")
+
+#: The files in a result folder that ``write_results`` owns (besides
+#: ``figures/``); with ``overwrite`` only these are replaced.
+RESULT_FILES: tuple[str, ...] = ("posterior.nc", "summary.csv", "summary.json")
+
+_ENGINE = "h5netcdf"
+_PATH_DRAW = "path_draw"
+_UNITS = {"displacement": "m", "velocity": "m/s", "force": "N"}
+
+
+@dataclass
+class RunResult:
+    """What every inference method returns.
+
+    Shapes: ``T`` time steps, ``ndof`` degrees of freedom, ``nforce`` latent
+    forces, ``chains`` x ``draws`` parameter draws and ``chains`` x
+    ``path_draws`` thinned trajectory draws.
+    """
+
+    method: str  # "kalman" | "kalman-mcmc" | "pgas"
+    time: np.ndarray  # (T,)
+    ndof: int
+    nforce: int
+    state_mean: dict[str, np.ndarray]  # state -> (T, ndof|nforce)
+    state_sd: dict[str, np.ndarray]  # state -> (T, ndof|nforce)
+    param_draws: dict[str, np.ndarray]  # name -> (chains, draws); empty for kalman
+    path_draws: dict[str, np.ndarray]  # state -> (chains, path_draws, T, ndof|nforce)
+    sample_stats: dict[str, np.ndarray]  # name -> (chains, draws)
+    acceptance: list[float]  # per chain; empty for kalman
+    log_likelihood: float  # exact for kalman, at the point estimate otherwise
+    observed: dict[str, np.ndarray]  # column -> (T,), NaN where missing
+    truth: dict[str, np.ndarray] = field(default_factory=dict)  # state -> (T, n)
+    point_estimate: dict[str, float] = field(default_factory=dict)
+    diagnostics: dict = field(default_factory=dict)  # JSON-able extras
+    seed: int = 0
+    wall_time_s: float = 0.0
+    fixed: dict[str, float] = field(default_factory=dict)
+    #: Parameter summaries computed from the full chains, when ``param_draws``
+    #: holds only the draws aligned with ``path_draws`` (see ``posterior.nc``).
+    param_summary: dict | None = None
+
+
+# ---------------------------------------------------------------------------
+# Error measures and parameter summaries
+# ---------------------------------------------------------------------------
+
+
+def nmse(truth: np.ndarray, estimate: np.ndarray) -> float:
+    """Normalised mean squared error in percent.
+
+    .. math:: \\mathrm{NMSE} = \\frac{100}{T\\,\\sigma_x^2} \\sum_t (x_t - \\hat x_t)^2
+
+    with :math:`\\sigma_x^2` the (population) variance of the truth, as in
+    the Vibration 2020 paper. Pairs where either value is not finite are
+    left out; a constant truth gives ``nan``.
+    """
+    x = np.asarray(truth, dtype=float).ravel()
+    xhat = np.asarray(estimate, dtype=float).ravel()
+    if x.shape != xhat.shape:
+        raise ValueError(f"nmse: truth has {x.size} values, estimate {xhat.size}")
+    ok = np.isfinite(x) & np.isfinite(xhat)
+    if not ok.any():
+        return float("nan")
+    x, xhat = x[ok], xhat[ok]
+    variance = np.var(x)
+    if variance <= 0.0:
+        return float("nan")
+    return float(100.0 * np.mean((x - xhat) ** 2) / variance)
+
+
+def coverage(truth: np.ndarray, mean: np.ndarray, sd: np.ndarray, k: float = 3.0) -> float:
+    """Fraction of values with ``|truth - mean| <= k * sd`` (calibration check).
+
+    For a calibrated Gaussian posterior this is about 0.683, 0.954 and
+    0.997 for ``k`` = 1, 2, 3. Non-finite entries are left out.
+    """
+    x, m, s = (np.asarray(a, dtype=float) for a in (truth, mean, sd))
+    x, m, s = np.broadcast_arrays(x, m, s)
+    ok = np.isfinite(x) & np.isfinite(m) & np.isfinite(s)
+    if not ok.any():
+        return float("nan")
+    return float(np.mean(np.abs(x[ok] - m[ok]) <= k * s[ok]))
+
+
+@contextmanager
+def _quiet_arviz() -> Iterator[Any]:
+    """Import ArviZ without its refactor FutureWarning and small-sample logs.
+
+    ArviZ logs a shape warning for fewer than 2 chains or 4 draws and then
+    returns NaN, which we report as ``null``; the warning adds nothing.
+    """
+    logger = logging.getLogger("arviz")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            import arviz
+
+            yield arviz
+    finally:
+        logger.setLevel(level)
+
+
+def summarise_parameters(param_draws: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    """Posterior summary of each sampled scalar parameter.
+
+    ``param_draws`` maps a name to draws of shape ``(chains, draws)``. Returns
+    ``{name: {mean, sd, median, q05, q95, r_hat, ess_bulk}}``: moments and
+    quantiles over all chains pooled, rank-normalised split R-hat
+    (``arviz.rhat``) and bulk ESS (``arviz.ess(method="bulk")``). R-hat is
+    NaN for a single chain and both are NaN for fewer than 4 draws.
+    """
+    if not param_draws:
+        return {}
+    arrays = {name: _as_chain_draw(name, draws) for name, draws in param_draws.items()}
+    dataset = xr.Dataset({name: (("chain", "draw"), a) for name, a in arrays.items()})
+    with _quiet_arviz() as az:
+        r_hat = az.rhat(dataset)
+        ess_bulk = az.ess(dataset, method="bulk")
+    summary = {}
+    for name, a in arrays.items():
+        flat = a.ravel()
+        summary[name] = {
+            "mean": float(np.mean(flat)),
+            "sd": float(np.std(flat, ddof=1)) if flat.size > 1 else float("nan"),
+            "median": float(np.median(flat)),
+            "q05": float(np.quantile(flat, 0.05)),
+            "q95": float(np.quantile(flat, 0.95)),
+            "r_hat": float(r_hat[name]),
+            "ess_bulk": float(ess_bulk[name]),
+        }
+    return summary
+
+
+def _as_chain_draw(name: str, draws: np.ndarray) -> np.ndarray:
+    a = np.asarray(draws, dtype=float)
+    if a.ndim == 1:
+        a = a[None, :]
+    if a.ndim != 2:
+        raise ValueError(f"parameter draws {name!r} must be (chains, draws), got {a.shape}")
+    return a
+
+
+# ---------------------------------------------------------------------------
+# Shapes and names
+# ---------------------------------------------------------------------------
+
+
+def _width(result: RunResult, state: str, array: np.ndarray | None = None) -> int:
+    """Number of components of a state: ndof, nforce, or its array's width."""
+    if state in ("displacement", "velocity"):
+        return int(result.ndof)
+    if state == "force":
+        return int(result.nforce)
+    if array is None:
+        return 1
+    a = np.asarray(array)
+    return 1 if a.ndim < 2 else int(a.shape[-1])
+
+
+def _component_dim(state: str) -> str:
+    if state in ("displacement", "velocity"):
+        return "dof"
+    if state == "force":
+        return "force_index"
+    return f"{state}_index"
+
+
+def _ordered_states(names) -> list[str]:
+    names = list(names)
+    return [s for s in STATE_NAMES if s in names] + [s for s in names if s not in STATE_NAMES]
+
+
+def _as_time_width(array: np.ndarray, T: int, width: int, what: str) -> np.ndarray:
+    a = np.asarray(array, dtype=float)
+    if a.ndim == 1:
+        a = a[:, None]
+    if a.shape != (T, width):
+        raise ValueError(f"{what} must have shape ({T}, {width}), got {a.shape}")
+    return a
+
+
+def _component_label(state: str, i: int, width: int) -> str:
+    return state if width == 1 else f"{state}_{i}"
+
+
+def summary_columns(result: RunResult) -> list[str]:
+    """The header of ``summary.csv`` for this result."""
+    columns = ["time"]
+    for state in _ordered_states(result.state_mean):
+        width = _width(result, state, result.state_mean[state])
+        for i in range(width):
+            label = _component_label(state, i, width)
+            columns += [f"{label}_mean", f"{label}_sd"]
+    return columns
+
+
+# ---------------------------------------------------------------------------
+# Writing
+# ---------------------------------------------------------------------------
+
+
+def write_results(
+    out_dir: Path, result: RunResult, *, overwrite: bool = False, figures: bool = True
+) -> None:
+    """Write ``result`` as the result folder ``out_dir`` (see module docstring).
+
+    An existing, non-empty folder is refused unless ``overwrite``; then only
+    ``posterior.nc``, ``summary.csv``, ``summary.json`` and the figures this
+    module draws are replaced, and any other file in the folder is kept.
+    """
+    out_dir = Path(out_dir)
+    check_out_dir(out_dir, overwrite)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tree = _to_datatree(result)
+    _replace(out_dir / "posterior.nc", lambda p: tree.to_netcdf(p, engine=_ENGINE))
+    _write_summaries(out_dir, result)
+    if figures:
+        _write_figures(out_dir, result)
+
+
+def check_out_dir(out_dir: Path, overwrite: bool) -> None:
+    """Refuse an existing non-empty result folder unless ``overwrite`` (run before any work)."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise LatentForceError(
+            f"The result folder {str(out_dir)!r} is an existing file, not a folder; "
+            "choose another --out."
+        )
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+        raise LatentForceError(
+            f"The result folder {str(out_dir)!r} already exists and is not empty; "
+            "nothing was written. Pass --force to replace its results (other files "
+            "in it are kept) or choose another --out."
+        )
+
+
+def _replace(path: Path, write) -> None:
+    """Write through a temporary file so a failed write leaves no half file."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _write_summaries(out_dir: Path, result: RunResult) -> None:
+    _replace(out_dir / "summary.csv", lambda p: _write_summary_csv(p, result))
+    text = json.dumps(_summary_json(result), indent=2, allow_nan=False) + "\n"
+    _replace(out_dir / "summary.json", lambda p: p.write_text(text, encoding="utf-8"))
+
+
+def _write_figures(out_dir: Path, result: RunResult) -> None:
+    from latentforce import plots
+
+    fig_dir = out_dir / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    for name in plots.FIGURE_NAMES:
+        stale = fig_dir / name
+        if stale.is_file():
+            stale.unlink()
+    plots.draw_figures(result, fig_dir)
+
+
+def _to_datatree(result: RunResult) -> xr.DataTree:
+    from latentforce import __version__
+
+    time = np.asarray(result.time, dtype=float)
+    T = time.size
+    time_coord = {"time": ("time", time, {"units": "s"})}
+    groups: dict[str, xr.Dataset] = {}
+
+    posterior = xr.Dataset(coords=time_coord)
+    for name, draws in result.param_draws.items():
+        posterior[name] = (("chain", "draw"), _as_chain_draw(name, draws))
+    if result.method == "kalman":
+        # Nothing sampled: the posterior is the smoother's Gaussian marginals.
+        for state in _ordered_states(result.state_mean):
+            width = _width(result, state, result.state_mean[state])
+            dims = ("time",) if width == 1 else ("time", _component_dim(state))
+            for kind, source in (("mean", result.state_mean), ("sd", result.state_sd)):
+                a = _as_time_width(source[state], T, width, f"state_{kind}[{state!r}]")
+                posterior[f"{state}_{kind}"] = (
+                    dims,
+                    a[:, 0] if width == 1 else a,
+                    {"units": _UNITS.get(state, ""), "description": f"RTS smoother {kind}"},
+                )
+    # INTERFACE.md: trajectories share (chain, draw) with the parameters. The
+    # inference methods store both at the same iterations; only a result whose
+    # counts differ falls back to a separate ``path_draw`` dimension.
+    n_param = next((np.shape(v)[-1] for v in result.param_draws.values()), None)
+    n_path = next((np.shape(v)[1] for v in result.path_draws.values()), None)
+    path_dim = "draw" if n_param is None or n_param == n_path else _PATH_DRAW
+    for state in _ordered_states(result.path_draws):
+        a = np.asarray(result.path_draws[state], dtype=float)
+        width = _width(result, state, a)
+        if a.ndim == 3:
+            a = a[..., None]
+        if a.ndim != 4 or a.shape[2] != T or a.shape[3] != width:
+            raise ValueError(
+                f"path_draws[{state!r}] must be (chains, path_draws, {T}, {width}), "
+                f"got {np.shape(result.path_draws[state])}"
+            )
+        dims = ("chain", path_dim, "time")
+        if width > 1:
+            dims += (_component_dim(state),)
+        posterior[state] = (dims, a[..., 0] if width == 1 else a, {"units": _UNITS.get(state, "")})
+    groups["posterior"] = posterior
+
+    if result.observed:
+        observed = xr.Dataset(coords=time_coord)
+        for column, values in result.observed.items():
+            v = np.asarray(values, dtype=float).ravel()
+            if v.size != T:
+                raise ValueError(f"observed[{column!r}] has {v.size} samples, time has {T}")
+            observed[column] = ("time", v)
+        groups["observed_data"] = observed
+
+    if result.sample_stats:
+        groups["sample_stats"] = _sample_stats_dataset(result, posterior)
+
+    if result.truth:
+        constant = xr.Dataset(coords=time_coord)
+        for state in _ordered_states(result.truth):
+            width = _width(result, state, result.truth[state])
+            a = _as_time_width(result.truth[state], T, width, f"truth[{state!r}]")
+            dims = ("time",) if width == 1 else ("time", _component_dim(state))
+            constant[f"true_{state}"] = (
+                dims,
+                a[:, 0] if width == 1 else a,
+                {"units": _UNITS.get(state, "")},
+            )
+        groups["constant_data"] = constant
+
+    tree = xr.DataTree.from_dict(groups)
+    tree.attrs.update(
+        {
+            "method": result.method,
+            "ndof": int(result.ndof),
+            "nforce": int(result.nforce),
+            "seed": int(result.seed),
+            "latentforce_version": __version__,
+        }
+    )
+    return tree
+
+
+def _sample_stats_dataset(result: RunResult, posterior: xr.Dataset) -> xr.Dataset:
+    """Sample stats on (chain, draw); a length that fits neither the parameter
+    nor the trajectory draws gets a draw dimension of its own."""
+    draw_size = posterior.sizes.get("draw")
+    path_size = posterior.sizes.get(_PATH_DRAW)
+    stats = xr.Dataset()
+    for name, values in result.sample_stats.items():
+        a = np.asarray(values)
+        if a.ndim == 1:
+            stats[name] = (("chain",), a)
+            continue
+        if a.ndim != 2:
+            raise ValueError(f"sample_stats[{name!r}] must be (chains, draws), got {a.shape}")
+        if draw_size is None or a.shape[1] == draw_size:
+            draw_dim = "draw"
+            draw_size = a.shape[1]
+        elif a.shape[1] == path_size:
+            draw_dim = _PATH_DRAW
+        else:
+            draw_dim = f"{name}_draw"
+        stats[name] = (("chain", draw_dim), a)
+    return stats
+
+
+def _fmt(x: float) -> str:
+    # repr gives the shortest string that round-trips a float64 exactly.
+    return repr(float(x))
+
+
+def _write_summary_csv(path: Path, result: RunResult) -> None:
+    time = np.asarray(result.time, dtype=float)
+    T = time.size
+    columns = [time]
+    for state in _ordered_states(result.state_mean):
+        width = _width(result, state, result.state_mean[state])
+        mean = _as_time_width(result.state_mean[state], T, width, f"state_mean[{state!r}]")
+        sd = _as_time_width(result.state_sd[state], T, width, f"state_sd[{state!r}]")
+        for i in range(width):
+            columns += [mean[:, i], sd[:, i]]
+    table = np.column_stack(columns)
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        writer.writerow(summary_columns(result))
+        writer.writerows([_fmt(x) for x in row] for row in table.tolist())
+
+
+def _nmse_by_state(result: RunResult) -> dict[str, float]:
+    T = np.asarray(result.time).size
+    scores = {}
+    for state in _ordered_states(result.truth):
+        if state not in result.state_mean:
+            continue
+        width = _width(result, state, result.truth[state])
+        x = _as_time_width(result.truth[state], T, width, f"truth[{state!r}]")
+        xhat = _as_time_width(result.state_mean[state], T, width, f"state_mean[{state!r}]")
+        for i in range(width):
+            scores[_component_label(state, i, width)] = nmse(x[:, i], xhat[:, i])
+    return scores
+
+
+def _summary_json(result: RunResult) -> dict:
+    from latentforce import __version__
+
+    summary: dict[str, Any] = {
+        "method": result.method,
+        "log_likelihood": result.log_likelihood,
+        "parameters": (result.param_summary if result.param_summary is not None
+                       else summarise_parameters(result.param_draws)),
+        "acceptance": [float(a) for a in result.acceptance],
+    }
+    if result.truth:
+        summary["nmse"] = _nmse_by_state(result)
+    summary.update(
+        {
+            "wall_time_s": result.wall_time_s,
+            "seed": int(result.seed),
+            "version": __version__,
+            "point_estimate": dict(result.point_estimate),
+            "fixed": dict(result.fixed),
+            "diagnostics": dict(result.diagnostics),
+        }
+    )
+    return _jsonable(summary)
+
+
+def _jsonable(value: Any) -> Any:
+    """Plain JSON types; NaN and infinities become ``None`` (JSON ``null``)."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if value is None or isinstance(value, str):
+        return value
+    if isinstance(value, Path):
+        return str(value)
+    return str(value)
+
+
+# ---------------------------------------------------------------------------
+# Reading
+# ---------------------------------------------------------------------------
+
+_COLUMN = re.compile(r"^(?P<state>.+?)(?:_(?P<index>\d+))?_(?P<kind>mean|sd)$")
+
+
+def read_results(out_dir: Path) -> RunResult:
+    """Read a result folder back into a :class:`RunResult`.
+
+    Parameter and trajectory draws, sample stats, observed channels and
+    truth come from ``posterior.nc``; state means and sds from
+    ``summary.csv``; the scalars (log-likelihood, acceptance, seed, ...)
+    from ``summary.json``. Enough to redraw every figure.
+    """
+    out_dir = Path(out_dir)
+    nc_path, json_path, csv_path = (out_dir / n for n in ("posterior.nc", "summary.json", "summary.csv"))
+    missing = [p.name for p in (nc_path, json_path) if not p.is_file()]
+    if missing:
+        raise LatentForceError(
+            f"{str(out_dir)!r} is not a latentforce result folder: it has no "
+            f"{' or '.join(missing)}. Give the --out folder of an `estimate` or `demo` run."
+        )
+    try:
+        summary = json.loads(json_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        raise LatentForceError(f"Cannot read {str(json_path)!r}: {err}.") from err
+    try:
+        with xr.open_datatree(nc_path, engine=_ENGINE) as tree:
+            tree = tree.load()
+    except (OSError, ValueError) as err:
+        raise LatentForceError(f"Cannot read {str(nc_path)!r} as netCDF: {err}.") from err
+
+    attrs = tree.attrs
+    posterior = _group(tree, "posterior")
+    time = np.asarray(posterior["time"].values if "time" in posterior.coords else [], dtype=float)
+    method = str(summary.get("method", attrs.get("method", "")))
+
+    param_draws, path_draws = {}, {}
+    for name, var in posterior.data_vars.items():
+        if var.dims == ("chain", "draw"):
+            param_draws[name] = np.asarray(var.values, dtype=float)
+        elif var.dims[:2] in (("chain", _PATH_DRAW), ("chain", "draw")) and "time" in var.dims:
+            a = np.asarray(var.values, dtype=float)
+            path_draws[name] = a if a.ndim == 4 else a[..., None]
+
+    sample_stats = {name: np.asarray(v.values) for name, v in _group(tree, "sample_stats").data_vars.items()}
+    observed_ds = _group(tree, "observed_data")
+    observed = {name: np.asarray(v.values, dtype=float) for name, v in observed_ds.data_vars.items()}
+    if time.size == 0 and "time" in observed_ds.coords:
+        time = np.asarray(observed_ds["time"].values, dtype=float)
+    truth = {}
+    for name, v in _group(tree, "constant_data").data_vars.items():
+        if name.startswith("true_"):
+            a = np.asarray(v.values, dtype=float)
+            truth[name[len("true_"):]] = a if a.ndim == 2 else a[:, None]
+
+    state_mean, state_sd = {}, {}
+    if csv_path.is_file():
+        csv_time, state_mean, state_sd = _read_summary_csv(csv_path)
+        if time.size == 0:
+            time = csv_time
+    elif method == "kalman":
+        for name, v in posterior.data_vars.items():
+            m = _COLUMN.match(name)
+            if m and m.group("index") is None:
+                a = np.asarray(v.values, dtype=float)
+                target = state_mean if m.group("kind") == "mean" else state_sd
+                target[m.group("state")] = a if a.ndim == 2 else a[:, None]
+
+    def width_of(state: str, default: int) -> int:
+        for source in (state_mean, truth):
+            if state in source:
+                return int(source[state].shape[1])
+        if state in path_draws:
+            return int(path_draws[state].shape[-1])
+        return default
+
+    ndof = int(attrs.get("ndof", width_of("displacement", 1)))
+    nforce = int(attrs.get("nforce", width_of("force", 1)))
+
+    return RunResult(
+        method=method,
+        time=time,
+        ndof=ndof,
+        nforce=nforce,
+        state_mean=state_mean,
+        state_sd=state_sd,
+        param_draws=param_draws,
+        path_draws=path_draws,
+        sample_stats=sample_stats,
+        acceptance=[float(a) if a is not None else float("nan") for a in summary.get("acceptance", [])],
+        log_likelihood=_float(summary.get("log_likelihood")),
+        observed=observed,
+        truth=truth,
+        point_estimate={k: _float(v) for k, v in (summary.get("point_estimate") or {}).items()},
+        diagnostics=dict(summary.get("diagnostics") or {}),
+        # posterior.nc may hold only the draws aligned with the trajectories:
+        # keep the full-chain summary that was written with the run.
+        param_summary=summary.get("parameters") or None,
+        seed=int(summary.get("seed", attrs.get("seed", 0)) or 0),
+        wall_time_s=_float(summary.get("wall_time_s", 0.0)),
+        fixed={k: _float(v) for k, v in (summary.get("fixed") or {}).items()},
+    )
+
+
+def _float(value: Any) -> float:
+    return float("nan") if value is None else float(value)
+
+
+def _group(tree: xr.DataTree, name: str) -> xr.Dataset:
+    if name in tree.children:
+        return tree[name].to_dataset()
+    return xr.Dataset()
+
+
+def _read_summary_csv(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    with open(path, newline="", encoding="utf-8") as f:
+        reader = csv.reader(f)
+        try:
+            header = next(reader)
+        except StopIteration:
+            raise LatentForceError(f"{str(path)!r} is empty; expected a summary table.") from None
+        rows = [[float(x) for x in row] for row in reader if row]
+    table = np.asarray(rows, dtype=float).reshape(len(rows), len(header))
+    if not header or header[0] != "time":
+        raise LatentForceError(f"{str(path)!r} does not start with a 'time' column.")
+    parts: dict[str, dict[str, dict[int, np.ndarray]]] = {}
+    for j, column in enumerate(header[1:], start=1):
+        m = _COLUMN.match(column)
+        if m is None:
+            continue
+        index = int(m.group("index")) if m.group("index") is not None else 0
+        parts.setdefault(m.group("kind"), {}).setdefault(m.group("state"), {})[index] = table[:, j]
+    stacked = {
+        kind: {s: np.column_stack([c[i] for i in sorted(c)]) for s, c in by_state.items()}
+        for kind, by_state in parts.items()
+    }
+    return table[:, 0], stacked.get("mean", {}), stacked.get("sd", {})
+
+
+def redraw(out_dir: Path) -> None:
+    """Redraw ``figures/`` and rewrite ``summary.json`` and ``summary.csv``
+    from what is on disk (``latentforce report DIR``); ``posterior.nc`` is
+    left as it is."""
+    out_dir = Path(out_dir)
+    result = read_results(out_dir)
+    _write_summaries(out_dir, result)
+    _write_figures(out_dir, result)

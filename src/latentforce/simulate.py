@@ -1,0 +1,126 @@
+r"""Simulate a structure's response to a latent force: the truth for demos and tests.
+
+The force is either a sample of the model's GP (drawn exactly on a fine
+grid from the kernel's discrete transition, ``substeps`` points per
+sample) or a given function of time. The equations of motion
+:math:`M\ddot z + h(z, \dot z) = B u` are integrated with classical RK4 on
+that fine grid, the force linearly interpolated within each sub-step. The
+acceleration is evaluated from the equation of motion at the sample times,
+so measured accelerations are consistent with the states.
+
+Numerics only: files are written by :mod:`latentforce.io.data`.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from latentforce.models import LatentForceModel, Sensor
+
+
+class Simulation(NamedTuple):
+    """True trajectories at the sample times; arrays ``(T, ndof)`` / ``(T, nforce)``."""
+
+    time: np.ndarray
+    displacement: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    force: np.ndarray
+
+
+def gp_force(key, model: LatentForceModel, params: dict, n: int, dt: float) -> jnp.ndarray:
+    """``n`` samples, spaced ``dt``, of each latent force from its stationary GP: ``(n, nforce)``."""
+    kp = model.kernel_params(params)
+    A, Q = model.kernel.discretise(kp, dt)
+    Pinf = model.kernel.state_space(kp).Pinf
+    d = model.kernel.dim
+    key0, key_steps = jax.random.split(key)
+    chol_p = jnp.linalg.cholesky(Pinf)
+    # Q can be numerically rank deficient for long lengthscales: eigen square root.
+    w, V = jnp.linalg.eigh(Q)
+    sq_q = V * jnp.sqrt(jnp.clip(w, 0.0))
+    x0 = (chol_p @ jax.random.normal(key0, (d, model.nforce))).T  # (nforce, d)
+
+    def _step(x, k):
+        x = x @ A.T + jax.random.normal(k, x.shape) @ sq_q.T
+        return x, x[:, 0]
+
+    _, u = jax.lax.scan(_step, x0, jax.random.split(key_steps, n - 1))
+    return jnp.concatenate([x0[None, :, 0], u], axis=0)
+
+
+def integrate(model: LatentForceModel, params: dict, force_fine, dt_fine: float, z0=None, v0=None):
+    """RK4 over a fine force grid ``(n, nforce)``; returns ``z, v, a`` at every fine point."""
+    system = model.system
+    nd = model.ndof
+    z0 = jnp.zeros(nd) if z0 is None else jnp.asarray(z0, dtype=float)
+    v0 = jnp.zeros(nd) if v0 is None else jnp.asarray(v0, dtype=float)
+    force_fine = jnp.asarray(force_fine, dtype=float)
+
+    def deriv(state, u):
+        z, v = state[:nd], state[nd:]
+        return jnp.concatenate([v, system.acceleration(params, z, v, u)])
+
+    def _step(state, inputs):
+        u0, u1 = inputs
+        um = 0.5 * (u0 + u1)
+        k1 = deriv(state, u0)
+        k2 = deriv(state + 0.5 * dt_fine * k1, um)
+        k3 = deriv(state + 0.5 * dt_fine * k2, um)
+        k4 = deriv(state + dt_fine * k3, u1)
+        new = state + dt_fine / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return new, new
+
+    s0 = jnp.concatenate([z0, v0])
+    _, states = jax.lax.scan(_step, s0, (force_fine[:-1], force_fine[1:]))
+    states = jnp.concatenate([s0[None], states], axis=0)
+    z, v = states[:, :nd], states[:, nd:]
+    a = jax.vmap(lambda zz, vv, uu: system.acceleration(params, zz, vv, uu))(z, v, force_fine)
+    return z, v, a
+
+
+def simulate(key, model: LatentForceModel, params: dict, n_samples: int, dt: float, *,
+             force: Callable | None = None, substeps: int = 8, z0=None, v0=None) -> Simulation:
+    """Simulate ``n_samples`` samples at spacing ``dt`` from rest (or ``z0, v0``).
+
+    ``force(t) -> (T_fine, nforce)`` overrides the GP force (e.g. a sine).
+    """
+    n_fine = (n_samples - 1) * substeps + 1
+    dt_fine = dt / substeps
+    t_fine = np.arange(n_fine) * dt_fine
+    if force is None:
+        u_fine = gp_force(key, model, params, n_fine, dt_fine)
+    else:
+        u_fine = jnp.reshape(jnp.asarray(force(t_fine), dtype=float), (n_fine, model.nforce))
+    z, v, a = jax.jit(lambda u: integrate(model, params, u, dt_fine, z0, v0))(u_fine)
+    pick = lambda x: np.asarray(x[::substeps])
+    return Simulation(np.arange(n_samples) * dt, pick(z), pick(v), pick(a), pick(u_fine))
+
+
+def clean_signal(sim: Simulation, sensor: Sensor) -> np.ndarray:
+    """The noise-free signal a sensor would see."""
+    return getattr(sim, sensor.quantity)[:, sensor.dof]
+
+
+def measure(key, sim: Simulation, sensors) -> np.ndarray:
+    """Noisy measurements ``(T, n_sensors)``: each clean signal plus its sensor noise."""
+    clean = np.stack([clean_signal(sim, s) for s in sensors], axis=1)
+    noise = np.asarray(jax.random.normal(key, clean.shape)) * np.array([s.noise_std for s in sensors])
+    return clean + noise
+
+
+def truth_columns(sim: Simulation) -> dict[str, np.ndarray]:
+    """Truth columns named as in the summary (``displacement``, ``force_0`` ...)."""
+    out = {}
+    for name in ("displacement", "velocity", "force"):
+        arr = getattr(sim, name)
+        if arr.shape[1] == 1:
+            out[name] = arr[:, 0]
+        else:
+            for j in range(arr.shape[1]):
+                out[f"{name}_{j}"] = arr[:, j]
+    return out

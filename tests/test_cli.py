@@ -1,0 +1,168 @@
+"""The command line end to end: simulate -> estimate -> report, and bad input."""
+
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from latentforce.cli import app
+
+runner = CliRunner()
+
+CONFIG = """
+[data]
+path = "data.csv"
+time_column = "time"
+missing = "{missing}"
+
+[system]
+type = "linear"
+m = 1.0
+c = 0.4
+k = 10.0
+
+[force]
+kernel = "matern32"
+variance = 2.0
+lengthscale = 0.5
+
+[[sensors]]
+column = "acc"
+quantity = "acceleration"
+dof = 0
+noise_std = 0.05
+
+[[sensors]]
+column = "disp"
+quantity = "displacement"
+dof = 0
+noise_std = 0.002
+
+[inference]
+method = "kalman"
+"""
+
+
+def invoke(*args):
+    result = runner.invoke(app, [str(a) for a in args])
+    return result.exit_code, result.output + (result.stderr if result.stderr_bytes is not None else "")
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lf.toml").write_text(CONFIG.format(missing="error"))
+    code, out = invoke("simulate", "lf.toml", "--out", "data.csv", "--duration", "10", "--sample-rate", "20")
+    assert code == 0, out
+    return tmp_path
+
+
+def test_simulate_estimate_report(workdir):
+    code, out = invoke("estimate", "lf.toml", "--out", "res")
+    assert code == 0, out
+    summary = json.loads((workdir / "res" / "summary.json").read_text())
+    assert summary["method"] == "kalman" and math.isfinite(summary["log_likelihood"])
+    # The exact smoother recovers the force from acceleration + displacement.
+    assert summary["nmse"]["displacement"] < 1.0 and summary["nmse"]["force"] < 20.0
+    header = (workdir / "res" / "summary.csv").read_text().splitlines()[0].split(",")
+    assert header == ["time", "displacement_mean", "displacement_sd", "velocity_mean", "velocity_sd",
+                      "force_mean", "force_sd"]
+    assert (workdir / "res" / "figures" / "force.png").stat().st_size > 1000
+    code, out = invoke("report", "res")
+    assert code == 0, out
+
+
+def test_existing_result_folder_is_not_overwritten(workdir):
+    assert invoke("estimate", "lf.toml", "--out", "res")[0] == 0
+    before = (workdir / "res" / "summary.json").read_bytes()
+    code, out = invoke("estimate", "lf.toml", "--out", "res")
+    assert code != 0 and "--force" in out and "Traceback" not in out
+    assert (workdir / "res" / "summary.json").read_bytes() == before
+    assert invoke("estimate", "lf.toml", "--out", "res", "--force")[0] == 0
+
+
+def _edit(workdir, old, new, name="bad.toml"):
+    text = (workdir / "lf.toml").read_text()
+    assert old in text
+    (workdir / name).write_text(text.replace(old, new, 1))
+    return name
+
+
+BAD_CONFIGS = [
+    ("[system]", "[sytem]", ["sytem", "system"]),
+    ("noise_std = 0.05", "noise_sd = 0.05", ["noise_sd", "noise_std"]),
+    ("m = 1.0", "m = -1.0", ["m", "-1"]),
+    ("k = 10.0", "k = 0.0", ["k"]),
+    ('type = "linear"', 'type = "bilinear"', ["bilinear", "linear", "duffing"]),
+    ('kernel = "matern32"', 'kernel = "rbf"', ["rbf", "matern32"]),
+    ("dof = 0\nnoise_std = 0.05", "dof = 3\nnoise_std = 0.05", ["dof", "3"]),
+    ('column = "acc"', 'column = "accel"', ["accel", "acc"]),
+    ("noise_std = 0.05", "noise_std = 0.0", ["noise_std"]),
+    ('method = "kalman"', 'method = "kalman"\nparticles = ', ["line"]),
+]
+
+
+@pytest.mark.parametrize("old,new,words", BAD_CONFIGS)
+def test_bad_config_gives_one_clear_paragraph(workdir, old, new, words):
+    name = _edit(workdir, old, new)
+    code, out = invoke("estimate", name, "--out", "never")
+    assert code != 0
+    assert "Traceback" not in out and "error" in out.lower()
+    for w in words:
+        assert w in out, (w, out)
+    assert not (workdir / "never").exists()
+
+
+def test_nonlinear_system_with_kalman_is_refused(workdir):
+    text = (workdir / "lf.toml").read_text().replace('type = "linear"', 'type = "duffing"').replace(
+        "k = 10.0", "k = 10.0\nk3 = 100.0")
+    (workdir / "duff.toml").write_text(text)
+    code, out = invoke("estimate", "duff.toml", "--out", "never")
+    assert code != 0 and "pgas" in out and "Traceback" not in out
+
+
+@pytest.mark.parametrize("problem", ["missing", "nan", "uneven", "text", "empty"])
+def test_bad_data_file(workdir, problem):
+    data = (workdir / "data.csv").read_text().splitlines()
+    if problem == "missing":
+        os.remove(workdir / "data.csv")
+    elif problem == "nan":
+        cells = data[5].split(",")
+        cells[1] = "nan"
+        data[5] = ",".join(cells)
+    elif problem == "uneven":
+        cells = data[5].split(",")
+        cells[0] = str(float(cells[0]) + 0.013)
+        data[5] = ",".join(cells)
+    elif problem == "text":
+        cells = data[7].split(",")
+        cells[1] = "abc"
+        data[7] = ",".join(cells)
+    elif problem == "empty":
+        data = data[:1]
+    if problem != "missing":
+        (workdir / "data.csv").write_text("\n".join(data) + "\n")
+    code, out = invoke("estimate", "lf.toml", "--out", "never")
+    assert code != 0 and "Traceback" not in out and "data.csv" in out, out
+    assert not (workdir / "never").exists()
+
+
+def test_missing_skip_accepts_nan(workdir):
+    data = (workdir / "data.csv").read_text().splitlines()
+    cells = data[5].split(",")
+    cells[1] = "nan"
+    data[5] = ",".join(cells)
+    (workdir / "data.csv").write_text("\n".join(data) + "\n")
+    (workdir / "skip.toml").write_text(CONFIG.format(missing="skip"))
+    code, out = invoke("estimate", "skip.toml", "--out", "res")
+    assert code == 0, out
+
+
+def test_data_override_and_unknown_demo(workdir):
+    os.rename(workdir / "data.csv", workdir / "other.csv")
+    assert invoke("estimate", "lf.toml", "--data", "other.csv", "--out", "res")[0] == 0
+    code, out = invoke("demo", "nosuch")
+    assert code != 0 and "oma" in out
