@@ -111,7 +111,7 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
         sm = smooth(model, median, y, mask, dataset.dt, initial)
         mom_median = state_moments(model, sm.means, sm.covs)
         extras["median_smoother"] = {k: (np.asarray(m), np.asarray(s)) for k, (m, s) in mom_median.items()}
-        n_mix = max(settings.chains, min(settings.thin_draws * settings.chains, 400))
+        n_mix = max(settings.chains, min(settings.thin_draws * settings.chains, 400))  # smoother runs: costly
         moments, paths = mixture_posterior(key_mix, model, dict(problem.fixed), out.draws, y, mask,
                                            dataset.dt, n_mix=n_mix, initial=initial)
         # Parameters at the same iterations as the trajectories, so both share (chain, draw).

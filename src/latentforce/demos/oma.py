@@ -8,8 +8,14 @@ SDOF structure, m = 2000 kg, k = 100 N/m, c = 5 N s/m. These give
 
 The paper's measured Christchurch Bay wave force is not available; we use a
 narrowband wave-like load instead: a random-phase sum of 1000 harmonics
-under a JONSWAP spectrum (peak enhancement 3.3) peaking at 0.25 rad/s, near
-the resonance, scaled to 100 N RMS. The structure starts from rest and the
+under a JONSWAP spectrum (peak enhancement 3.3) peaking at 0.15 rad/s, so
+that the resonance (0.224 rad/s) sits on the spectrum's steep upper flank,
+scaled to 100 N RMS. (With the peak at 0.25 rad/s the resonance falls on the
+spectrum's abrupt low-frequency cutoff, which no Matérn force can
+represent; the posterior then shifts the natural frequency towards the
+force peak (k about 2 % high, 9 sd from the truth) and damping becomes
+unidentifiable: the OMA difficulty the paper describes, taken to an
+extreme.) The structure starts from rest and the
 first 4000 s are discarded so the record is in steady state. Displacement is
 measured every 0.5 s with noise of 1 % of its RMS.
 
@@ -39,7 +45,7 @@ from latentforce.results import nmse
 
 M, K, C = 2000.0, 100.0, 5.0
 DT = 0.5
-OMEGA_P = 0.25
+OMEGA_P = 0.15
 
 
 def jonswap_force(rng, t: np.ndarray, *, omega_p: float | None = None, gamma: float = 3.3, rms: float = 100.0):
@@ -95,7 +101,8 @@ def config(noise_sd: float, infer_system: bool, quick: bool) -> dict:
                   "lengthscale": {"prior": "lognormal", "mu": 0.0, "sigma": 2.0, "init": 1.0}},
         "sensors": [{"column": "disp", "quantity": "displacement", "dof": 0, "noise_std": noise_sd}],
         "inference": {"method": "kalman-mcmc", "chains": 4, "seed": 0,
-                      "iterations": 2000 if quick else 25000, "burn_in": 2000 if quick else 5000},
+                      "iterations": 1500 if quick else 25000, "burn_in": 1500 if quick else 5000,
+                      "thin_draws": 25 if quick else 100},
     }
 
 
@@ -113,7 +120,7 @@ def run_oma(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = Fal
          f"omega_n = {wn:.4f} rad/s ({wn / (2 * np.pi):.4f} Hz), zeta = {zeta:.4f} "
          "(the paper's 0.2 Hz / 0.0079 do not follow from these values)")
     columns, noise_sd = simulate_case(seed, n_samples)
-    echo(f"JONSWAP wave force, 100 N RMS, peak 0.25 rad/s; {n_samples} samples at {DT} s; "
+    echo(f"JONSWAP wave force, 100 N RMS, peak {OMEGA_P} rad/s; {n_samples} samples at {DT} s; "
          f"displacement noise sd {noise_sd:.3g} m (1 % RMS)")
     cases = [("6.1 system known (Eq. 28)", out / "known-system", False),
              ("6.2 OMA: m known, k and c inferred (Eq. 30)", out, True)]

@@ -1,0 +1,498 @@
+r"""Blocked particle Gibbs for joint input-state-hyperparameter estimation (Algorithm 5, Vibration 2020).
+
+Each Gibbs block is one PGAS sweep (:mod:`latentforce.inference.smc`) for the
+trajectory :math:`x_{1:T}` given :math:`\theta`, then ``state_every``
+iterations of Metropolis-within-Gibbs for the GP hyperparameters
+:math:`\theta \subseteq \{\sigma_f^2, \ell\}` given the trajectory
+(Eq. 23-25), each ``mh_steps`` random-walk steps in softplus space,
+:math:`\theta = \operatorname{softplus}(x)` (Eq. 27, ISMA 2018). Because the
+mechanical map :math:`\Phi` does not depend on :math:`\theta`, the
+observation terms of Eq. (25) cancel and the MH target is
+
+.. math:: \log p(\theta) + \log\left|\frac{d\theta}{dx}\right|
+    + \log N(x_{f,1}; 0, P_{\infty,f}(\theta))
+    + \sum_{t=2}^T \log N(x_{f,t}; A_f(\theta) x_{f,t-1}, Q_f(\theta)).
+
+The random-walk scale is adapted during burn-in only (Robbins-Monro on its
+log towards an acceptance of 0.44 for one parameter, 0.35 for two) and
+frozen afterwards, so the post-burn-in chain is a valid MCMC chain.
+
+Chains are ``jax.vmap``-ed and iterations are a ``lax.scan``; Python only
+chunks the scan for progress reports. Initialisation never uses the truth:
+an extended Kalman smoother at the initial :math:`\theta` gives a mean force
+path; each chain adds half a draw of the GP prior (different per chain) and
+recomputes the mechanical states from it, and starts from
+:math:`\theta_0 \exp(0.3\,\varepsilon)` per parameter.
+
+Use ``jax.random.key(seed, impl="rbg")`` for the key: the sweep draws its
+random numbers in a few large batches and the RBG generator is markedly
+faster at that on CPU (see ``benchmarks/pgas.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.linalg import cho_solve
+from jaxtyping import Array, Float
+
+from latentforce.inference import smc
+from latentforce.inference.kalman import _update
+from latentforce.linalg import symmetrise
+
+HYPERPARAMETERS = ("force_variance", "force_lengthscale")
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+# ---------------------------------------------------------------------------
+# Hyperparameter step (Eq. 23-25)
+# ---------------------------------------------------------------------------
+def gp_path_log_density(pm: smc.ParticleModel, variance, lengthscale,
+                        xf: Float[Array, "T nf"]) -> Float[Array, ""]:
+    r""":math:`\log p(x_{f,1:T} \mid \theta)` of the force-state GP, vectorised over time (no scan)."""
+    kp_A, kp_Q, kp_P = _single_force_transition(pm, variance, lengthscale)
+    T = xf.shape[0]
+    X = jnp.reshape(xf, (T, pm.nforce, pm.kdim))
+    cQ = smc._chol(kp_Q)
+    cP = smc._chol(kp_P)
+    resid = X[1:] - jnp.einsum("ij,tfj->tfi", kp_A, X[:-1])
+    w = jax.scipy.linalg.solve_triangular(cQ, jnp.reshape(resid, (-1, pm.kdim)).T, lower=True)
+    w1 = jax.scipy.linalg.solve_triangular(cP, X[0].T, lower=True)
+    logdetQ = 2.0 * jnp.sum(jnp.log(jnp.diag(cQ)))
+    logdetP = 2.0 * jnp.sum(jnp.log(jnp.diag(cP)))
+    n_trans = (T - 1) * pm.nforce
+    return (-0.5 * (jnp.sum(w**2) + jnp.sum(w1**2))
+            - 0.5 * (n_trans * logdetQ + pm.nforce * logdetP) - 0.5 * T * pm.nfx * _LOG_2PI)
+
+
+def _single_force_transition(pm, variance, lengthscale):
+    from latentforce.kernels import KernelParams
+
+    kp = KernelParams(jnp.asarray(variance, dtype=float), jnp.asarray(lengthscale, dtype=float))
+    A, Q = pm.model.kernel.discretise(kp, pm.dt)
+    return A, symmetrise(Q), pm.model.kernel.state_space(kp).Pinf
+
+
+class Hyper:
+    """Which hyperparameters are free, their priors, and the fixed values of the others."""
+
+    def __init__(self, params: dict, free: dict):
+        bad = [n for n in free if n not in HYPERPARAMETERS]
+        if bad:
+            raise ValueError(f"PGAS samples only {HYPERPARAMETERS}; cannot sample {bad}")
+        self.names = tuple(n for n in HYPERPARAMETERS if n in free)
+        self.priors = tuple(free[n][0] for n in self.names)
+        self.init = np.array([float(free[n][1]) for n in self.names], dtype=float)
+        self.fixed = {n: float(params[n]) for n in HYPERPARAMETERS}
+
+    def values(self, x: Float[Array, " p"]):
+        """``(variance, lengthscale)`` from the unconstrained vector ``x``."""
+        from latentforce.priors import softplus
+
+        vals = dict(self.fixed)
+        for i, n in enumerate(self.names):
+            vals[n] = softplus(x[i])
+        return jnp.asarray(vals["force_variance"], dtype=float), jnp.asarray(vals["force_lengthscale"], dtype=float)
+
+    def log_target(self, pm, x: Float[Array, " p"], xf: Float[Array, "T nf"]) -> Float[Array, ""]:
+        """MH target in softplus space: prior + log-Jacobian + GP path density (module doc)."""
+        from latentforce.priors import log_prob_unconstrained
+
+        lp = jnp.zeros(())
+        for i, prior in enumerate(self.priors):
+            lp = lp + log_prob_unconstrained(prior, x[i])
+        var, ls = self.values(x)
+        return lp + gp_path_log_density(pm, var, ls, xf)
+
+
+def mh_step(key: Array, hyper: Hyper, pm: smc.ParticleModel, x: Float[Array, " p"],
+            log_target: Float[Array, ""], scale: Float[Array, " p"], xf: Float[Array, "T nf"]):
+    """One random-walk MH step in softplus space; returns ``(x, log_target, accept_probability, accepted)``.
+
+    A non-finite proposed target is a rejection (never a propagated NaN).
+    """
+    k_prop, k_acc = jax.random.split(key)
+    prop = x + scale * jax.random.normal(k_prop, x.shape)
+    lt_prop = hyper.log_target(pm, prop, xf)
+    log_alpha = jnp.where(jnp.isfinite(lt_prop), lt_prop - log_target, -jnp.inf)
+    accept = jnp.log(jax.random.uniform(k_acc, ())) < log_alpha
+    alpha = jnp.exp(jnp.minimum(log_alpha, 0.0))
+    return (jnp.where(accept, prop, x), jnp.where(accept, lt_prop, log_target), alpha, accept)
+
+
+# ---------------------------------------------------------------------------
+# Initialisation: extended Kalman smoother
+# ---------------------------------------------------------------------------
+def extended_kalman_smoother(pm: smc.ParticleModel, ft: smc.ForceTransition, y, mask,
+                             mech0_mean, mech0_cov) -> Float[Array, "T n"]:
+    r"""Smoothed means of :math:`x_t = (\Phi(\mathrm{mech}_{t-1}, x_{f,t-1}), A_f x_{f,t-1}) + (0, q_t)`.
+
+    Extended Kalman filter (Jacobians by ``jax.jacfwd``) with the Kalman
+    update of :mod:`latentforce.inference.kalman` applied to the linearised
+    observation, then an RTS pass with the per-step Jacobians (Särkkä 2013,
+    Alg. 9.5). Exact for linear systems.
+    """
+    nm, n = pm.nm, pm.n_state
+    y = jnp.asarray(y, dtype=float)
+    mask = jnp.asarray(mask, dtype=bool)
+
+    def f(x):
+        return jnp.concatenate([pm.phi(x[:nm], x[nm:]), ft.A @ x[nm:]])
+
+    def h(x):
+        return pm.offset(x[:nm]) + pm.D @ x[nm:]
+
+    Qd = jnp.zeros((n, n)).at[nm:, nm:].set(ft.Q)
+    m0 = jnp.concatenate([jnp.asarray(mech0_mean, dtype=float), jnp.zeros(pm.nfx)])
+    P0 = jax.scipy.linalg.block_diag(jnp.asarray(mech0_cov, dtype=float), ft.Pinf)
+
+    def _filter(carry, inputs):
+        m, P = carry
+        y_t, mask_t = inputs
+        H = jax.jacfwd(h)(m)
+        # the linear update with y shifted so that the innovation is y - h(m)
+        y_lin = jnp.where(mask_t, y_t, 0.0) - h(m) + H @ m
+        m_f, P_f, _ = _update(m, P, H, pm.R, y_lin, mask_t)
+        F = jax.jacfwd(f)(m_f)
+        m_p = f(m_f)
+        P_p = symmetrise(F @ P_f @ F.T + Qd)
+        return (m_p, P_p), (m_f, P_f, m_p, P_p, F)
+
+    _, (ms, Ps, mps, Pps, Fs) = jax.lax.scan(_filter, (m0, P0), (y, mask))
+    eye = jnp.eye(n)
+
+    def _smooth(carry, inputs):
+        m_next, P_next = carry
+        m_f, P_f, m_p, P_p, F = inputs
+        G = jnp.linalg.solve(P_p + 1e-12 * jnp.trace(P_p) / n * eye, F @ P_f).T
+        m_s = m_f + G @ (m_next - m_p)
+        P_s = symmetrise(P_f + G @ (P_next - P_p) @ G.T)
+        return (m_s, P_s), m_s
+
+    _, msm = jax.lax.scan(_smooth, (ms[-1], Ps[-1]), (ms[:-1], Ps[:-1], mps[:-1], Pps[:-1], Fs[:-1]), reverse=True)
+    return jnp.concatenate([msm, ms[-1:]])
+
+
+def gp_prior_path(key: Array, ft: smc.ForceTransition, T: int) -> Float[Array, "T nf"]:
+    """One draw of the force-state path from the stationary GP prior."""
+    k1, k2 = jax.random.split(key)
+    nf = ft.A.shape[0]
+    x1 = smc._chol(ft.Pinf) @ jax.random.normal(k1, (nf,))
+    noise = jax.random.normal(k2, (T - 1, nf)) @ smc._chol(ft.Q).T
+
+    def _step(x, q):
+        nxt = ft.A @ x + q
+        return nxt, nxt
+
+    _, xs = jax.lax.scan(_step, x1, noise)
+    return jnp.concatenate([x1[None], xs])
+
+
+# ---------------------------------------------------------------------------
+# The blocked Gibbs sampler
+# ---------------------------------------------------------------------------
+class ChainState(NamedTuple):
+    """State of one chain between Gibbs blocks (a pytree; vmapped over chains)."""
+
+    key: Array
+    reference: Float[Array, "T n"]
+    x: Float[Array, " p"]  # unconstrained hyperparameters
+    log_scale: Float[Array, ""]  # log of the random-walk scale
+    block: Array  # Gibbs block counter
+    # running sums over post-burn-in state samples: (z, v, u) per time
+    sum1: Float[Array, "T q"]
+    sum2: Float[Array, "T q"]
+    count: Float[Array, ""]
+    draws: Float[Array, "S T n"]  # thinned trajectories (last slot is a discard slot)
+
+
+class BlockInfo(NamedTuple):
+    theta: Float[Array, "k p"]
+    accept: Float[Array, " k"]
+    log_likelihood: Float[Array, ""]
+    switch_rate: Float[Array, ""]
+    ess: Float[Array, ""]
+    force_points: Float[Array, "P nforce"]
+
+
+class PGASOutput(NamedTuple):
+    """What :func:`run_pgas` returns (NumPy arrays; ``chains`` leading)."""
+
+    names: tuple  # free hyperparameter names
+    theta: dict  # name -> (chains, iterations), post burn-in
+    theta_burn: dict  # name -> (chains, burn_in)
+    trajectories: np.ndarray  # (chains, draws, T, n_state), thinned, post burn-in
+    state_mean: dict  # "displacement" | "velocity" | "force" -> (T, ndof|nforce), all post-burn-in sweeps
+    state_sd: dict
+    acceptance: np.ndarray  # (chains,), post burn-in MH acceptance rate
+    switch_rate: np.ndarray  # (chains, sweeps) post burn-in AS switch fraction per sweep
+    ess: np.ndarray  # (chains, sweeps) mean ESS/N of the filter per sweep
+    log_likelihood: np.ndarray  # (chains, sweeps) PF estimate log p(y | theta) per sweep
+    force_points: np.ndarray  # (chains, sweeps, P, nforce) force at `time_points`
+    time_points: np.ndarray
+    diagnostics: dict
+    mh_scale: np.ndarray  # (chains, p) frozen random-walk scale
+
+
+def _summary_quantities(pm: smc.ParticleModel, path: Float[Array, "T n"]):
+    nd = pm.ndof
+    force_idx = pm.nm + pm.kdim * np.arange(pm.nforce)
+    return jnp.concatenate([path[:, :2 * nd], path[:, force_idx]], axis=1)
+
+
+def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
+             particles: int = 50, iterations: int = 1000, burn_in: int = 500, state_every: int = 1,
+             chains: int = 4, mh_steps: int = 1, discretisation: str = "rk4", proposal: str = "optimal",
+             resampling: str = "multinomial", thin_draws: int = 200, initial=None,
+             progress: Callable | None = None, chunk_blocks: int = 1000, unroll: int = 1,
+             time_points: int = 5, ancestor_sampling: bool = True) -> PGASOutput:
+    r"""Blocked particle Gibbs (Algorithm 5, Vibration 2020) with the PGAS kernel of :mod:`smc`.
+
+    ``params``: every model parameter (free hyperparameters too: their values
+    are ignored except as fixed defaults). ``free``: ``name -> (prior, init)``
+    for a subset of ``force_variance, force_lengthscale`` (may be empty: the
+    trajectory is then sampled at fixed :math:`\theta`). ``y`` ``(T, d)`` may
+    hold NaN where ``mask`` is False. ``iterations`` are kept after
+    ``burn_in``; a PGAS sweep runs on iterations ``j % state_every == 0``,
+    the MH update every iteration. ``initial = (mean, sd)`` of the initial
+    mechanical state, else ``model.default_initial``. ``progress(done,
+    total, accept_rate)`` is called between scan chunks.
+    """
+    pm = smc.ParticleModel(model, params, dt, discretisation)
+    hyper = Hyper(params, free)
+    y = jnp.asarray(y, dtype=float)
+    mask = jnp.asarray(mask, dtype=bool) & jnp.isfinite(y)
+    T = y.shape[0]
+    p = len(hyper.names)
+    k_every = int(state_every)
+    total = int(burn_in) + int(iterations)
+    n_blocks = -(-total // k_every)
+    burn_blocks = -(-int(burn_in) // k_every)  # blocks whose sweep is at j < burn_in
+    post_sweeps = n_blocks - burn_blocks
+    thin = max(1, -(-post_sweeps // max(1, int(thin_draws))))
+    n_draws = -(-post_sweeps // thin) if post_sweeps > 0 else 0
+    tpoints = np.unique(np.linspace(0, T - 1, time_points).round().astype(int))
+    mech0_mean, mech0_cov = pm.initial_mech(initial)
+    sweep = smc.make_sweep(pm, particles, proposal=proposal, resampling=resampling, conditional=True,
+                           ancestor_sampling=ancestor_sampling, unroll=unroll)
+    target_acc = 0.44 if p == 1 else 0.35
+    nq = 2 * pm.ndof + pm.nforce
+
+    # ---- initialisation (outside the loop; never from the truth)
+    k_init, k_chains = jax.random.split(key)
+    theta0 = jnp.asarray(hyper.init) if p else jnp.zeros(0)
+    var0, ls0 = hyper.values(_softplus_inv(theta0)) if p else hyper.values(jnp.zeros(0))
+    ft0 = pm.force_transition(var0, ls0)
+    eks = extended_kalman_smoother(pm, ft0, y, mask, mech0_mean, mech0_cov)
+    chain_keys = jax.random.split(k_chains, chains)
+
+    def _init_chain(ck):
+        k_path, k_theta, k_run = jax.random.split(ck, 3)
+        xf = eks[:, pm.nm:] + 0.5 * gp_prior_path(k_path, ft0, T)
+        ref = pm.mech_path(eks[0, :pm.nm], xf)
+        th = theta0 * jnp.exp(0.3 * jax.random.normal(k_theta, (p,)))
+        x = _softplus_inv(th)
+        return ChainState(k_run, ref, x, jnp.log(2.38 / math.sqrt(max(p, 1)) * 0.1),
+                          jnp.zeros((), jnp.int32), jnp.zeros((T, nq)), jnp.zeros((T, nq)),
+                          jnp.zeros(()), jnp.zeros((n_draws + 1, T, pm.n_state)))
+
+    state0 = jax.vmap(_init_chain)(chain_keys)
+    ref_q = _summary_quantities(pm, eks)  # centring of the running sums (numerical stability)
+
+    def _block(state: ChainState, _):
+        key, k_sweep, k_mh = jax.random.split(state.key, 3)
+        b = state.block
+        var, ls = hyper.values(state.x)
+        ft = pm.force_transition(var, ls)
+        sc = smc.sweep_constants(pm, ft, y, mask, mech0_mean, mech0_cov, proposal)
+        out = sweep(k_sweep, sc, state.reference)
+        path = out.trajectory
+        # ---- accumulate post-burn-in state samples
+        post = (b >= burn_blocks) & (b < n_blocks)
+        wgt = post.astype(float)
+        q = _summary_quantities(pm, path) - ref_q
+        sum1 = state.sum1 + wgt * q
+        sum2 = state.sum2 + wgt * q**2
+        sidx = b - burn_blocks
+        slot = jnp.where(post & (sidx % thin == 0), sidx // thin, n_draws)
+        draws = state.draws.at[slot].set(path)
+        # ---- state_every MH iterations, each mh_steps steps
+        xf = path[:, pm.nm:]
+        lt0 = hyper.log_target(pm, state.x, xf) if p else jnp.zeros(())
+
+        def _mh_iter(carry, inp):
+            x, lt, log_scale = carry
+            k_it, j = inp
+            if p:
+                def _one(c, kk):
+                    x_, lt_, _ = c
+                    x_, lt_, alpha, acc = mh_step(kk, hyper, pm, x_, lt_, jnp.exp(log_scale), xf)
+                    return (x_, lt_, alpha), acc
+
+                (x, lt, alpha), accs = jax.lax.scan(_one, (x, lt, jnp.zeros(())), jax.random.split(k_it, mh_steps))
+                # Robbins-Monro on the log scale, during burn-in only (then frozen)
+                gain = jnp.where(j < burn_in, (1.0 + j) ** -0.6, 0.0)
+                log_scale = log_scale + gain * (alpha - target_acc)
+                acc = jnp.mean(accs.astype(float))
+            else:
+                acc = jnp.zeros(())
+            return (x, lt, log_scale), (x, acc)
+
+        js = b * k_every + jnp.arange(k_every)
+        (x, _, log_scale), (xs, accs) = jax.lax.scan(
+            _mh_iter, (state.x, lt0, state.log_scale), (jax.random.split(k_mh, k_every), js))
+        theta = _softplus(xs)
+        fp = path[tpoints][:, pm.nm + pm.kdim * np.arange(pm.nforce)]
+        new = ChainState(key, path, x, log_scale, b + 1, sum1, sum2, state.count + wgt, draws)
+        info = BlockInfo(theta, accs, out.info.log_likelihood, out.info.switched, jnp.mean(out.info.ess), fp)
+        return new, info
+
+    n_chunks = max(1, -(-n_blocks // int(chunk_blocks)))
+    chunk_len = -(-n_blocks // n_chunks)
+
+    @jax.jit
+    def _run_chunk(states):
+        return jax.vmap(lambda s: jax.lax.scan(_block, s, None, length=chunk_len))(states)
+
+    infos = []
+    states = state0
+    for c in range(n_chunks):
+        states, info = _run_chunk(states)
+        infos.append(jax.tree_util.tree_map(np.asarray, info))
+        if progress is not None:
+            acc = float(np.mean(info.accept))
+            progress(min((c + 1) * chunk_len, n_blocks) * k_every, n_blocks * k_every, acc)
+    info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)
+    info = jax.tree_util.tree_map(lambda a: a[:, :n_blocks], info)
+    return _assemble(pm, hyper, states, info, ref_q, burn_in, total, burn_blocks, n_draws, tpoints)
+
+
+def _softplus(x):
+    from latentforce.priors import softplus
+
+    return softplus(x)
+
+
+def _softplus_inv(t):
+    from latentforce.priors import softplus_inverse
+
+    return softplus_inverse(t)
+
+
+def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, total, burn_blocks,
+              n_draws, tpoints) -> PGASOutput:
+    chains = info.accept.shape[0]
+    theta = np.reshape(info.theta, (chains, info.accept.shape[1] * info.accept.shape[2], len(hyper.names)))[:, :total]
+    accept = np.reshape(info.accept, (chains, -1))[:, :total]
+    th_post = {n: theta[:, burn_in:, i] for i, n in enumerate(hyper.names)}
+    th_burn = {n: theta[:, :burn_in, i] for i, n in enumerate(hyper.names)}
+    count = np.asarray(states.count)[:, None, None]
+    s1 = np.asarray(states.sum1)
+    s2 = np.asarray(states.sum2)
+    # pool the chains: mean and sd over every post-burn-in state sample
+    n_all = count.sum()
+    mean_c = s1.sum(0) / n_all
+    var = np.maximum(s2.sum(0) / n_all - mean_c**2, 0.0)
+    mean = mean_c + np.asarray(ref_q)
+    sd = np.sqrt(var)
+    nd, nf = pm.ndof, pm.nforce
+    sl = {"displacement": slice(0, nd), "velocity": slice(nd, 2 * nd), "force": slice(2 * nd, 2 * nd + nf)}
+    state_mean = {k: mean[:, v] for k, v in sl.items()}
+    state_sd = {k: sd[:, v] for k, v in sl.items()}
+    post = slice(burn_blocks, None)
+    switch = info.switch_rate[:, post]
+    ess = info.ess[:, post]
+    fp = info.force_points[:, post]
+    diag = {
+        "acceptance": accept[:, burn_in:].mean(axis=1).tolist() if hyper.names else [],
+        "switch_rate": switch.mean(axis=1).tolist(),
+        "ess_per_particle": ess.mean(axis=1).tolist(),
+        "nonfinite_log_likelihood": int(np.sum(~np.isfinite(info.log_likelihood))),
+        "mh_scale": np.exp(np.asarray(states.log_scale)).tolist(),
+    }
+    diag.update(convergence_diagnostics(th_post, fp, tpoints))
+    return PGASOutput(hyper.names, th_post, th_burn, np.asarray(states.draws)[:, :n_draws], state_mean, state_sd,
+                      accept[:, burn_in:].mean(axis=1) if hyper.names else np.zeros(chains), switch, ess,
+                      info.log_likelihood[:, post], fp, tpoints, diag,
+                      np.exp(np.asarray(states.log_scale)))
+
+
+def convergence_diagnostics(theta: dict, force_points: np.ndarray, tpoints) -> dict:
+    """R-hat and bulk ESS (arviz) of the hyperparameters and of the force at the recorded time points."""
+    import warnings
+
+    import arviz as az
+
+    out = {"rhat": {}, "ess_bulk": {}}
+    series = dict(theta)
+    for j, t in enumerate(tpoints):
+        for f in range(force_points.shape[-1]):
+            series[f"force[{int(t)}]" + (f"[{f}]" if force_points.shape[-1] > 1 else "")] = force_points[:, :, j, f]
+    for name, arr in series.items():
+        if arr.shape[1] < 4:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out["rhat"][name] = float(az.rhat(np.asarray(arr)))
+            out["ess_bulk"][name] = float(az.ess(np.asarray(arr)))
+    return out
+
+
+def to_run_result(out: PGASOutput, model, y, dt: float, *, columns=None, truth: dict | None = None,
+                  seed: int = 0, wall_time_s: float = 0.0, fixed: dict | None = None):
+    """Convert a :class:`PGASOutput` to the results layer's :class:`~latentforce.results.RunResult`.
+
+    ``columns``: names of the measured channels (default: the sensors' names,
+    or ``"<quantity>_<dof>"``). The point estimate is the posterior mean of
+    each free hyperparameter; ``log_likelihood`` the mean particle-filter
+    estimate over the last sweeps (an estimate, not exact).
+    """
+    from latentforce.results import RunResult
+
+    y = np.asarray(y, dtype=float)
+    T = y.shape[0]
+    if columns is None:
+        columns = [s.name or f"{s.quantity}_{s.dof}" for s in model.sensors]
+    nd, nm, kd = model.ndof, model.n_mech, model.kernel.dim
+    force_idx = nm + kd * np.arange(model.nforce)
+    tr = out.trajectories
+    path_draws = {"displacement": tr[..., :nd], "velocity": tr[..., nd:nm], "force": tr[..., force_idx]}
+    sample_stats = {"log_likelihood": out.log_likelihood, "switch_rate": out.switch_rate,
+                    "ess_per_particle": out.ess}
+    ll = out.log_likelihood
+    return RunResult(
+        method="pgas",
+        time=np.arange(T) * float(dt),
+        ndof=nd,
+        nforce=model.nforce,
+        state_mean={k: np.asarray(v) for k, v in out.state_mean.items()},
+        state_sd={k: np.asarray(v) for k, v in out.state_sd.items()},
+        param_draws={k: np.asarray(v) for k, v in out.theta.items()},
+        path_draws=path_draws,
+        sample_stats=sample_stats,
+        acceptance=[float(a) for a in out.acceptance],
+        log_likelihood=float(np.mean(ll[:, -max(1, ll.shape[1] // 10):])) if ll.size else float("nan"),
+        observed={c: y[:, i] for i, c in enumerate(columns)},
+        truth=dict(truth or {}),
+        point_estimate={k: float(np.mean(v)) for k, v in out.theta.items()},
+        diagnostics=_jsonable_diag(out.diagnostics),
+        seed=int(seed),
+        wall_time_s=float(wall_time_s),
+        fixed=dict(fixed or {}),
+    )
+
+
+def _jsonable_diag(d):
+    if isinstance(d, dict):
+        return {k: _jsonable_diag(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_jsonable_diag(v) for v in d]
+    if isinstance(d, np.ndarray):
+        return d.tolist()
+    if isinstance(d, np.generic):
+        return d.item()
+    return d
