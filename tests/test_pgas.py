@@ -51,49 +51,96 @@ def test_pgas_mixes_everywhere(linear_run):
     assert np.all(np.isfinite(out.log_likelihood))
 
 
-def test_hyperparameter_mh_matches_grid_posterior():
-    """MH on (variance, lengthscale) given a fixed GP path vs a 2-D quadrature of the posterior."""
+def _grid_problem():
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
     params = dict(m=1.0, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthscale=0.5)
     pm = smc.ParticleModel(model, params, 0.05)
     free = {"force_variance": (LogNormal(0.0, 1.0), 1.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 0.5)}
     hyper = pgas.Hyper(params, free)
     xf = pgas.gp_prior_path(jax.random.key(0), pm.force_transition(1.0, 0.5), 200)
+    return pm, hyper, xf
 
-    n = 20000
 
-    @jax.jit
-    def chain(key):
-        x0 = jnp.asarray(smc_softplus_inv(np.array([1.0, 0.5])))
-
-        def step(c, k):
-            x, lt = c
-            x, lt, _, acc = pgas.mh_step(k, hyper, pm, x, lt, jnp.array([0.15, 0.25]), xf)
-            return (x, lt), (x, acc)
-
-        _, (xs, accs) = jax.lax.scan(step, (x0, hyper.log_target(pm, x0, xf)), jax.random.split(key, n))
-        return xs, accs
-
-    xs, accs = chain(jax.random.key(1))
-    theta = np.asarray(jax.nn.softplus(xs))[2000:]
-    # grid in unconstrained space
-    g = np.linspace(-3.0, 4.0, 161)
+def _grid_moments(pm, hyper, xf):
+    """Posterior mean and sd of theta given the path by quadrature on a log-space grid."""
+    g = np.linspace(-5.0, 6.0, 321)
     G1, G2 = np.meshgrid(g, g, indexing="ij")
     X = jnp.stack([G1.ravel(), G2.ravel()], axis=1)
     lt = np.asarray(jax.jit(jax.vmap(lambda x: hyper.log_target(pm, x, xf)))(X)).reshape(G1.shape)
     w = np.exp(lt - lt.max())
+    assert w[0].max() < 1e-8 and w[-1].max() < 1e-8 and w[:, 0].max() < 1e-8 and w[:, -1].max() < 1e-8
     w /= w.sum()
-    T1, T2 = np.log1p(np.exp(G1)), np.log1p(np.exp(G2))
-    exact = np.array([np.sum(w * T1), np.sum(w * T2)])
-    # Monte-Carlo error by batch means
-    batches = theta.reshape(50, -1, 2).mean(axis=1)
-    se = batches.std(axis=0, ddof=1) / np.sqrt(50)
-    assert np.all(np.abs(theta.mean(0) - exact) < 5 * se + 1e-3 * exact), (theta.mean(0), exact, se)
-    assert 0.1 < float(np.mean(accs)) < 0.8
+    T1, T2 = np.exp(G1), np.exp(G2)
+    mean = np.array([np.sum(w * T1), np.sum(w * T2)])
+    sd = np.sqrt(np.array([np.sum(w * T1**2), np.sum(w * T2**2)]) - mean**2)
+    return mean, sd
 
 
-def smc_softplus_inv(t):
-    return np.log(np.expm1(t))
+def test_hyper_log_target_is_log_space_density():
+    """The target is the density of x = log(theta): prior + Jacobian + GP path density."""
+    pm, hyper, xf = _grid_problem()
+    x = jnp.array([0.3, -0.9])
+    th = np.exp(np.asarray(x))
+    lp = float(LogNormal(0.0, 1.0).log_prob(th[0]) + LogNormal(-0.5, 1.0).log_prob(th[1])) + float(x.sum())
+    ref = lp + float(pgas.gp_path_log_density(pm, th[0], th[1], xf))
+    assert abs(float(hyper.log_target(pm, x, xf)) - ref) < 1e-9
+    assert np.allclose(hyper.values(x), th)
+
+
+def test_hyperparameter_mh_matches_grid_posterior():
+    """Adaptive MH (shape resets + scale during burn-in, frozen after) vs 2-D quadrature, given a path.
+
+    After burn-in the kernel is a plain RWM with a fixed proposal, so its
+    draws must match the grid posterior: mean and sd of each parameter
+    within 5 Monte-Carlo standard errors (batch means over 4 chains).
+    """
+    pm, hyper, xf = _grid_problem()
+    burn, n = 3000, 20000
+    schedule = jnp.asarray(pgas.adaptation_schedule(burn))
+    assert len(schedule) >= 4 and int(schedule[-1]) < burn
+
+    def log_target(x):
+        return hyper.log_target(pm, x, xf)
+
+    @jax.jit
+    def chain(key):
+        k0, k1 = jax.random.split(key)
+        # a dispersed start, away from the mode
+        x0 = hyper.to_unconstrained(jnp.array([1.0, 0.5])) + jax.random.normal(k0, (2,))
+        state = pgas.init_proposal(hyper, log_target, x0)
+
+        def step(s, inp):
+            k, i = inp
+            s, info = pgas.mh_step(k, s, log_target, adapt=i < burn, reshape=jnp.any(i == schedule),
+                                   target=0.38)
+            return s, (s.x, info.accepted)
+
+        s, (xs, accs) = jax.lax.scan(step, state, (jax.random.split(k1, burn + n), jnp.arange(burn + n)))
+        return s, xs[burn:], accs[burn:]
+
+    states, xs, accs = jax.vmap(chain)(jax.random.split(jax.random.key(1), 4))
+    theta = np.exp(np.asarray(xs))  # (chains, n, 2)
+    exact_mean, exact_sd = _grid_moments(pm, hyper, xf)
+    # the proposal was adapted to the posterior's shape and then frozen
+    cov = np.asarray(jax.vmap(pgas.proposal_covariance)(states))
+    assert np.all(np.isfinite(cov)) and np.all(np.linalg.eigvalsh(cov) > 0)
+    # Monte-Carlo error by batch means (4 chains x 25 batches)
+    bm = theta.reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
+    se = bm.std(axis=0, ddof=1) / np.sqrt(bm.shape[0])
+    assert np.all(np.abs(theta.reshape(-1, 2).mean(0) - exact_mean) < 5 * se), (theta.mean((0, 1)), exact_mean, se)
+    sq = (theta**2).reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
+    se2 = sq.std(axis=0, ddof=1) / np.sqrt(sq.shape[0])
+    second = (theta**2).reshape(-1, 2).mean(0)
+    assert np.all(np.abs(second - (exact_sd**2 + exact_mean**2)) < 5 * se2 + 1e-12), (second, exact_sd, exact_mean)
+    acc = float(np.mean(accs))
+    assert 0.2 < acc < 0.6, acc
+
+
+def test_adaptation_schedule():
+    assert pgas.adaptation_schedule(0) == ()
+    assert pgas.adaptation_schedule(10) == ()
+    s = pgas.adaptation_schedule(1000)
+    assert s == tuple(sorted(s)) and s[0] >= 9 and s[-1] < 1000
 
 
 @pytest.mark.slow

@@ -140,8 +140,86 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
         return result, extras
 
     if settings.method == "pgas":
-        from latentforce.inference.pgas_run import run_pgas_problem
-
-        return run_pgas_problem(key, problem, dataset, common, progress=progress, t0=t0)
+        return _run_pgas(key, problem, dataset, params0, y, mask, common, progress, t0), extras
 
     raise LatentForceError(f"Unknown inference method {settings.method!r}.")  # config validates this
+
+
+def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict,
+              progress, t0: float) -> RunResult:
+    """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
+    from latentforce.inference.pgas import run_pgas
+
+    model = problem.model
+    settings = problem.inference
+    free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
+    # The mechanical initial state: the user's [initial] or the model default at
+    # the initial hyperparameters (fixed during the run; the force states start
+    # from their stationary GP distribution under the current hyperparameters).
+    if problem.initial is not None:
+        mean, sd = problem.initial
+        initial = (np.asarray(mean)[: model.n_mech], np.asarray(sd)[: model.n_mech])
+    else:
+        m0, P0 = model.default_initial(params0)
+        initial = (np.asarray(m0)[: model.n_mech], np.sqrt(np.diag(np.asarray(P0))[: model.n_mech]))
+    # PGAS needs a conditional resampling scheme; multinomial is the valid one we have.
+    out = run_pgas(key, model, params0, free, np.where(mask, y, np.nan), mask, dataset.dt,
+                   particles=settings.particles, iterations=settings.iterations, burn_in=settings.burn_in,
+                   state_every=settings.state_every, chains=settings.chains, mh_steps=settings.mh_steps,
+                   discretisation=settings.discretisation, proposal=settings.proposal,
+                   resampling="multinomial", thin_draws=settings.thin_draws, initial=initial,
+                   progress=progress)
+    nd, nm, kd = model.ndof, model.n_mech, model.kernel.dim
+    force_idx = nm + kd * np.arange(model.nforce)
+    tr = out.trajectories
+    paths = {"displacement": tr[..., :nd], "velocity": tr[..., nd:nm], "force": tr[..., force_idx]}
+    # Each stored trajectory came from the sweep of one Gibbs block; pair it with the
+    # hyperparameters drawn at the end of that block (conditional on that trajectory).
+    k = settings.state_every
+    burn_blocks = -(-settings.burn_in // k)
+    n_blocks = -(-(settings.burn_in + settings.iterations) // k)
+    thin = max(1, -(-(n_blocks - burn_blocks) // max(1, settings.thin_draws)))
+    slots = np.arange(tr.shape[1])
+    idx = np.clip((burn_blocks + slots * thin) * k + k - 1 - settings.burn_in, 0, settings.iterations - 1)
+    param_draws = {n: v[:, idx] for n, v in out.theta.items()}
+    pooled = {n: v.reshape(-1) for n, v in out.theta.items()}
+    point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
+    point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
+    ll = out.log_likelihood
+    diagnostics = dict(out.diagnostics)
+    diagnostics.update({"particles": settings.particles, "iterations": settings.iterations,
+                        "burn_in": settings.burn_in, "state_every": k, "chains": settings.chains,
+                        "discretisation": settings.discretisation, "proposal": settings.proposal,
+                        "resampling": "multinomial", "log_likelihood_note":
+                            "particle-filter estimate of log p(y | theta), mean over the last sweeps"})
+    truth = common["truth"]
+    if truth:
+        from latentforce.results import coverage
+
+        diagnostics["coverage_3sd"] = {
+            name: coverage(truth[name][:, 0], out.state_mean[name][:, 0], out.state_sd[name][:, 0])
+            for name in truth}
+    return RunResult(
+        method="pgas",
+        state_mean={n: np.asarray(v) for n, v in out.state_mean.items()},
+        state_sd={n: np.asarray(v) for n, v in out.state_sd.items()},
+        param_draws=param_draws, path_draws=paths,
+        sample_stats={"log_likelihood": ll, "switch_rate": out.switch_rate, "ess_per_particle": out.ess},
+        acceptance=[float(a) for a in out.acceptance],
+        log_likelihood=float(np.mean(ll[:, -max(1, ll.shape[1] // 10):])) if ll.size else float("nan"),
+        point_estimate=point, diagnostics=_jsonable(diagnostics),
+        param_summary=summarise_parameters(out.theta) if out.theta else None,
+        wall_time_s=_time.perf_counter() - t0, **common)
+
+
+def _jsonable(value):
+    """Diagnostics as plain JSON types (arrays become lists)."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    return value

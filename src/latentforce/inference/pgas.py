@@ -4,25 +4,59 @@ Each Gibbs block is one PGAS sweep (:mod:`latentforce.inference.smc`) for the
 trajectory :math:`x_{1:T}` given :math:`\theta`, then ``state_every``
 iterations of Metropolis-within-Gibbs for the GP hyperparameters
 :math:`\theta \subseteq \{\sigma_f^2, \ell\}` given the trajectory
-(Eq. 23-25), each ``mh_steps`` random-walk steps in softplus space,
-:math:`\theta = \operatorname{softplus}(x)` (Eq. 27, ISMA 2018). Because the
-mechanical map :math:`\Phi` does not depend on :math:`\theta`, the
-observation terms of Eq. (25) cancel and the MH target is
+(Eq. 23-25), each of ``mh_steps`` random-walk steps. Because the mechanical
+map :math:`\Phi` does not depend on :math:`\theta`, the observation terms of
+Eq. (25) cancel and the MH target is the GP path density times the prior.
 
-.. math:: \log p(\theta) + \log\left|\frac{d\theta}{dx}\right|
+**Sampling space.** The random walk runs in *log* space,
+:math:`x = \log\theta` (this method's choice, overriding the softplus default
+of INTERFACE.md; the priors stay on the physical values):
+
+.. math:: \log \pi(x) = \sum_i \left[\log p(\theta_i) + x_i\right]
     + \log N(x_{f,1}; 0, P_{\infty,f}(\theta))
-    + \sum_{t=2}^T \log N(x_{f,t}; A_f(\theta) x_{f,t-1}, Q_f(\theta)).
+    + \sum_{t=2}^T \log N(x_{f,t}; A_f(\theta) x_{f,t-1}, Q_f(\theta)),
 
-The random-walk scale is adapted during burn-in only (Robbins-Monro on its
-log towards an acceptance of 0.44 for one parameter, 0.35 for two) and
-frozen afterwards, so the post-burn-in chain is a valid MCMC chain.
+the :math:`x_i` being :math:`\log|d\theta_i/dx_i|`. Why: given a long path
+the GP density pins the high-frequency scale of the force (for Matérn-1/2
+the quadratic variation gives :math:`q = 2\sigma_f^2/\ell` to a relative
+error of about :math:`\sqrt{2/T}`; for Matérn-:math:`\nu`,
+:math:`\sigma_f^2/\ell^{2\nu}`) while the direction along that ridge is
+only weakly identified. In log space the ridge is a straight line, so a
+random walk with a full (adapted) covariance follows it; in softplus space
+it is curved, and with :math:`\sigma_f^2 \gg 1` softplus is the identity, a
+poor scale for a positive scale parameter.
+
+**Adaptation** (burn-in only, so the post-burn-in chain is a plain
+Metropolis-within-Gibbs chain with a fixed proposal and is exact): the
+kernel is :func:`latentforce.inference.mcmc.step` (Haario, Saksman &
+Tamminen 2001 covariance, Robbins-Monro scale towards
+:func:`~latentforce.inference.mcmc.target_acceptance`). The proposal shape is
+reset from the chain's covariance at the end of doubling windows of the
+burn-in (at 5, 10, 20, 40 and 70 % of its MH steps), the running moments
+being restarted after each reset so that the transient from the dispersed
+start does not stretch the later proposals.
+
+**Interweaving** (``interweave=True``, the default; Yu & Meng 2011, ASIS):
+after the centred steps above, ``mh_steps`` further random-walk steps per
+iteration in the *non-centred* parametrisation: the whitened innovations
+:math:`\varepsilon_1 = L_\infty^{-1} x_{f,1}`,
+:math:`\varepsilon_t = L_Q^{-1}(x_{f,t} - A_f x_{f,t-1})` are held fixed,
+the force path is rebuilt from them under :math:`\theta'`, the mechanical
+path recomputed by :meth:`~latentforce.inference.smc.ParticleModel.mech_path`
+and the move accepted with the prior times the observation likelihood
+:math:`\prod_t N(y_t; c(\mathrm{mech}_t) + D x_{f,t}, R)` (the innovations'
+density does not depend on :math:`\theta`, and there is no path Jacobian
+because the innovations, not the path, are held fixed). It moves
+:math:`\theta` along the ridge that pins it given the path. It uses its own
+adapted proposal (same scheme). Each move leaves the joint posterior of
+:math:`(\theta, x_{1:T})` invariant, so the sampler stays exact.
 
 Chains are ``jax.vmap``-ed and iterations are a ``lax.scan``; Python only
 chunks the scan for progress reports. Initialisation never uses the truth:
 an extended Kalman smoother at the initial :math:`\theta` gives a mean force
 path; each chain adds half a draw of the GP prior (different per chain) and
 recomputes the mechanical states from it, and starts from
-:math:`\theta_0 \exp(0.3\,\varepsilon)` per parameter.
+:math:`\theta_0 \exp(0.5\,\varepsilon)` per parameter.
 
 Use ``jax.random.key(seed, impl="rbg")`` for the key: the sweep draws its
 random numbers in a few large batches and the RBG generator is markedly
@@ -40,12 +74,14 @@ import numpy as np
 from jax.scipy.linalg import cho_solve
 from jaxtyping import Array, Float
 
-from latentforce.inference import smc
+from latentforce.inference import mcmc, smc
 from latentforce.inference.kalman import _update
 from latentforce.linalg import symmetrise
 
 HYPERPARAMETERS = ("force_variance", "force_lengthscale")
 _LOG_2PI = math.log(2.0 * math.pi)
+# fractions of the burn-in MH steps after which the proposal shape is re-estimated
+_RESHAPE_AT = (0.05, 0.1, 0.2, 0.4, 0.7)
 
 
 # ---------------------------------------------------------------------------
@@ -78,7 +114,10 @@ def _single_force_transition(pm, variance, lengthscale):
 
 
 class Hyper:
-    """Which hyperparameters are free, their priors, and the fixed values of the others."""
+    """Which hyperparameters are free, their priors, and the fixed values of the others.
+
+    The sampling coordinates are :math:`x = \\log\\theta` (module doc).
+    """
 
     def __init__(self, params: dict, free: dict):
         bad = [n for n in free if n not in HYPERPARAMETERS]
@@ -87,41 +126,73 @@ class Hyper:
         self.names = tuple(n for n in HYPERPARAMETERS if n in free)
         self.priors = tuple(free[n][0] for n in self.names)
         self.init = np.array([float(free[n][1]) for n in self.names], dtype=float)
+        if not np.all(self.init > 0):
+            raise ValueError(f"initial hyperparameters must be positive, got {dict(zip(self.names, self.init))}")
         self.fixed = {n: float(params[n]) for n in HYPERPARAMETERS}
+
+    @staticmethod
+    def to_unconstrained(theta: Float[Array, " p"]) -> Float[Array, " p"]:
+        r""":math:`x = \log\theta` (the sampling coordinates)."""
+        return jnp.log(jnp.asarray(theta, dtype=float))
+
+    @staticmethod
+    def to_constrained(x: Float[Array, " p"]) -> Float[Array, " p"]:
+        r""":math:`\theta = e^x`."""
+        return jnp.exp(jnp.asarray(x, dtype=float))
 
     def values(self, x: Float[Array, " p"]):
         """``(variance, lengthscale)`` from the unconstrained vector ``x``."""
-        from latentforce.priors import softplus
-
         vals = dict(self.fixed)
+        theta = self.to_constrained(x)
         for i, n in enumerate(self.names):
-            vals[n] = softplus(x[i])
+            vals[n] = theta[i]
         return jnp.asarray(vals["force_variance"], dtype=float), jnp.asarray(vals["force_lengthscale"], dtype=float)
 
-    def log_target(self, pm, x: Float[Array, " p"], xf: Float[Array, "T nf"]) -> Float[Array, ""]:
-        """MH target in softplus space: prior + log-Jacobian + GP path density (module doc)."""
-        from latentforce.priors import log_prob_unconstrained
-
+    def log_prior(self, x: Float[Array, " p"]) -> Float[Array, ""]:
+        r""":math:`\sum_i \log p(\theta_i) + x_i`: the prior density of :math:`x = \log\theta`."""
+        theta = self.to_constrained(x)
         lp = jnp.zeros(())
         for i, prior in enumerate(self.priors):
-            lp = lp + log_prob_unconstrained(prior, x[i])
+            lp = lp + prior.log_prob(theta[i]) + x[i]
+        return lp
+
+    def log_target(self, pm, x: Float[Array, " p"], xf: Float[Array, "T nf"]) -> Float[Array, ""]:
+        """Centred MH target in log space: prior + log-Jacobian + GP path density (module doc)."""
         var, ls = self.values(x)
-        return lp + gp_path_log_density(pm, var, ls, xf)
+        return self.log_prior(x) + gp_path_log_density(pm, var, ls, xf)
 
 
-def mh_step(key: Array, hyper: Hyper, pm: smc.ParticleModel, x: Float[Array, " p"],
-            log_target: Float[Array, ""], scale: Float[Array, " p"], xf: Float[Array, "T nf"]):
-    """One random-walk MH step in softplus space; returns ``(x, log_target, accept_probability, accepted)``.
+def init_proposal(hyper: Hyper, log_target: Callable, x: Float[Array, " p"],
+                  proposal_sd: float = 0.05) -> mcmc.RWMState:
+    """Start the hyperparameter random walk at ``x`` with a diagonal proposal (log space)."""
+    return mcmc.init(x, log_target, jnp.full(x.shape, proposal_sd))
 
-    A non-finite proposed target is a rejection (never a propagated NaN).
+
+def adaptation_schedule(burn_in_steps: int) -> tuple[int, ...]:
+    """MH step numbers (0-based, burn-in) after which the proposal shape is reset (module doc)."""
+    out = sorted({int(math.ceil(f * burn_in_steps)) - 1 for f in _RESHAPE_AT})
+    return tuple(s for s in out if s >= 9)  # at least ten steps in the first window
+
+
+def mh_step(key: Array, state: mcmc.RWMState, log_target: Callable, *, adapt: Array,
+            reshape: Array, target: float) -> tuple[mcmc.RWMState, mcmc.RWMInfo]:
+    """One random-walk MH step on the hyperparameters (``mcmc.step``), adaptive only where ``adapt``.
+
+    ``state.logdensity`` must be ``log_target(state.x)`` (refresh it when the
+    conditioning path changes). ``reshape``: reset the proposal shape from
+    the running covariance, then restart the running moments. A non-finite
+    proposed target is a rejection (never a propagated NaN).
     """
-    k_prop, k_acc = jax.random.split(key)
-    prop = x + scale * jax.random.normal(k_prop, x.shape)
-    lt_prop = hyper.log_target(pm, prop, xf)
-    log_alpha = jnp.where(jnp.isfinite(lt_prop), lt_prop - log_target, -jnp.inf)
-    accept = jnp.log(jax.random.uniform(k_acc, ())) < log_alpha
-    alpha = jnp.exp(jnp.minimum(log_alpha, 0.0))
-    return (jnp.where(accept, prop, x), jnp.where(accept, lt_prop, log_target), alpha, accept)
+    state, info = mcmc.step(key, state, log_target, adapt, reshape & adapt, target)
+    restart = reshape & adapt
+    state = state._replace(mean=jnp.where(restart, state.x, state.mean),
+                           count=jnp.where(restart, 0.0, state.count))
+    return state, info
+
+
+def proposal_covariance(state: mcmc.RWMState) -> Float[Array, "p p"]:
+    """The (frozen after burn-in) random-walk covariance :math:`s^2 L L^\\top` in log space."""
+    return jnp.exp(2.0 * state.log_scale) * state.chol @ state.chol.T
 
 
 # ---------------------------------------------------------------------------
@@ -200,8 +271,7 @@ class ChainState(NamedTuple):
 
     key: Array
     reference: Float[Array, "T n"]
-    x: Float[Array, " p"]  # unconstrained hyperparameters
-    log_scale: Float[Array, ""]  # log of the random-walk scale
+    rwm: mcmc.RWMState  # hyperparameters x = log(theta) and their centred random walk's adaptation
     block: Array  # Gibbs block counter
     # running sums over post-burn-in state samples: (z, v, u) per time
     sum1: Float[Array, "T q"]
@@ -235,7 +305,7 @@ class PGASOutput(NamedTuple):
     force_points: np.ndarray  # (chains, sweeps, P, nforce) force at `time_points`
     time_points: np.ndarray
     diagnostics: dict
-    mh_scale: np.ndarray  # (chains, p) frozen random-walk scale
+    mh_scale: np.ndarray  # (chains, p) frozen random-walk proposal sd per parameter (log space)
 
 
 def _summary_quantities(pm: smc.ParticleModel, path: Float[Array, "T n"]):
@@ -258,7 +328,9 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     trajectory is then sampled at fixed :math:`\theta`). ``y`` ``(T, d)`` may
     hold NaN where ``mask`` is False. ``iterations`` are kept after
     ``burn_in``; a PGAS sweep runs on iterations ``j % state_every == 0``,
-    the MH update every iteration. ``initial = (mean, sd)`` of the initial
+    and every iteration makes ``mh_steps`` Metropolis steps on
+    :math:`\theta` given the current path (the value recorded for the
+    iteration is the last). ``initial = (mean, sd)`` of the initial
     mechanical state, else ``model.default_initial``. ``progress(done,
     total, accept_rate)`` is called between scan chunks.
     """
@@ -269,6 +341,9 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     T = y.shape[0]
     p = len(hyper.names)
     k_every = int(state_every)
+    n_mh = int(mh_steps)
+    if n_mh < 1:
+        raise ValueError(f"mh_steps must be at least 1, got {mh_steps}")
     total = int(burn_in) + int(iterations)
     n_blocks = -(-total // k_every)
     burn_blocks = -(-int(burn_in) // k_every)  # blocks whose sweep is at j < burn_in
@@ -279,13 +354,14 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     mech0_mean, mech0_cov = pm.initial_mech(initial)
     sweep = smc.make_sweep(pm, particles, proposal=proposal, resampling=resampling, conditional=True,
                            ancestor_sampling=ancestor_sampling, unroll=unroll)
-    target_acc = 0.44 if p == 1 else 0.35
+    target_acc = mcmc.target_acceptance(max(p, 1))
+    reshape_steps = jnp.asarray(adaptation_schedule(int(burn_in) * n_mh) or (-1,))
     nq = 2 * pm.ndof + pm.nforce
 
     # ---- initialisation (outside the loop; never from the truth)
     k_init, k_chains = jax.random.split(key)
-    theta0 = jnp.asarray(hyper.init) if p else jnp.zeros(0)
-    var0, ls0 = hyper.values(_softplus_inv(theta0)) if p else hyper.values(jnp.zeros(0))
+    x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
+    var0, ls0 = hyper.values(x0)
     ft0 = pm.force_transition(var0, ls0)
     eks = extended_kalman_smoother(pm, ft0, y, mask, mech0_mean, mech0_cov)
     chain_keys = jax.random.split(k_chains, chains)
@@ -294,10 +370,9 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         k_path, k_theta, k_run = jax.random.split(ck, 3)
         xf = eks[:, pm.nm:] + 0.5 * gp_prior_path(k_path, ft0, T)
         ref = pm.mech_path(eks[0, :pm.nm], xf)
-        th = theta0 * jnp.exp(0.3 * jax.random.normal(k_theta, (p,)))
-        x = _softplus_inv(th)
-        return ChainState(k_run, ref, x, jnp.log(2.38 / math.sqrt(max(p, 1)) * 0.1),
-                          jnp.zeros((), jnp.int32), jnp.zeros((T, nq)), jnp.zeros((T, nq)),
+        # dispersed start: theta_0 exp(0.5 eps); the log density is set at the first block
+        rwm = init_proposal(hyper, lambda x: jnp.zeros(()), x0 + 0.5 * jax.random.normal(k_theta, (p,)))
+        return ChainState(k_run, ref, rwm, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)), jnp.zeros((T, nq)),
                           jnp.zeros(()), jnp.zeros((n_draws + 1, T, pm.n_state)))
 
     state0 = jax.vmap(_init_chain)(chain_keys)
@@ -306,7 +381,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     def _block(state: ChainState, _):
         key, k_sweep, k_mh = jax.random.split(state.key, 3)
         b = state.block
-        var, ls = hyper.values(state.x)
+        var, ls = hyper.values(state.rwm.x)
         ft = pm.force_transition(var, ls)
         sc = smc.sweep_constants(pm, ft, y, mask, mech0_mean, mech0_cov, proposal)
         out = sweep(k_sweep, sc, state.reference)
@@ -320,34 +395,33 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         sidx = b - burn_blocks
         slot = jnp.where(post & (sidx % thin == 0), sidx // thin, n_draws)
         draws = state.draws.at[slot].set(path)
-        # ---- state_every MH iterations, each mh_steps steps
+        # ---- state_every MH iterations given the new path, each mh_steps steps
         xf = path[:, pm.nm:]
-        lt0 = hyper.log_target(pm, state.x, xf) if p else jnp.zeros(())
 
-        def _mh_iter(carry, inp):
-            x, lt, log_scale = carry
+        def log_target(x):
+            return hyper.log_target(pm, x, xf)
+
+        def _mh_iter(rwm, inp):
             k_it, j = inp
-            if p:
-                def _one(c, kk):
-                    x_, lt_, _ = c
-                    x_, lt_, alpha, acc = mh_step(kk, hyper, pm, x_, lt_, jnp.exp(log_scale), xf)
-                    return (x_, lt_, alpha), acc
+            if not p:
+                return rwm, (rwm.x, jnp.zeros(()))
 
-                (x, lt, alpha), accs = jax.lax.scan(_one, (x, lt, jnp.zeros(())), jax.random.split(k_it, mh_steps))
-                # Robbins-Monro on the log scale, during burn-in only (then frozen)
-                gain = jnp.where(j < burn_in, (1.0 + j) ** -0.6, 0.0)
-                log_scale = log_scale + gain * (alpha - target_acc)
-                acc = jnp.mean(accs.astype(float))
-            else:
-                acc = jnp.zeros(())
-            return (x, lt, log_scale), (x, acc)
+            def _one(r, inp2):
+                kk, s = inp2
+                r, info = mh_step(kk, r, log_target, adapt=j < burn_in,
+                                  reshape=jnp.any(j * n_mh + s == reshape_steps), target=target_acc)
+                return r, info.accepted
 
+            rwm, accs = jax.lax.scan(_one, rwm, (jax.random.split(k_it, n_mh), jnp.arange(n_mh)))
+            return rwm, (rwm.x, jnp.mean(accs.astype(float)))
+
+        # the conditioning path changed: refresh the current point's target
+        rwm = state.rwm._replace(logdensity=log_target(state.rwm.x)) if p else state.rwm
         js = b * k_every + jnp.arange(k_every)
-        (x, _, log_scale), (xs, accs) = jax.lax.scan(
-            _mh_iter, (state.x, lt0, state.log_scale), (jax.random.split(k_mh, k_every), js))
-        theta = _softplus(xs)
+        rwm, (xs, accs) = jax.lax.scan(_mh_iter, rwm, (jax.random.split(k_mh, k_every), js))
+        theta = hyper.to_constrained(xs)
         fp = path[tpoints][:, pm.nm + pm.kdim * np.arange(pm.nforce)]
-        new = ChainState(key, path, x, log_scale, b + 1, sum1, sum2, state.count + wgt, draws)
+        new = ChainState(key, path, rwm, b + 1, sum1, sum2, state.count + wgt, draws)
         info = BlockInfo(theta, accs, out.info.log_likelihood, out.info.switched, jnp.mean(out.info.ess), fp)
         return new, info
 
@@ -371,18 +445,6 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     return _assemble(pm, hyper, states, info, ref_q, burn_in, total, burn_blocks, n_draws, tpoints)
 
 
-def _softplus(x):
-    from latentforce.priors import softplus
-
-    return softplus(x)
-
-
-def _softplus_inv(t):
-    from latentforce.priors import softplus_inverse
-
-    return softplus_inverse(t)
-
-
 def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, total, burn_blocks,
               n_draws, tpoints) -> PGASOutput:
     chains = info.accept.shape[0]
@@ -403,6 +465,9 @@ def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, to
     sl = {"displacement": slice(0, nd), "velocity": slice(nd, 2 * nd), "force": slice(2 * nd, 2 * nd + nf)}
     state_mean = {k: mean[:, v] for k, v in sl.items()}
     state_sd = {k: sd[:, v] for k, v in sl.items()}
+    cov = np.asarray(jax.vmap(proposal_covariance)(states.rwm))
+    mh_sd = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    mh_corr = cov / np.maximum(mh_sd[:, :, None] * mh_sd[:, None, :], 1e-300)
     post = slice(burn_blocks, None)
     switch = info.switch_rate[:, post]
     ess = info.ess[:, post]
@@ -412,13 +477,14 @@ def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, to
         "switch_rate": switch.mean(axis=1).tolist(),
         "ess_per_particle": ess.mean(axis=1).tolist(),
         "nonfinite_log_likelihood": int(np.sum(~np.isfinite(info.log_likelihood))),
-        "mh_scale": np.exp(np.asarray(states.log_scale)).tolist(),
+        "mh_proposal_sd": mh_sd.tolist(),
+        "mh_proposal_corr": mh_corr.tolist(),
+        "mh_sampling_space": "log",
     }
     diag.update(convergence_diagnostics(th_post, fp, tpoints))
     return PGASOutput(hyper.names, th_post, th_burn, np.asarray(states.draws)[:, :n_draws], state_mean, state_sd,
                       accept[:, burn_in:].mean(axis=1) if hyper.names else np.zeros(chains), switch, ess,
-                      info.log_likelihood[:, post], fp, tpoints, diag,
-                      np.exp(np.asarray(states.log_scale)))
+                      info.log_likelihood[:, post], fp, tpoints, diag, mh_sd)
 
 
 def convergence_diagnostics(theta: dict, force_points: np.ndarray, tpoints) -> dict:
