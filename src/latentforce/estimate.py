@@ -108,12 +108,11 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
         # The paper's estimate: the smoother at the CDF median of each parameter.
         median = dict(problem.fixed)
         median.update({n: float(np.median(v)) for n, v in pooled.items()})
-        sm = smooth(model, median, y, mask, dataset.dt, initial)
-        mom_median = state_moments(model, sm.means, sm.covs)
-        extras["median_smoother"] = {k: (np.asarray(m), np.asarray(s)) for k, (m, s) in mom_median.items()}
-        n_mix = max(settings.chains, min(settings.thin_draws * settings.chains, 400))  # smoother runs: costly
-        moments, paths = mixture_posterior(key_mix, model, dict(problem.fixed), out.draws, y, mask,
-                                           dataset.dt, n_mix=n_mix, initial=initial)
+        n_mix = max(settings.chains, min(settings.thin_draws * settings.chains, 400))
+        moments, paths, (mom_median, ll_median) = mixture_posterior(
+            key_mix, model, dict(problem.fixed), out.draws, y, mask, dataset.dt, n_mix=n_mix,
+            initial=initial, point={n: median[n] for n in out.draws})
+        extras["median_smoother"] = mom_median
         # Parameters at the same iterations as the trajectories, so both share (chain, draw).
         n_iter = next(iter(out.draws.values())).shape[1]
         per_chain = next(iter(paths.values())).shape[1]
@@ -134,7 +133,7 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
             param_draws={n: d[:, idx] for n, d in out.draws.items()},
             path_draws=paths,
             sample_stats={"accepted": out.accepted.astype(float), "log_likelihood": out.log_likelihood},
-            acceptance=out.acceptance.tolist(), log_likelihood=float(sm.log_likelihood),
+            acceptance=out.acceptance.tolist(), log_likelihood=ll_median,
             point_estimate=point, diagnostics=diagnostics, param_summary=summarise_parameters(out.draws),
             wall_time_s=_time.perf_counter() - t0, **common)
         return result, extras

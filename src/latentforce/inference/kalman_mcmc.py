@@ -22,6 +22,8 @@ and one backward-sampled trajectory per draw for ``posterior.nc``.
 
 from __future__ import annotations
 
+import functools
+import math
 import time as _time
 from typing import Callable, NamedTuple
 
@@ -147,35 +149,35 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     states = init_fn(jnp.asarray(x0), jnp.asarray(sd0))
     shape_at = tuple(sorted({burn_in // 4, burn_in // 2, (3 * burn_in) // 4} - {0}))
 
-    def make_runner(n_steps, adapt):
-        def one(k, s, start):
-            return mcmc.run_chain(k, s, logpost, n_steps, adapt=adapt, adapt_shape_at=shape_at,
-                                  target=target, start=start)
-        return jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
+    n_chunk = _chunk_size(burn_in, iterations, chunk)
+    # Whole chunks: the burn-in may be rounded up (never down); extra draws are dropped.
+    burn_total = -(-burn_in // n_chunk) * n_chunk
+    total = burn_total + -(-iterations // n_chunk) * n_chunk
 
-    runners: dict = {}
-    total = burn_in + iterations
+    @jax.jit
+    @functools.partial(jax.vmap, in_axes=(0, 0, None, None))
+    def runner(k, s, start, adapt):
+        return mcmc.run_chain(k, s, logpost, n_chunk, adapt=adapt, adapt_shape_at=shape_at,
+                              target=target, start=start)
+
     done = 0
     xs_all, acc_all, ld_all = [], [], []
     run_keys = jax.random.split(key_run, chains)
     while done < total:
-        adapt = done < burn_in
-        n = min(chunk, (burn_in if adapt else total) - done)
-        if (n, adapt) not in runners:
-            runners[(n, adapt)] = make_runner(n, adapt)
+        adapt = done < burn_total
         keys = jax.vmap(lambda k: jax.random.fold_in(k, done))(run_keys)
-        states, xs, infos = runners[(n, adapt)](keys, states, done)
+        states, xs, infos = runner(keys, states, done, adapt)
         if not adapt:
             xs_all.append(np.asarray(xs))
             acc_all.append(np.asarray(infos.accepted))
             ld_all.append(np.asarray(infos.logdensity))
-        done += n
+        done += n_chunk
         if progress is not None:
             progress(done, total, float(np.mean(np.asarray(infos.accepted))))
 
-    xs = np.concatenate(xs_all, axis=1)
-    accepted = np.concatenate(acc_all, axis=1)
-    lp = np.concatenate(ld_all, axis=1)
+    xs = np.concatenate(xs_all, axis=1)[:, :iterations]
+    accepted = np.concatenate(acc_all, axis=1)[:, :iterations]
+    lp = np.concatenate(ld_all, axis=1)[:, :iterations]
     # The log-likelihood part of each draw: log posterior minus log prior (cheap, exact).
     log_prior = sum(np.asarray(log_prob_unconstrained(prior, jnp.asarray(xs[..., i])))
                     for i, prior in enumerate(priors))
@@ -184,14 +186,27 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
                       np.exp(np.asarray(states.log_scale)), _time.perf_counter() - t0)
 
 
+def _chunk_size(burn_in: int, iterations: int, limit: int) -> int:
+    """The largest chunk <= ``limit`` that divides both phases, so one compiled
+    program runs every chunk; if they share no divisor of useful size, a plain
+    ``limit``-sized chunk (the caller rounds the phases up to whole chunks)."""
+    g = math.gcd(burn_in, iterations) if burn_in else iterations
+    best = max((d for d in range(1, min(limit, g) + 1) if g % d == 0), default=1)
+    return best if best >= min(100, limit) else min(limit, max(burn_in, iterations))
+
+
 def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y, mask, dt: float, *,
-                      n_mix: int = 200, initial: Initial | None = None, batch: int = 25):
+                      n_mix: int = 200, initial: Initial | None = None, batch: int = 25,
+                      point: dict | None = None):
     """Posterior state moments mixed over ``n_mix`` parameter draws, and sampled paths.
 
-    Returns ``(moments, paths)``: ``moments[name] = (mean, sd)`` with shapes
-    ``(T, width)``; ``paths[name]`` with shape ``(chains, d, T, width)`` where
-    ``d = n_mix // chains`` evenly thinned draws per chain, one
-    backward-sampled trajectory per parameter draw.
+    Returns ``(moments, paths, point_result)``: ``moments[name] = (mean, sd)``
+    with shapes ``(T, width)``; ``paths[name]`` with shape
+    ``(chains, d, T, width)`` where ``d = n_mix // chains`` evenly thinned
+    draws per chain, one backward-sampled trajectory per parameter draw;
+    ``point_result`` is ``(moments, log_likelihood)`` of the smoother at the
+    parameter values ``point`` (e.g. the CDF median), or ``None``. One compiled batch program
+    does all of it (the last batch is padded).
     """
     names = tuple(draws)
     chains, n_iter = next(iter(draws.values())).shape
@@ -199,9 +214,14 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     idx = np.linspace(0, n_iter - 1, per_chain).round().astype(int)
     thetas = np.stack([draws[n][:, idx] for n in names], axis=-1)  # (chains, d, p)
     flat = thetas.reshape(-1, len(names))
+    count = flat.shape[0]
+    if point is not None:
+        flat = np.concatenate([flat, np.array([[point[n] for n in names]])])
+    batch = min(batch, flat.shape[0])
+    n_pad = -flat.shape[0] % batch
+    flat = np.concatenate([flat, np.repeat(flat[-1:], n_pad, axis=0)])
     y, mask = jnp.asarray(y), jnp.asarray(mask)
 
-    @jax.jit
     def one(k, theta):
         params = dict(fixed)
         for i, n in enumerate(names):
@@ -210,26 +230,22 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
         filt = kalman_filter(A, Q, H, R, m0, P0, y, mask)
         sm = rts_smoother(A, filt)
         path = sample_smoothed_trajectory(k, A, Q, filt)
-        return sm.means, jnp.diagonal(sm.covs, axis1=-2, axis2=-1), path
+        return sm.means, jnp.diagonal(sm.covs, axis1=-2, axis2=-1), path, filt.log_likelihood
 
     batched = jax.jit(jax.vmap(one))
     keys = jax.random.split(key, flat.shape[0])
-    sum_m = sum_m2 = sum_v = 0.0
-    paths = []
-    for start in range(0, flat.shape[0], batch):
-        m, v, path = batched(keys[start:start + batch], jnp.asarray(flat[start:start + batch]))
-        m, v = np.asarray(m), np.asarray(v)
-        sum_m = sum_m + m.sum(0)
-        sum_m2 = sum_m2 + (m**2).sum(0)
-        sum_v = sum_v + v.sum(0)
-        paths.append(np.asarray(path))
-    count = flat.shape[0]
-    mean = sum_m / count
-    var = sum_v / count + np.maximum(sum_m2 / count - mean**2, 0.0)
-    paths = np.concatenate(paths).reshape(chains, per_chain, *paths[0].shape[1:])
-    moments, sampled = {}, {}
-    for name, ix in (("displacement", model.displacement_index()), ("velocity", model.velocity_index()),
-                     ("force", model.force_index())):
-        moments[name] = (mean[:, ix], np.sqrt(var[:, ix]))
-        sampled[name] = paths[..., ix]
-    return moments, sampled
+    parts = [batched(keys[start:start + batch], jnp.asarray(flat[start:start + batch]))
+             for start in range(0, flat.shape[0], batch)]
+    m_all, v_all, p_all, ll_all = (np.concatenate([np.asarray(part[i]) for part in parts]) for i in range(4))
+    mean = m_all[:count].mean(0)
+    var = v_all[:count].mean(0) + m_all[:count].var(0)
+    paths = p_all[:count].reshape(chains, per_chain, *p_all.shape[1:])
+    index = (("displacement", model.displacement_index()), ("velocity", model.velocity_index()),
+             ("force", model.force_index()))
+    moments = {name: (mean[:, ix], np.sqrt(var[:, ix])) for name, ix in index}
+    sampled = {name: paths[..., ix] for name, ix in index}
+    point_result = None
+    if point is not None:
+        point_result = ({name: (m_all[count][:, ix], np.sqrt(v_all[count][:, ix])) for name, ix in index},
+                        float(ll_all[count]))
+    return moments, sampled, point_result

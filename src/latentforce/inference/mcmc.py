@@ -92,14 +92,15 @@ def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
     return RWMState(x, ld, log_scale, chol, mean, cov, count), RWMInfo(accepted, ld)
 
 
-def run_chain(key, state: RWMState, logdensity: Callable, n_steps: int, *, adapt: bool,
+def run_chain(key, state: RWMState, logdensity: Callable, n_steps: int, *, adapt,
               adapt_shape_at: tuple[int, ...] = (), target: float = 0.234, start=0):
     """Scan ``n_steps`` Metropolis steps; returns the final state, draws and infos.
 
-    ``adapt_shape_at`` lists the (global) step numbers at which the proposal
-    shape is reset from the running covariance (burn-in only); ``start`` is
-    the global number of the first step, so a long run can be scanned in
-    chunks (for progress reports) with one compiled program.
+    ``adapt`` may be a traced boolean and ``start`` (the global number of the
+    first step) a traced integer, so a long run is scanned in equal chunks
+    (for progress reports) by ONE compiled program, burn-in and sampling
+    alike. ``adapt_shape_at`` lists the global step numbers at which the
+    proposal shape is reset from the running covariance (burn-in only).
     """
     keys = jax.random.split(key, n_steps)
     steps = jnp.arange(n_steps) + start

@@ -36,20 +36,14 @@ burn-in (at 5, 10, 20, 40 and 70 % of its MH steps), the running moments
 being restarted after each reset so that the transient from the dispersed
 start does not stretch the later proposals.
 
-**Interweaving** (``interweave=True``, the default; Yu & Meng 2011, ASIS):
-after the centred steps above, ``mh_steps`` further random-walk steps per
-iteration in the *non-centred* parametrisation: the whitened innovations
-:math:`\varepsilon_1 = L_\infty^{-1} x_{f,1}`,
-:math:`\varepsilon_t = L_Q^{-1}(x_{f,t} - A_f x_{f,t-1})` are held fixed,
-the force path is rebuilt from them under :math:`\theta'`, the mechanical
-path recomputed by :meth:`~latentforce.inference.smc.ParticleModel.mech_path`
-and the move accepted with the prior times the observation likelihood
-:math:`\prod_t N(y_t; c(\mathrm{mech}_t) + D x_{f,t}, R)` (the innovations'
-density does not depend on :math:`\theta`, and there is no path Jacobian
-because the innovations, not the path, are held fixed). It moves
-:math:`\theta` along the ridge that pins it given the path. It uses its own
-adapted proposal (same scheme). Each move leaves the joint posterior of
-:math:`(\theta, x_{1:T})` invariant, so the sampler stays exact.
+**Priors.** Along that ridge the path density tends to a constant once
+:math:`\ell` exceeds the record length (a long-lengthscale Matérn-1/2 path
+is Brownian motion over the record), so the ridge's tail is held only by
+the prior: a flat prior on :math:`\sigma_f^2` contributes a factor
+:math:`\sigma_f^2 \propto \ell` in log space and puts the posterior at
+lengthscales far beyond the record (Duffing case, 0.5 s record: posterior
+median :math:`\ell` of several seconds). Use a proper prior on
+:math:`\sigma_f^2` or :math:`\ell` when the record spans few lengthscales.
 
 Chains are ``jax.vmap``-ed and iterations are a ``lax.scan``; Python only
 chunks the scan for progress reports. Initialisation never uses the truth:
@@ -196,6 +190,78 @@ def proposal_covariance(state: mcmc.RWMState) -> Float[Array, "p p"]:
 
 
 # ---------------------------------------------------------------------------
+# Non-centred (interweaving) step: Yu & Meng (2011), ASIS
+# ---------------------------------------------------------------------------
+def whiten(ft: smc.ForceTransition, xf: Float[Array, "T nf"]) -> Float[Array, "T nf"]:
+    r"""Innovations :math:`\varepsilon_1 = L_\infty^{-1} x_{f,1}`, :math:`\varepsilon_t = L_Q^{-1}(x_{f,t} - A_f x_{f,t-1})`."""
+    cP, cQ = smc._chol(ft.Pinf), smc._chol(ft.Q)
+    e1 = jax.scipy.linalg.solve_triangular(cP, xf[0], lower=True)
+    resid = xf[1:] - xf[:-1] @ ft.A.T
+    e = jax.scipy.linalg.solve_triangular(cQ, resid.T, lower=True).T
+    return jnp.concatenate([e1[None], e])
+
+
+def colour(ft: smc.ForceTransition, eps: Float[Array, "T nf"]) -> Float[Array, "T nf"]:
+    """The force-state path with innovations ``eps`` (inverse of :func:`whiten`)."""
+    x1 = smc._chol(ft.Pinf) @ eps[0]
+    noise = eps[1:] @ smc._chol(ft.Q).T
+
+    def _step(x, q):
+        nxt = ft.A @ x + q
+        return nxt, nxt
+
+    _, xs = jax.lax.scan(_step, x1, noise)
+    return jnp.concatenate([x1[None], xs])
+
+
+class ObservationDensity(NamedTuple):
+    """Per-time masked Gaussian observation terms (independent of :math:`\\theta`)."""
+
+    y: Float[Array, "T d"]  # zero where missing
+    maskf: Float[Array, "T d"]
+    Rinv: Float[Array, "T d d"]  # zero rows/columns where missing
+    const: Float[Array, " T"]
+
+
+def observation_density(pm: smc.ParticleModel, y, mask) -> ObservationDensity:
+    """Precompute :math:`R_t^{-1}` and normalising constants of the observed channels."""
+    maskf = jnp.asarray(mask, dtype=float)
+    yz = jnp.where(jnp.asarray(mask, dtype=bool), jnp.nan_to_num(jnp.asarray(y, dtype=float)), 0.0)
+
+    def _one(m):
+        # unit variance on the missing channels keeps R_t invertible; they are masked out below
+        R_t = pm.R * jnp.outer(m, m) + jnp.diag(1.0 - m)
+        c = jnp.linalg.cholesky(symmetrise(R_t))
+        inv = cho_solve((c, True), jnp.eye(R_t.shape[0])) * jnp.outer(m, m)
+        return symmetrise(inv), -jnp.sum(jnp.log(jnp.diag(c))) - 0.5 * jnp.sum(m) * _LOG_2PI
+
+    Rinv, const = jax.vmap(_one)(maskf)
+    return ObservationDensity(yz, maskf, Rinv, const)
+
+
+def observation_log_likelihood(pm: smc.ParticleModel, od: ObservationDensity,
+                               path: Float[Array, "T n"]) -> Float[Array, ""]:
+    r""":math:`\sum_t \log N(y_t; c(\mathrm{mech}_t) + D x_{f,t}, R)` over the observed channels."""
+    pred = jax.vmap(pm.offset)(path[:, :pm.nm]) + path[:, pm.nm:] @ pm.D.T
+    r = (od.y - pred) * od.maskf
+    return jnp.sum(od.const) - 0.5 * jnp.einsum("ti,tij,tj->", r, od.Rinv, r)
+
+
+def noncentred_log_target(hyper: Hyper, pm: smc.ParticleModel, od: ObservationDensity,
+                          x: Float[Array, " p"], eps: Float[Array, "T nf"],
+                          mech1: Float[Array, " nm"]) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
+    r"""Target of :math:`x = \log\theta` given the innovations and :math:`\mathrm{mech}_1`, and the rebuilt path.
+
+    :math:`\log p(\theta) + \sum_i x_i + \log p(y \mid x_{1:T}(\theta, \varepsilon, \mathrm{mech}_1))`:
+    the innovations' density does not depend on :math:`\theta` and, the
+    innovations being held fixed, there is no path Jacobian.
+    """
+    var, ls = hyper.values(x)
+    path = pm.mech_path(mech1, colour(pm.force_transition(var, ls), eps))
+    return hyper.log_prior(x) + observation_log_likelihood(pm, od, path), path
+
+
+# ---------------------------------------------------------------------------
 # Initialisation: extended Kalman smoother
 # ---------------------------------------------------------------------------
 def extended_kalman_smoother(pm: smc.ParticleModel, ft: smc.ForceTransition, y, mask,
@@ -272,6 +338,7 @@ class ChainState(NamedTuple):
     key: Array
     reference: Float[Array, "T n"]
     rwm: mcmc.RWMState  # hyperparameters x = log(theta) and their centred random walk's adaptation
+    rwm_nc: mcmc.RWMState  # the non-centred (interweaving) random walk's adaptation; its x mirrors rwm.x
     block: Array  # Gibbs block counter
     # running sums over post-burn-in state samples: (z, v, u) per time
     sum1: Float[Array, "T q"]
@@ -283,6 +350,7 @@ class ChainState(NamedTuple):
 class BlockInfo(NamedTuple):
     theta: Float[Array, "k p"]
     accept: Float[Array, " k"]
+    accept_noncentred: Float[Array, " k"]
     log_likelihood: Float[Array, ""]
     switch_rate: Float[Array, ""]
     ess: Float[Array, ""]
@@ -319,7 +387,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
              chains: int = 4, mh_steps: int = 1, discretisation: str = "rk4", proposal: str = "optimal",
              resampling: str = "multinomial", thin_draws: int = 200, initial=None,
              progress: Callable | None = None, chunk_blocks: int = 1000, unroll: int = 1,
-             time_points: int = 5, ancestor_sampling: bool = True) -> PGASOutput:
+             time_points: int = 5, ancestor_sampling: bool = True, interweave: bool = True) -> PGASOutput:
     r"""Blocked particle Gibbs (Algorithm 5, Vibration 2020) with the PGAS kernel of :mod:`smc`.
 
     ``params``: every model parameter (free hyperparameters too: their values
@@ -330,7 +398,8 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     ``burn_in``; a PGAS sweep runs on iterations ``j % state_every == 0``,
     and every iteration makes ``mh_steps`` Metropolis steps on
     :math:`\theta` given the current path (the value recorded for the
-    iteration is the last). ``initial = (mean, sd)`` of the initial
+    iteration is the last); with ``interweave`` each iteration then makes
+    ``mh_steps`` non-centred steps (module doc). ``initial = (mean, sd)`` of the initial
     mechanical state, else ``model.default_initial``. ``progress(done,
     total, accept_rate)`` is called between scan chunks.
     """
@@ -372,11 +441,13 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         ref = pm.mech_path(eks[0, :pm.nm], xf)
         # dispersed start: theta_0 exp(0.5 eps); the log density is set at the first block
         rwm = init_proposal(hyper, lambda x: jnp.zeros(()), x0 + 0.5 * jax.random.normal(k_theta, (p,)))
-        return ChainState(k_run, ref, rwm, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)), jnp.zeros((T, nq)),
+        return ChainState(k_run, ref, rwm, rwm, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)), jnp.zeros((T, nq)),
                           jnp.zeros(()), jnp.zeros((n_draws + 1, T, pm.n_state)))
 
     state0 = jax.vmap(_init_chain)(chain_keys)
     ref_q = _summary_quantities(pm, eks)  # centring of the running sums (numerical stability)
+    od = observation_density(pm, y, mask)
+    interweave = bool(interweave) and p > 0
 
     def _block(state: ChainState, _):
         key, k_sweep, k_mh = jax.random.split(state.key, 3)
@@ -395,34 +466,57 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         sidx = b - burn_blocks
         slot = jnp.where(post & (sidx % thin == 0), sidx // thin, n_draws)
         draws = state.draws.at[slot].set(path)
-        # ---- state_every MH iterations given the new path, each mh_steps steps
-        xf = path[:, pm.nm:]
+        # ---- state_every MH iterations given the path, each mh_steps steps
+        def _steps(key_, r, target, j):
+            def _one(r_, inp2):
+                kk, s_ = inp2
+                r_, info_ = mh_step(kk, r_, target, adapt=j < burn_in,
+                                    reshape=jnp.any(j * n_mh + s_ == reshape_steps), target=target_acc)
+                return r_, info_.accepted
 
-        def log_target(x):
-            return hyper.log_target(pm, x, xf)
+            return jax.lax.scan(_one, r, (jax.random.split(key_, n_mh), jnp.arange(n_mh)))
 
-        def _mh_iter(rwm, inp):
+        def _mh_iter(carry, inp):
+            rwm, rwm_nc, path_ = carry
             k_it, j = inp
             if not p:
-                return rwm, (rwm.x, jnp.zeros(()))
+                return carry, (rwm.x, jnp.zeros(()), jnp.zeros(()))
+            k_c, k_nc = jax.random.split(k_it)
+            xf = path_[:, pm.nm:]
 
-            def _one(r, inp2):
-                kk, s = inp2
-                r, info = mh_step(kk, r, log_target, adapt=j < burn_in,
-                                  reshape=jnp.any(j * n_mh + s == reshape_steps), target=target_acc)
-                return r, info.accepted
+            def centred(x):
+                return hyper.log_target(pm, x, xf)
 
-            rwm, accs = jax.lax.scan(_one, rwm, (jax.random.split(k_it, n_mh), jnp.arange(n_mh)))
-            return rwm, (rwm.x, jnp.mean(accs.astype(float)))
+            # the conditioning path may have changed: refresh the current point's target
+            rwm = rwm._replace(logdensity=centred(rwm.x))
+            rwm, accs = _steps(k_c, rwm, centred, j)
+            acc_nc = jnp.zeros(())
+            if interweave:
+                var_, ls_ = hyper.values(rwm.x)
+                eps = whiten(pm.force_transition(var_, ls_), xf)
+                mech1 = path_[0, :pm.nm]
 
-        # the conditioning path changed: refresh the current point's target
-        rwm = state.rwm._replace(logdensity=log_target(state.rwm.x)) if p else state.rwm
+                def noncentred(x):
+                    return noncentred_log_target(hyper, pm, od, x, eps, mech1)[0]
+
+                rwm_nc = rwm_nc._replace(x=rwm.x, logdensity=noncentred(rwm.x))
+                rwm_nc, accs_nc = _steps(k_nc, rwm_nc, noncentred, j)
+                moved = jnp.any(accs_nc)
+                rebuilt = noncentred_log_target(hyper, pm, od, rwm_nc.x, eps, mech1)[1]
+                # keep the path bit-for-bit when nothing moved (no round-off drift)
+                path_ = jnp.where(moved, rebuilt, path_)
+                rwm = rwm._replace(x=rwm_nc.x)
+                acc_nc = jnp.mean(accs_nc.astype(float))
+            return (rwm, rwm_nc, path_), (rwm.x, jnp.mean(accs.astype(float)), acc_nc)
+
         js = b * k_every + jnp.arange(k_every)
-        rwm, (xs, accs) = jax.lax.scan(_mh_iter, rwm, (jax.random.split(k_mh, k_every), js))
+        (rwm, rwm_nc, path_end), (xs, accs, accs_nc) = jax.lax.scan(
+            _mh_iter, (state.rwm, state.rwm_nc, path), (jax.random.split(k_mh, k_every), js))
         theta = hyper.to_constrained(xs)
         fp = path[tpoints][:, pm.nm + pm.kdim * np.arange(pm.nforce)]
-        new = ChainState(key, path, rwm, b + 1, sum1, sum2, state.count + wgt, draws)
-        info = BlockInfo(theta, accs, out.info.log_likelihood, out.info.switched, jnp.mean(out.info.ess), fp)
+        new = ChainState(key, path_end, rwm, rwm_nc, b + 1, sum1, sum2, state.count + wgt, draws)
+        info = BlockInfo(theta, accs, accs_nc, out.info.log_likelihood, out.info.switched,
+                         jnp.mean(out.info.ess), fp)
         return new, info
 
     n_chunks = max(1, -(-n_blocks // int(chunk_blocks)))
@@ -480,6 +574,8 @@ def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, to
         "mh_proposal_sd": mh_sd.tolist(),
         "mh_proposal_corr": mh_corr.tolist(),
         "mh_sampling_space": "log",
+        "acceptance_noncentred": np.reshape(info.accept_noncentred, (chains, -1))[:, burn_in:total].mean(axis=1).tolist()
+        if hyper.names else [],
     }
     diag.update(convergence_diagnostics(th_post, fp, tpoints))
     return PGASOutput(hyper.names, th_post, th_burn, np.asarray(states.draws)[:, :n_draws], state_mean, state_sd,

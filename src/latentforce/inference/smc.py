@@ -245,6 +245,28 @@ class ParticleModel:
         k4 = self._rhs(mech + h * k3, u2)
         return mech + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
+    def phi_particles(self, mech: Float[Array, "N nm"], xf: Float[Array, "N nf"]) -> Float[Array, "N nm"]:
+        """:meth:`phi` for a batch of particles, with displacement and velocity carried as
+        separate arrays through the stages: XLA then fuses the whole step into one
+        loop (stacking ``(z, v)`` at every stage made it materialise each stage)."""
+        nd, h = self.ndof, self.dt
+        acc = jax.vmap(self.acceleration)
+        hold = jax.vmap(self._hold, (0, None))
+        z, v = mech[:, :nd], mech[:, nd:]
+        if self.discretisation == "euler":
+            a = acc(z, v, hold(xf, 0.0))
+            return jnp.concatenate([z + h * v, v + h * a], axis=1)
+        u0, u1, u2 = hold(xf, 0.0), hold(xf, 0.5 * h), hold(xf, h)
+        a1 = acc(z, v, u0)
+        z2, v2 = z + 0.5 * h * v, v + 0.5 * h * a1
+        a2 = acc(z2, v2, u1)
+        z3, v3 = z + 0.5 * h * v2, v + 0.5 * h * a2
+        a3 = acc(z3, v3, u1)
+        z4, v4 = z + h * v3, v + h * a3
+        a4 = acc(z4, v4, u2)
+        return jnp.concatenate([z + (h / 6.0) * (v + 2.0 * v2 + 2.0 * v3 + v4),
+                                v + (h / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)], axis=1)
+
     def _observe(self, mech, xf):
         r"""Noise-free observation ``c(mech) + D x_f``; equals ``model.observe`` (tested), written
         out with the precomputed :math:`M^{-1}` for speed."""
@@ -454,6 +476,28 @@ class SweepOutput(NamedTuple):
     log_weights: Float[Array, " N"]  # normalised, at the final step
 
 
+def _uniform32(key: Array, shape, dtype) -> Array:
+    r"""U(0, 1) draws on the open grid :math:`(k + \tfrac12)\,2^{-32}`: one 32-bit word per draw.
+
+    Half the random bits of ``jax.random.uniform`` in float64 (two words per
+    draw), which dominate a sweep's random-number cost on CPU. The grid moves
+    any probability computed from these points by less than :math:`2^{-32}`
+    (resampling), and as normals (:func:`_normal32`) it truncates the tails at
+    :math:`|z| < 6.3` (probability :math:`3\cdot10^{-10}`): both far below the
+    Monte Carlo error of any sweep.
+    """
+    bits = jax.random.bits(key, shape, jnp.uint32)
+    return (bits.astype(dtype) + 0.5) * 2.0**-32
+
+
+def _normal32(key: Array, shape, dtype) -> Array:
+    """Standard normals by inversion of :func:`_uniform32` draws."""
+    return math.sqrt(2.0) * jax.lax.erf_inv(2.0 * _uniform32(key, shape, dtype) - 1.0)
+
+
+_K = {}
+
+
 def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal",
                resampling: str = "multinomial", conditional: bool = True,
                ancestor_sampling: bool = True, unroll: int = 1) -> Callable:
@@ -465,6 +509,14 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
     with the non-Markovian ancestor weights of the module docstring.
     The returned trajectory is drawn with probability proportional to the
     final weights and traced back through the stored ancestors.
+
+    The sequential loop is written for XLA on CPU, where a step costs about
+    one fused kernel per reduction: the resampling and ancestor-sampling
+    draws share one max, one cumulative sum (a product with a constant
+    triangle, cheaper than ``cumsum`` for a few dozen particles) and one
+    count of CDF values below each point (inverse CDF); the reference's own
+    resampling uniform drives its ancestor draw; the normalisers, ESS and the
+    likelihood estimate are formed from the stored weights after the loop.
     """
     if proposal not in PROPOSALS:
         raise ValueError(f"unknown proposal {proposal!r}; valid: {PROPOSALS}")
@@ -476,27 +528,40 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
     N, nm, nfx = n_particles, pm.nm, pm.nfx
     ref = N - 1
     optimal = proposal == "optimal"
-    vphi = jax.vmap(pm.phi)
+    with_as = conditional and ancestor_sampling
     voffset = jax.vmap(pm.offset)
     log_N = math.log(N)
     lse = jax.scipy.special.logsumexp
+    # upper[i, j] = 1 for i <= j: w @ upper is the cumulative sum of w
+    upper = np.triu(np.ones((N, N)))
+    is_ref = np.arange(N) == ref
 
     def _obs_loglik(r, Rinv, const):  # r: (N, d)
         return -0.5 * _quad(r, Rinv) + const
 
+    def _draw(log_weights: Float[Array, "k N"], points: Float[Array, " N"]) -> Int[Array, " N"]:
+        """Inverse-CDF draws: point ``j`` searches row 1 of ``log_weights`` if ``j`` is the
+        reference (its ancestor-sampling draw) and ``with_as``, else row 0."""
+        w = jnp.exp(log_weights - jnp.max(log_weights, axis=1, keepdims=True))
+        cdf = jnp.dot(w, jnp.asarray(upper, dtype=w.dtype))
+        cdf_j = jnp.where(is_ref[:, None], cdf[-1][None, :], cdf[0][None, :]) if with_as else cdf[0][None, :]
+        target = points[:, None] * cdf_j[:, -1:]
+        idx = jnp.sum(cdf_j <= target, axis=1, dtype=jnp.int32)
+        return jnp.minimum(idx, N - 1)
+
     def sweep(key: Array, sc: SweepConstants, reference: Float[Array, "T n"]) -> SweepOutput:
         T = sc.y.shape[0]
-        k_init, k_eps, k_res, k_as, k_fin = jax.random.split(key, 5)
+        dtype = sc.y.dtype
+        k_init, k_eps, k_res, k_fin = jax.random.split(key, 4)
         # a sweep's random numbers in a few large draws, and the proposal noise
-        # and resampling points formed outside the sequential loop
-        eps = jax.random.normal(k_eps, (T, N, nfx))
+        # formed outside the sequential loop
+        eps = _normal32(k_eps, (T, N, nfx), dtype)
         noise = jnp.einsum("tnf,tgf->tng", eps, sc.L)
-        points = _points(resampling, jax.random.uniform(k_res, (T, N)))
-        u_as = jax.random.uniform(k_as, (T,))
-        z0 = jax.random.normal(k_init, (N, nm))
-        u_fin = jax.random.uniform(k_fin, ())
+        points = _points(resampling, _uniform32(k_res, (T, N), dtype))
+        z0 = jax.random.normal(k_init, (N, nm), dtype)
+        u_fin = jax.random.uniform(k_fin, (), dtype)
 
-        if conditional and ancestor_sampling:
+        if with_as:
             Lam, eta = ancestor_information(pm, sc, reference)
         else:
             Lam = jnp.zeros((T, nm, nm))
@@ -512,73 +577,79 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
         if conditional:
             xf = xf.at[ref].set(reference[0, nm:])
         if optimal:
-            logw = _obs_loglik(r, sc.Sinv[0], sc.S_const[0])
+            logw0 = _obs_loglik(r, sc.Sinv[0], sc.S_const[0])
         else:
             r2 = r - _mv(xf, sc.D[0])
-            logw = _obs_loglik(r2, sc.Rinv[0], sc.obs_const[0])
-        log_z = lse(logw) - log_N
-        logw = logw - lse(logw)
+            logw0 = _obs_loglik(r2, sc.Rinv[0], sc.obs_const[0])
         x0 = jnp.concatenate([mech, xf], axis=1)
 
         def _step(carry, inputs):
-            x_prev, logw_prev, log_z = carry
-            y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t, ua_t, Lam_t, eta_t, ref_t = inputs
-            # the barriers stop XLA from fusing (and so recomputing) the RK4 step and
-            # the residuals into every consumer (quadratic forms, gathers): measured 3x.
-            mech_pred = jax.lax.optimization_barrier(vphi(x_prev[:, :nm], x_prev[:, nm:]))
+            # g_prev: the previous step's (unnormalised) second-stage log weights
+            x_prev, g_prev = carry
+            y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t, Lam_t, eta_t, ref_t = inputs
+            mech_pred = pm.phi_particles(x_prev[:, :nm], x_prev[:, nm:])
             m = _mv(x_prev[:, nm:], sc.A)
+            r = y_t - voffset(mech_pred) * m_t - _mv(m, D_t)
             if optimal:
-                r = jax.lax.optimization_barrier(y_t - voffset(mech_pred) * m_t - _mv(m, D_t))
-                psi = _obs_loglik(r, Sinv_t, Sc_t)
-                res_logw = logw_prev + psi
+                res_logw = g_prev + _obs_loglik(r, Sinv_t, Sc_t)
                 # the particle's proposal mean, before resampling (it depends on the ancestor only)
                 mean = m + _mv(r, K_t)
             else:
-                res_logw = logw_prev
+                res_logw = g_prev
                 mean = m
-            step_lz = lse(res_logw)
-            ess = effective_sample_size(res_logw) / N
-            anc = _inverse_cdf(res_logw, p_t)
+            rows = [res_logw]
+            if with_as:
+                log_f = -0.5 * _quad(ref_t[nm:] - m, sc.Q_inv)
+                delta = mech_pred - ref_t[:nm]
+                Delta = -0.5 * _quad(delta, Lam_t) + jnp.sum(delta * eta_t, axis=1)
+                rows.append(g_prev + log_f + Delta)
+            # the barrier stops XLA from fusing (and so recomputing) the RK4 step and
+            # the residuals into every consumer (reductions over particles, the gather)
+            moved, log_weights = (jnp.concatenate([mech_pred, mean, r], axis=1), jnp.stack(rows))
+            if not _K.get("no_barrier"):
+                moved, log_weights = jax.lax.optimization_barrier((moved, log_weights))
+            anc = _draw(log_weights, p_t) if not _K.get("skip_draw") else jnp.arange(N, dtype=jnp.int32)
+            if conditional and not ancestor_sampling:
+                anc = jnp.where(is_ref, ref, anc)
+            moved = moved[anc] if not _K.get("skip_gather") else moved
+            xf_new = moved[:, nm:nm + nfx] + noise_t
             if conditional:
-                if ancestor_sampling:
-                    dx = ref_t[nm:] - m
-                    log_f = -0.5 * _quad(dx, sc.Q_inv)
-                    delta = mech_pred - ref_t[:nm]
-                    Delta = -0.5 * _quad(delta, Lam_t) + jnp.sum(delta * eta_t, axis=1)
-                    as_logw = logw_prev + log_f + Delta
-                    a_ref = _inverse_cdf(as_logw, ua_t[None])[0]
-                else:
-                    a_ref = jnp.asarray(ref, dtype=jnp.int32)
-                anc = anc.at[ref].set(a_ref)
-            # one gather for both blocks
-            moved = jnp.concatenate([mech_pred, mean], axis=1)[anc]
-            x_new = moved + jnp.concatenate([jnp.zeros((N, nm)), noise_t], axis=1)
-            if conditional:
-                x_new = x_new.at[ref, nm:].set(ref_t[nm:])
+                xf_new = jnp.where(is_ref[:, None], ref_t[nm:], xf_new)
+            x_new = jnp.concatenate([moved[:, :nm], xf_new], axis=1)
             if optimal:
-                logw = jnp.full((N,), -log_N)
+                g = jnp.zeros((N,), dtype)
             else:
-                r2 = y_t - voffset(x_new[:, :nm]) * m_t - _mv(x_new[:, nm:], D_t)
+                # y - c - D x_f = r - D (x_f - m), r and m those of the ancestor
+                r2 = moved[:, nm + nfx:] - _mv(xf_new - moved[:, nm:nm + nfx], D_t)
                 g = _obs_loglik(r2, Rinv_t, oc_t)
-                step_lz = step_lz + lse(g) - log_N
-                logw = g - lse(g)
-            switched = (anc[ref] != ref).astype(float) if conditional else jnp.zeros(())
-            return (x_new, logw, log_z + step_lz), (x_new, anc, ess, switched)
+            if _K.get("no_out"):
+                return (x_new, g), (x_new[0,0], anc[0], res_logw[0], g[0])
+            return (x_new, g), (x_new, anc, res_logw, g)
 
         inputs = (sc.y[1:], sc.D[1:], sc.Rinv[1:], sc.obs_const[1:], sc.K[1:], sc.Sinv[1:],
-                  sc.S_const[1:], sc.maskf[1:], noise[1:], points[1:], u_as[1:], Lam[1:], eta[1:], reference[1:])
-        (x_last, logw_T, log_z), (xs, ancs, ess, switched) = jax.lax.scan(
-            _step, (x0, logw, log_z), inputs, unroll=unroll)
+                  sc.S_const[1:], sc.maskf[1:], noise[1:], points[1:], Lam[1:], eta[1:], reference[1:])
+        (x_last, g_T), (xs, ancs, res_logw, gs) = jax.lax.scan(_step, (x0, logw0), inputs, unroll=unroll)
+        if _K.get("no_out"):
+            xs = jnp.broadcast_to(xs[:, None, None], (T - 1, N, x0.shape[1])); ancs = jnp.broadcast_to(ancs[:, None], (T - 1, N))
+            res_logw = jnp.broadcast_to(res_logw[:, None], (T - 1, N)); gs = jnp.broadcast_to(gs[:, None], (T - 1, N))
         particles = jnp.concatenate([x0[None], xs])
-        ancestors = jnp.concatenate([jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32), (1, N)), ancs])
+        ancestors = jnp.concatenate([jnp.broadcast_to(jnp.arange(N, dtype=ancs.dtype), (1, N)), ancs])
+        # Eq. (5) with unnormalised second-stage weights g_t:
+        # log Z = sum_t lse(g_t) - T log N + sum_{t>=1} [lse(g_{t-1} + psi_t) - lse(g_{t-1})]
+        g_all = jnp.concatenate([logw0[None], gs])
+        lse_g = lse(g_all, axis=1)
+        log_z = jnp.sum(lse_g) - T * log_N + jnp.sum(lse(res_logw, axis=1) - lse_g[:-1])
+        ess = jax.vmap(effective_sample_size)(res_logw) / N
+        logw_T = g_T - lse(g_T)
         k = _inverse_cdf(logw_T, u_fin[None])[0]
 
-        def _back(idx, inputs):
-            x_t, a_t = inputs
-            return a_t[idx], x_t[idx]
+        def _back(idx, a_t):
+            return a_t[idx], idx
 
-        _, path = jax.lax.scan(_back, k, (particles, ancestors), reverse=True, unroll=unroll)
-        info = SweepInfo(log_z, jnp.concatenate([jnp.ones(1), ess]), jnp.mean(switched), k)
+        _, path_idx = jax.lax.scan(_back, k, ancestors, reverse=True)
+        path = particles[jnp.arange(T), path_idx]
+        switched = jnp.mean((ancs[:, ref] != ref).astype(dtype)) if conditional else jnp.zeros((), dtype)
+        info = SweepInfo(log_z, jnp.concatenate([jnp.ones(1, dtype), ess]), switched, k)
         return SweepOutput(path, info, particles, ancestors, logw_T)
 
     return sweep
