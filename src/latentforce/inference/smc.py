@@ -482,20 +482,12 @@ def _uniform32(key: Array, shape, dtype) -> Array:
     Half the random bits of ``jax.random.uniform`` in float64 (two words per
     draw), which dominate a sweep's random-number cost on CPU. The grid moves
     any probability computed from these points by less than :math:`2^{-32}`
-    (resampling), and as normals (:func:`_normal32`) it truncates the tails at
+    (resampling), and as normals (by inversion) it truncates the tails at
     :math:`|z| < 6.3` (probability :math:`3\cdot10^{-10}`): both far below the
     Monte Carlo error of any sweep.
     """
     bits = jax.random.bits(key, shape, jnp.uint32)
     return (bits.astype(dtype) + 0.5) * 2.0**-32
-
-
-def _normal32(key: Array, shape, dtype) -> Array:
-    """Standard normals by inversion of :func:`_uniform32` draws."""
-    return math.sqrt(2.0) * jax.lax.erf_inv(2.0 * _uniform32(key, shape, dtype) - 1.0)
-
-
-_K = {}
 
 
 def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal",
@@ -552,12 +544,13 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
     def sweep(key: Array, sc: SweepConstants, reference: Float[Array, "T n"]) -> SweepOutput:
         T = sc.y.shape[0]
         dtype = sc.y.dtype
-        k_init, k_eps, k_res, k_fin = jax.random.split(key, 4)
-        # a sweep's random numbers in a few large draws, and the proposal noise
-        # formed outside the sequential loop
-        eps = _normal32(k_eps, (T, N, nfx), dtype)
+        k_init, k_step, k_fin = jax.random.split(key, 3)
+        # a sweep's random numbers in one large draw (per step: N resampling points and
+        # N x nfx proposal normals), the proposal noise formed outside the sequential loop
+        u = _uniform32(k_step, (T, N, 1 + nfx), dtype)
+        eps = math.sqrt(2.0) * jax.lax.erf_inv(2.0 * u[:, :, 1:] - 1.0)
         noise = jnp.einsum("tnf,tgf->tng", eps, sc.L)
-        points = _points(resampling, _uniform32(k_res, (T, N), dtype))
+        points = _points(resampling, u[:, :, 0])
         z0 = jax.random.normal(k_init, (N, nm), dtype)
         u_fin = jax.random.uniform(k_fin, (), dtype)
 
@@ -584,9 +577,11 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
         x0 = jnp.concatenate([mech, xf], axis=1)
 
         def _step(carry, inputs):
-            # g_prev: the previous step's (unnormalised) second-stage log weights
-            x_prev, g_prev = carry
-            y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t, Lam_t, eta_t, ref_t = inputs
+            # g_prev: the previous step's (unnormalised) second-stage log weights; for the
+            # optimal proposal they are the t = 0 weights at t = 1 and zero after, so they
+            # come in as an input rather than as a carry written every step
+            y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t, Lam_t, eta_t, ref_t, g_in = inputs
+            x_prev, g_prev = (carry, g_in) if optimal else carry
             mech_pred = pm.phi_particles(x_prev[:, :nm], x_prev[:, nm:])
             m = _mv(x_prev[:, nm:], sc.A)
             r = y_t - voffset(mech_pred) * m_t - _mv(m, D_t)
@@ -605,33 +600,33 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
                 rows.append(g_prev + log_f + Delta)
             # the barrier stops XLA from fusing (and so recomputing) the RK4 step and
             # the residuals into every consumer (reductions over particles, the gather)
-            moved, log_weights = (jnp.concatenate([mech_pred, mean, r], axis=1), jnp.stack(rows))
-            if not _K.get("no_barrier"):
-                moved, log_weights = jax.lax.optimization_barrier((moved, log_weights))
-            anc = _draw(log_weights, p_t) if not _K.get("skip_draw") else jnp.arange(N, dtype=jnp.int32)
+            moved, log_weights = jax.lax.optimization_barrier(
+                (jnp.concatenate([mech_pred, mean, r], axis=1), jnp.stack(rows)))
+            anc = _draw(log_weights, p_t)
             if conditional and not ancestor_sampling:
                 anc = jnp.where(is_ref, ref, anc)
-            moved = moved[anc] if not _K.get("skip_gather") else moved
+            moved = moved[anc]
             xf_new = moved[:, nm:nm + nfx] + noise_t
             if conditional:
                 xf_new = jnp.where(is_ref[:, None], ref_t[nm:], xf_new)
             x_new = jnp.concatenate([moved[:, :nm], xf_new], axis=1)
             if optimal:
-                g = jnp.zeros((N,), dtype)
-            else:
-                # y - c - D x_f = r - D (x_f - m), r and m those of the ancestor
-                r2 = moved[:, nm + nfx:] - _mv(xf_new - moved[:, nm:nm + nfx], D_t)
-                g = _obs_loglik(r2, Rinv_t, oc_t)
-            if _K.get("no_out"):
-                return (x_new, g), (x_new[0,0], anc[0], res_logw[0], g[0])
+                return x_new, (x_new, anc, res_logw)
+            # y - c - D x_f = r - D (x_f - m), r and m those of the ancestor
+            r2 = moved[:, nm + nfx:] - _mv(xf_new - moved[:, nm:nm + nfx], D_t)
+            g = _obs_loglik(r2, Rinv_t, oc_t)
             return (x_new, g), (x_new, anc, res_logw, g)
 
         inputs = (sc.y[1:], sc.D[1:], sc.Rinv[1:], sc.obs_const[1:], sc.K[1:], sc.Sinv[1:],
                   sc.S_const[1:], sc.maskf[1:], noise[1:], points[1:], Lam[1:], eta[1:], reference[1:])
-        (x_last, g_T), (xs, ancs, res_logw, gs) = jax.lax.scan(_step, (x0, logw0), inputs, unroll=unroll)
-        if _K.get("no_out"):
-            xs = jnp.broadcast_to(xs[:, None, None], (T - 1, N, x0.shape[1])); ancs = jnp.broadcast_to(ancs[:, None], (T - 1, N))
-            res_logw = jnp.broadcast_to(res_logw[:, None], (T - 1, N)); gs = jnp.broadcast_to(gs[:, None], (T - 1, N))
+        if optimal:
+            g_in = jnp.zeros((T - 1, N), dtype).at[0].set(logw0)
+            _, (xs, ancs, res_logw) = jax.lax.scan(_step, x0, inputs + (g_in,), unroll=unroll)
+            gs = jnp.zeros((T - 1, N), dtype)
+            g_T = logw0 if T == 1 else gs[-1]
+        else:
+            (_, g_T), (xs, ancs, res_logw, gs) = jax.lax.scan(
+                _step, (x0, logw0), inputs + (jnp.zeros((T - 1, 0), dtype),), unroll=unroll)
         particles = jnp.concatenate([x0[None], xs])
         ancestors = jnp.concatenate([jnp.broadcast_to(jnp.arange(N, dtype=ancs.dtype), (1, N)), ancs])
         # Eq. (5) with unnormalised second-stage weights g_t:
