@@ -9,7 +9,8 @@ time points and of the hyperparameters from a short Gibbs run.
 
     PYTHONPATH=src python benchmarks/pgas.py [--quick] [--particles-python /tmp/pvenv/bin/python]
 
-``--quick`` (CI) uses T=256 and few repetitions (about 30 s).
+``--quick`` (CI) uses T=256, few repetitions and a 150-iteration Gibbs run (about 30 s
+on an idle 2-core machine, most of it compilation).
 """
 
 from __future__ import annotations
@@ -275,7 +276,7 @@ def main(argv=None):
     nps(ref)
     msn = 1e3 * median_time(lambda: nps(ref), max(1, reps - 2))
     rows.append(("NumPy PGAS (same sweep)", msn, ""))
-    msp, why = particles_sweep_ms(args.particles_python, y, ft, N, 2 if args.quick else 3)
+    msp, why = particles_sweep_ms(args.particles_python, y, ft, N, 1 if args.quick else 3)
     rows.append(("particles CSMC", msp, why))
     table = [f"| implementation | ms/sweep | × JAX 1 chain | note |", "|---|---:|---:|---|"]
     print(f"{'implementation':48s} {'ms/sweep':>10s} {'x JAX-1':>8s}  note")
@@ -302,7 +303,7 @@ def main(argv=None):
         print(f"wrote {out}")
 
     # ---- ESS/s from a short Gibbs run
-    iters = 300 if args.quick else 2000
+    iters = 100 if args.quick else 2000
     free = {"force_variance": (LogNormal(0.0, 1.0), 2.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 1.0)}
     t0 = time.perf_counter()
     out = pgas.run_pgas(jax.random.key(1, impl="rbg"), model, PARAMS, free, y, np.isfinite(y), DT,

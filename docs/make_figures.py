@@ -1,5 +1,8 @@
 """Figures for the docs (run: python docs/make_figures.py). Deterministic (fixed seeds).
 
+oma_force.png (with a demo folder as argument: python docs/make_figures.py demo-oma):
+the README figure.
+
 acc_only_bands.png: the exact Kalman smoother on the linear analogue of the
 Vibration 2020 Duffing case (k3 = 0), acceleration only vs acceleration +
 displacement, with the transfer function that explains the difference.
@@ -88,7 +91,45 @@ def acc_only_bands(seeds=range(8), start="rest"):
 
 
 if __name__ == "__main__":
+    import sys
+
+    if len(sys.argv) > 1:  # a `latentforce demo oma` result folder
+        oma_readme_figure(Path(sys.argv[1]))
     rows = acc_only_bands(start="rest") + acc_only_bands(start="stationary")
     for start, seed, label, nm, cov, ratio in rows:
         print(f"{start:10s} seed {seed}  {label:28s}  force NMSE {nm:6.2f} %   within 3 sd {100 * cov:5.1f} %   "
               f"posterior var / prior var {ratio:.3f}")
+
+
+def oma_readme_figure(result_dir: Path, window=(0.0, 400.0)):
+    """README figure from a `latentforce demo oma` result folder: force and displacement, zoomed."""
+    import csv
+
+    with open(result_dir / "summary.csv") as f:
+        rows = list(csv.DictReader(f))
+    with open(result_dir / "data.csv") as f:
+        data = list(csv.DictReader(f))
+    t = np.array([float(r["time"]) for r in rows])
+    keep = (t >= window[0]) & (t <= window[1])
+    fig = Figure(figsize=(10, 5.5))
+    axes = fig.subplots(2, 1, sharex=True)
+    for ax, name, unit in ((axes[0], "force", "N"), (axes[1], "displacement", "m")):
+        m = np.array([float(r[f"{name}_mean"]) for r in rows])[keep]
+        s = np.array([float(r[f"{name}_sd"]) for r in rows])[keep]
+        truth = np.array([float(r[name]) for r in data])[keep]
+        for k, alpha in ((3, 0.15), (2, 0.25), (1, 0.4)):
+            ax.fill_between(t[keep], m - k * s, m + k * s, color="tab:blue", alpha=alpha, lw=0,
+                            label=f"±{k} sd" if name == "force" else None)
+        ax.plot(t[keep], m, color="tab:blue", lw=1.2, label="posterior mean")
+        ax.plot(t[keep], truth, color="red", lw=1.0, ls="--", label="truth")
+        ax.set_ylabel(f"{name} [{unit}]")
+    if "disp" in data[0]:
+        meas = np.array([float(r["disp"]) for r in data])[keep]
+        axes[1].plot(t[keep], meas, ".", ms=2, color="k", alpha=0.5, label="measured")
+    axes[0].legend(ncol=5, fontsize=8, loc="upper right")
+    axes[1].legend(ncol=3, fontsize=8, loc="lower left")
+    axes[1].set_xlabel("time [s]")
+    axes[0].set_title("Unmeasured wave force recovered from noisy displacement; k and c inferred too "
+                      "(latentforce demo oma)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(OUT / "oma_force.png", dpi=110)
