@@ -141,3 +141,20 @@ def test_steady_state_shortcut_is_exact(lengthscale, n_obs):
     assert np.isclose(fast, full, rtol=1e-10, atol=1e-8)
     grad_full = jax.grad(lambda a: log_likelihood(a * A, Q, H, R, m0, P0, y))(1.0)
     assert np.isfinite(float(grad_full))
+
+
+def test_mdof_filter_smoother_match_dense_gaussian():
+    M = jnp.diag(jnp.array([1.0, 2.0]))
+    K = jnp.array([[30.0, -10.0], [-10.0, 10.0]])
+    model = LatentForceModel(LinearSystem(ndof=2, force_dofs=(0, 1)), Matern(1),
+                             [Sensor("acceleration", 0, 0.1), Sensor("displacement", 1, 0.01)])
+    params = dict(M=M, C=0.02 * K + 0.1 * M, K=K, force_variance=2.0, force_lengthscale=0.5)
+    A, Q = model.discretise(params, 0.1)
+    H, R = model.observation(params)
+    m0, P0 = model.stationary_initial(params)
+    y = np.random.default_rng(5).normal(size=(15, 2))
+    mask = np.ones_like(y, bool)
+    ll_dense, mean_dense, cov_dense = dense_gaussian(*map(np.asarray, (A, Q, H, R, m0, P0)), y, mask)
+    sm = kalman_smoother(A, Q, H, R, m0, P0, jnp.asarray(y))
+    assert np.isclose(float(sm.log_likelihood), ll_dense, rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(sm.covs), cov_dense, rtol=1e-6, atol=1e-10 * np.abs(cov_dense).max())

@@ -32,6 +32,35 @@ def solve_lyapunov(F: Float[Array, "n n"], W: Float[Array, "n n"]) -> Float[Arra
     return symmetrise(P)
 
 
+def balance(F: Float[Array, "n n"], sweeps: int = 6) -> Float[Array, " n"]:
+    r"""Diagonal scaling ``d`` that balances ``diag(d)^{-1} F diag(d)`` (Parlett & Reinsch).
+
+    Companion matrices of Matérn SDEs have entries from 1 to :math:`\lambda^{p+1}`
+    and stiff structures add :math:`k/m`; the matrix exponential of such a
+    badly scaled matrix loses accuracy or overflows (JAX's ``expm`` returns
+    NaN). A similarity scaling fixes that exactly. Fixed number of sweeps, so
+    it is jittable and differentiable; scales are rounded to powers of two so
+    the scaling itself is exact in floating point.
+    """
+    n = F.shape[0]
+    off = jnp.abs(F) * (1.0 - jnp.eye(n, dtype=F.dtype))
+    d = jnp.ones(n, dtype=F.dtype)
+    for _ in range(sweeps):
+        scaled = off * (d[None, :] / d[:, None])
+        col = jnp.sum(scaled, axis=0)
+        row = jnp.sum(scaled, axis=1)
+        ok = (col > 0) & (row > 0)
+        factor = jnp.where(ok, jnp.sqrt(row / jnp.where(ok, col, 1.0)), 1.0)
+        d = d * jnp.exp2(jnp.round(jnp.log2(factor)))
+    return d
+
+
+def expm_balanced(F: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    """``expm(F)`` computed on the balanced matrix (see :func:`balance`)."""
+    d = balance(F)
+    return expm(F * (d[None, :] / d[:, None])) * (d[:, None] / d[None, :])
+
+
 def van_loan(
     F: Float[Array, "n n"], W: Float[Array, "n n"], dt: float
 ) -> tuple[Float[Array, "n n"], Float[Array, "n n"]]:
@@ -44,9 +73,15 @@ def van_loan(
     top-right block times :math:`A^T` is :math:`Q` (Van Loan 1978).
     """
     n = F.shape[0]
+    # Balance first: x = D x~ turns F into D^-1 F D and W into D^-1 W D^-1.
+    d = balance(F)
+    Fb = F * (d[None, :] / d[:, None])
+    Wb = W / (d[:, None] * d[None, :])
     zeros = jnp.zeros_like(F)
-    block = jnp.block([[F, W], [zeros, -F.T]]) * dt
+    block = jnp.block([[Fb, Wb], [zeros, -Fb.T]]) * dt
     E = expm(block)
-    A = E[:n, :n]
-    Q = E[:n, n:] @ A.T
+    Ab = E[:n, :n]
+    Qb = E[:n, n:] @ Ab.T
+    A = Ab * (d[:, None] / d[None, :])
+    Q = Qb * (d[:, None] * d[None, :])
     return A, symmetrise(Q)

@@ -8,6 +8,19 @@ iterations of Metropolis-within-Gibbs for the GP hyperparameters
 map :math:`\Phi` does not depend on :math:`\theta`, the observation terms of
 Eq. (25) cancel and the MH target is the GP path density times the prior.
 
+**Low-frequency trajectory move.** With acceleration-only data the weakly
+observed direction of the path is a slow, coherent shift of force and
+displacement (:math:`\delta u \approx k\,\delta z` leaves the acceleration
+unchanged). The ancestor-sampling splice keeps the reference's future force
+and changes only the mechanical state, so the sweep alone cannot move that
+component and chains stay where they start. After each sweep
+``lowfreq_steps`` Metropolis steps (:func:`lowfreq_move`) therefore move, at
+fixed :math:`\theta`, the ``lowfreq_modes`` lowest DCT-II modes of the
+whitened force innovations and the whitened initial mechanical state (the
+non-centred coordinates, prior :math:`N(0, I)`), the path being rebuilt by
+``colour`` and ``mech_path``; the proposal's shape is a Gauss-Newton
+posterior covariance at the initial path and its scale adapts in burn-in.
+
 **Sampling space.** The random walk runs in *log* space,
 :math:`x = \log\theta` (this method's choice, overriding the softplus default
 of INTERFACE.md; the priors stay on the physical values):
@@ -262,6 +275,128 @@ def noncentred_log_target(hyper: Hyper, pm: smc.ParticleModel, od: ObservationDe
 
 
 # ---------------------------------------------------------------------------
+# Low-frequency trajectory move in the non-centred coordinates
+# ---------------------------------------------------------------------------
+def lowfreq_basis(T: int, K: int) -> Float[Array, "T K"]:
+    r"""The ``K`` lowest-frequency orthonormal DCT-II vectors, :math:`b_k(t) \propto \cos(\pi k (t + 1/2) / T)`."""
+    K = min(int(K), int(T))
+    t = np.arange(T)[:, None] + 0.5
+    k = np.arange(K)[None, :]
+    B = np.sqrt(2.0 / T) * np.cos(np.pi * k * t / T)
+    B[:, 0] = 1.0 / np.sqrt(T)
+    return jnp.asarray(B)
+
+
+class LowFrequencyFrame(NamedTuple):
+    r"""What a low-frequency move holds fixed: :math:`\theta` (through ``ft``), the initial-state prior, the basis.
+
+    The path is coordinatised as :math:`\mathrm{mech}_1 = m_0 + L_0 w_m` and
+    :math:`\varepsilon = \varepsilon_\perp + B W` (``W`` of shape ``(K, nf)``,
+    :math:`B^\top\varepsilon_\perp = 0`), with :math:`\varepsilon` the
+    innovations of :func:`whiten`; the move samples :math:`w = (\mathrm{vec}\,W, w_m)`.
+    """
+
+    ft: smc.ForceTransition
+    mech0_mean: Float[Array, " nm"]
+    chol0: Float[Array, "nm nm"]
+    basis: Float[Array, "T K"]
+
+
+def lowfreq_coordinates(pm: smc.ParticleModel, frame: LowFrequencyFrame,
+                        path: Float[Array, "T n"]) -> tuple[Float[Array, " q"], Float[Array, "T nf"]]:
+    """``(w, eps_perp)`` of a path (inverse of :func:`lowfreq_path`)."""
+    eps = whiten(frame.ft, path[:, pm.nm:])
+    W = frame.basis.T @ eps
+    w_m = jax.scipy.linalg.solve_triangular(frame.chol0, path[0, :pm.nm] - frame.mech0_mean, lower=True)
+    return jnp.concatenate([W.ravel(), w_m]), eps - frame.basis @ W
+
+
+def lowfreq_path(pm: smc.ParticleModel, frame: LowFrequencyFrame, eps_perp: Float[Array, "T nf"],
+                 w: Float[Array, " q"]) -> Float[Array, "T n"]:
+    """The full path with low-frequency coordinates ``w`` (``colour`` then ``mech_path``)."""
+    K = frame.basis.shape[1]
+    W = jnp.reshape(w[:K * pm.nfx], (K, pm.nfx))
+    mech1 = frame.mech0_mean + frame.chol0 @ w[K * pm.nfx:]
+    return pm.mech_path(mech1, colour(frame.ft, eps_perp + frame.basis @ W))
+
+
+def lowfreq_log_target(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
+                       eps_perp: Float[Array, "T nf"], w: Float[Array, " q"]) -> Float[Array, ""]:
+    r""":math:`\log N(w; 0, I) + \log p(y \mid x_{1:T}(w, \varepsilon_\perp))` up to a constant.
+
+    The maps :math:`w \mapsto (\mathrm{mech}_1, \varepsilon) \mapsto x_{1:T}`
+    are affine with a constant Jacobian, and the prior of
+    :math:`(\mathrm{mech}_1, \varepsilon)` is standard normal in these
+    coordinates, so this is the conditional posterior of :math:`w` given
+    :math:`\varepsilon_\perp` and :math:`\theta`.
+    """
+    return -0.5 * jnp.sum(w**2) + observation_log_likelihood(pm, od, lowfreq_path(pm, frame, eps_perp, w))
+
+
+def lowfreq_init(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
+                 path: Float[Array, "T n"]) -> mcmc.RWMState:
+    r"""Adaptation state of the low-frequency walk, its shape from a Gauss-Newton precision at ``path``.
+
+    The proposal covariance starts at :math:`(2.38^2/q)\,(I + J^\top R^{-1} J)^{-1}`,
+    :math:`J` the Jacobian of the predicted observations with respect to the
+    :math:`q` coordinates :math:`w` (exact posterior covariance for a linear
+    model). The observed directions are hundreds of times tighter than the
+    prior-dominated slow one, and a walk that had to learn that shape from
+    its own draws would spend the burn-in doing so.
+    """
+    w, eps_perp = lowfreq_coordinates(pm, frame, path)
+    q = w.shape[0]
+
+    def predicted(w_):
+        x = lowfreq_path(pm, frame, eps_perp, w_)
+        return ((jax.vmap(pm.offset)(x[:, :pm.nm]) + x[:, pm.nm:] @ pm.D.T) * od.maskf).ravel()
+
+    J = jnp.reshape(jax.jacfwd(predicted)(w), (od.y.shape[0], od.y.shape[1], q))
+    prec = symmetrise(jnp.eye(q) + jnp.einsum("tim,tij,tjn->mn", J, od.Rinv, J))
+    cov = symmetrise(cho_solve((jnp.linalg.cholesky(prec), True), jnp.eye(q)))
+    chol = jnp.linalg.cholesky(cov) * (2.38 / math.sqrt(q))
+    return mcmc.RWMState(w, jnp.zeros(()), jnp.zeros(()), chol, w, cov, jnp.zeros(()))
+
+
+def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: smc.ParticleModel, od: ObservationDensity,
+                 frame: LowFrequencyFrame, path: Float[Array, "T n"], n_steps: int, *, adapt: Array,
+                 step0: Array, reshape_steps: Array, target: float = 0.25
+                 ) -> tuple[mcmc.RWMState, Float[Array, "T n"], Float[Array, " n_steps"]]:
+    r"""``n_steps`` Metropolis steps on the path's low-frequency non-centred coordinates, :math:`\theta` fixed.
+
+    The sweep's ancestor-sampling splice keeps the reference's future force
+    and changes only the mechanical state; with acceleration-only data the
+    weakly observed direction is a slow, coherent shift of force and
+    displacement (:math:`\delta u \approx k\,\delta z` leaves the acceleration
+    unchanged), which such splices cannot make. This move proposes
+    :math:`w' = w + s L \xi` in the span of the ``K`` lowest DCT-II modes of
+    the innovations of every force state and the whitened initial mechanical
+    state, holding :math:`\varepsilon_\perp` fixed (:func:`lowfreq_log_target`).
+    The proposal is symmetric; its shape :math:`L` (Haario et al. 2001) and
+    scale :math:`s` (Robbins-Monro towards ``target``) adapt only where
+    ``adapt``, so the frozen kernel is a plain Metropolis kernel that leaves
+    the posterior invariant. ``step0``: index of the first step (for
+    ``reshape_steps``). Returns the walk state, the new path (the input path
+    bit-for-bit when nothing was accepted) and the acceptances.
+    """
+    w, eps_perp = lowfreq_coordinates(pm, frame, path)
+
+    def log_target(w_):
+        return lowfreq_log_target(pm, od, frame, eps_perp, w_)
+
+    rwm = rwm._replace(x=w, logdensity=log_target(w))
+
+    def _one(r, inp):
+        k, s = inp
+        r, info = mh_step(k, r, log_target, adapt=adapt, reshape=jnp.any(step0 + s == reshape_steps), target=target)
+        return r, info.accepted
+
+    rwm, accs = jax.lax.scan(_one, rwm, (jax.random.split(key, n_steps), jnp.arange(n_steps)))
+    path = jnp.where(jnp.any(accs), lowfreq_path(pm, frame, eps_perp, rwm.x), path)
+    return rwm, path, accs
+
+
+# ---------------------------------------------------------------------------
 # Initialisation: extended Kalman smoother
 # ---------------------------------------------------------------------------
 def extended_kalman_smoother(pm: smc.ParticleModel, ft: smc.ForceTransition, y, mask,
@@ -339,6 +474,7 @@ class ChainState(NamedTuple):
     reference: Float[Array, "T n"]
     rwm: mcmc.RWMState  # hyperparameters x = log(theta) and their centred random walk's adaptation
     rwm_nc: mcmc.RWMState  # the non-centred (interweaving) random walk's adaptation; its x mirrors rwm.x
+    rwm_lf: mcmc.RWMState  # the low-frequency trajectory move's adaptation (x: its last coordinates)
     block: Array  # Gibbs block counter
     # running sums over post-burn-in state samples: (z, v, u) per time
     sum1: Float[Array, "T q"]
@@ -351,6 +487,7 @@ class BlockInfo(NamedTuple):
     theta: Float[Array, "k p"]
     accept: Float[Array, " k"]
     accept_noncentred: Float[Array, " k"]
+    accept_lowfreq: Float[Array, ""]
     log_likelihood: Float[Array, ""]
     switch_rate: Float[Array, ""]
     ess: Float[Array, ""]
@@ -387,7 +524,8 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
              chains: int = 4, mh_steps: int = 1, discretisation: str = "rk4", proposal: str = "optimal",
              resampling: str = "multinomial", thin_draws: int = 200, initial=None,
              progress: Callable | None = None, chunk_blocks: int = 1000, unroll: int = 1,
-             time_points: int = 5, ancestor_sampling: bool = True, interweave: bool = True) -> PGASOutput:
+             time_points: int = 5, ancestor_sampling: bool = True, interweave: bool = True,
+             lowfreq_modes: int = 16, lowfreq_steps: int = 5) -> PGASOutput:
     r"""Blocked particle Gibbs (Algorithm 5, Vibration 2020) with the PGAS kernel of :mod:`smc`.
 
     ``params``: every model parameter (free hyperparameters too: their values
@@ -399,7 +537,11 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     and every iteration makes ``mh_steps`` Metropolis steps on
     :math:`\theta` given the current path (the value recorded for the
     iteration is the last); with ``interweave`` each iteration then makes
-    ``mh_steps`` non-centred steps (module doc). ``initial = (mean, sd)`` of the initial
+    ``mh_steps`` non-centred steps (module doc). After each sweep,
+    ``lowfreq_steps`` Metropolis steps (:func:`lowfreq_move`; 0 disables)
+    move the path's ``lowfreq_modes`` slowest innovation modes and its
+    initial mechanical state at fixed :math:`\theta`; the moved path is the
+    next reference and the recorded sample. ``initial = (mean, sd)`` of the initial
     mechanical state, else ``model.default_initial``. ``progress(done,
     total, accept_rate)`` is called between scan chunks.
     """
@@ -426,6 +568,11 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     target_acc = mcmc.target_acceptance(max(p, 1))
     reshape_steps = jnp.asarray(adaptation_schedule(int(burn_in) * n_mh) or (-1,))
     nq = 2 * pm.ndof + pm.nforce
+    n_lf = int(lowfreq_steps)
+    if n_lf < 0:
+        raise ValueError(f"lowfreq_steps must be non-negative, got {lowfreq_steps}")
+    basis = lowfreq_basis(T, lowfreq_modes)
+    chol0 = smc._chol(jnp.asarray(mech0_cov, dtype=float))
 
     # ---- initialisation (outside the loop; never from the truth)
     k_init, k_chains = jax.random.split(key)
@@ -441,22 +588,31 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         ref = pm.mech_path(eks[0, :pm.nm], xf)
         # dispersed start: theta_0 exp(0.5 eps); the log density is set at the first block
         rwm = init_proposal(hyper, lambda x: jnp.zeros(()), x0 + 0.5 * jax.random.normal(k_theta, (p,)))
-        return ChainState(k_run, ref, rwm, rwm, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)), jnp.zeros((T, nq)),
-                          jnp.zeros(()), jnp.zeros((n_draws + 1, T, pm.n_state)))
+        return ChainState(k_run, ref, rwm, rwm, rwm_lf0, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)),
+                          jnp.zeros((T, nq)), jnp.zeros(()), jnp.zeros((n_draws + 1, T, pm.n_state)))
 
-    state0 = jax.vmap(_init_chain)(chain_keys)
     ref_q = _summary_quantities(pm, eks)  # centring of the running sums (numerical stability)
     od = observation_density(pm, y, mask)
+    # the Gauss-Newton shape is exact for linear models: only the scale adapts
+    rwm_lf0 = lowfreq_init(pm, od, LowFrequencyFrame(ft0, jnp.asarray(mech0_mean, dtype=float), chol0, basis), eks)
+    lf_reshape = jnp.asarray((-1,))
     interweave = bool(interweave) and p > 0
+    state0 = jax.vmap(_init_chain)(chain_keys)
 
     def _block(state: ChainState, _):
-        key, k_sweep, k_mh = jax.random.split(state.key, 3)
+        key, k_sweep, k_mh, k_lf = jax.random.split(state.key, 4)
         b = state.block
         var, ls = hyper.values(state.rwm.x)
         ft = pm.force_transition(var, ls)
         sc = smc.sweep_constants(pm, ft, y, mask, mech0_mean, mech0_cov, proposal)
         out = sweep(k_sweep, sc, state.reference)
         path = out.trajectory
+        rwm_lf, acc_lf = state.rwm_lf, jnp.zeros(())
+        if n_lf:
+            frame = LowFrequencyFrame(ft, jnp.asarray(mech0_mean, dtype=float), chol0, basis)
+            rwm_lf, path, accs_lf = lowfreq_move(k_lf, rwm_lf, pm, od, frame, path, n_lf, adapt=b < burn_blocks,
+                                                 step0=b * n_lf, reshape_steps=lf_reshape)
+            acc_lf = jnp.mean(accs_lf.astype(float))
         # ---- accumulate post-burn-in state samples
         post = (b >= burn_blocks) & (b < n_blocks)
         wgt = post.astype(float)
@@ -514,8 +670,8 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
             _mh_iter, (state.rwm, state.rwm_nc, path), (jax.random.split(k_mh, k_every), js))
         theta = hyper.to_constrained(xs)
         fp = path[tpoints][:, pm.nm + pm.kdim * np.arange(pm.nforce)]
-        new = ChainState(key, path_end, rwm, rwm_nc, b + 1, sum1, sum2, state.count + wgt, draws)
-        info = BlockInfo(theta, accs, accs_nc, out.info.log_likelihood, out.info.switched,
+        new = ChainState(key, path_end, rwm, rwm_nc, rwm_lf, b + 1, sum1, sum2, state.count + wgt, draws)
+        info = BlockInfo(theta, accs, accs_nc, acc_lf, out.info.log_likelihood, out.info.switched,
                          jnp.mean(out.info.ess), fp)
         return new, info
 
@@ -576,6 +732,7 @@ def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, to
         "mh_sampling_space": "log",
         "acceptance_noncentred": np.reshape(info.accept_noncentred, (chains, -1))[:, burn_in:total].mean(axis=1).tolist()
         if hyper.names else [],
+        "acceptance_lowfreq": info.accept_lowfreq[:, burn_blocks:].mean(axis=1).tolist(),
     }
     diag.update(convergence_diagnostics(th_post, fp, tpoints))
     return PGASOutput(hyper.names, th_post, th_burn, np.asarray(states.draws)[:, :n_draws], state_mean, state_sd,

@@ -81,7 +81,6 @@ class InferenceSettings(NamedTuple):
     mh_steps: int
     discretisation: str
     proposal: str
-    resampling: str
     thin_draws: int
 
 
@@ -185,7 +184,6 @@ class _InferenceSection(_Strict):
     mh_steps: int = Field(default=1, ge=1)
     discretisation: Literal["rk4", "euler"] = "rk4"
     proposal: Literal["optimal", "bootstrap"] = "optimal"
-    resampling: Literal["systematic", "multinomial"] = "systematic"
     thin_draws: int = Field(default=200, ge=1)
 
 
@@ -506,7 +504,7 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
     settings = InferenceSettings(
         method=method, particles=inf.particles, iterations=inf.iterations, burn_in=inf.burn_in,
         state_every=inf.state_every, chains=inf.chains, seed=inf.seed, mh_steps=inf.mh_steps,
-        discretisation=inf.discretisation, proposal=inf.proposal, resampling=inf.resampling,
+        discretisation=inf.discretisation, proposal=inf.proposal,
         thin_draws=inf.thin_draws)
 
     dat = cfg.data

@@ -1,0 +1,124 @@
+"""Matérn kernels: state-space form against the kernel; discretisation; the augmented model."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.scipy.linalg import expm
+
+import latentforce  # noqa: F401
+from latentforce.kernels import KernelParams, Matern, kernel_from_name, matern_bessel
+from latentforce.linalg import expm_balanced, solve_lyapunov, van_loan
+from latentforce.models import LatentForceModel, Sensor
+from latentforce.systems import Duffing, LinearSystem
+
+LAGS = np.concatenate([[0.0], np.logspace(-3, 1, 40)])
+
+
+def closed_form(p, tau, var, ell):
+    r = np.abs(tau) / ell
+    if p == 0:
+        return var * np.exp(-r)
+    if p == 1:
+        return var * (1 + np.sqrt(3) * r) * np.exp(-np.sqrt(3) * r)
+    if p == 2:
+        return var * (1 + np.sqrt(5) * r + 5 * r**2 / 3) * np.exp(-np.sqrt(5) * r)
+    raise ValueError(p)
+
+
+@pytest.mark.parametrize("p", [0, 1, 2, 3, 4])
+@pytest.mark.parametrize("var,ell", [(1.0, 1.0), (20.0, 0.1), (1e4, 7.5)])
+def test_state_space_covariance_is_the_kernel(p, var, ell):
+    k = Matern(p)
+    params = KernelParams(jnp.asarray(var), jnp.asarray(ell))
+    ss_cov = np.asarray(k.state_covariance(LAGS * ell, params))
+    exact = closed_form(p, LAGS * ell, var, ell) if p <= 2 else matern_bessel(LAGS * ell, p + 0.5, var, ell)
+    np.testing.assert_allclose(ss_cov, exact, rtol=1e-8, atol=1e-11 * var)
+    np.testing.assert_allclose(np.asarray(k.covariance(LAGS * ell, params)), exact, rtol=1e-10, atol=1e-12 * var)
+
+
+@pytest.mark.parametrize("p", [0, 1, 2, 3])
+def test_discretisation_preserves_the_stationary_covariance(p):
+    k = Matern(p)
+    params = KernelParams(jnp.asarray(3.0), jnp.asarray(0.4))
+    ss = k.state_space(params)
+    for dt in (1e-4, 0.01, 0.3, 5.0):
+        A, Q = k.discretise(params, dt)
+        np.testing.assert_allclose(np.asarray(A), np.asarray(expm_balanced(ss.F * dt)), rtol=1e-10, atol=1e-14)
+        np.testing.assert_allclose(np.asarray(A @ ss.Pinf @ A.T + Q), np.asarray(ss.Pinf), rtol=1e-9,
+                                   atol=1e-10 * float(jnp.max(jnp.abs(ss.Pinf))))
+        assert np.all(np.linalg.eigvalsh(np.asarray(Q)) > -1e-12 * float(jnp.max(jnp.abs(Q))))
+
+
+def test_van_loan_matches_closed_form_for_ou():
+    lam, q, dt = 3.0, 2.0, 0.2
+    A, Q = van_loan(jnp.array([[-lam]]), jnp.array([[q]]), dt)
+    assert np.isclose(float(A[0, 0]), np.exp(-lam * dt))
+    assert np.isclose(float(Q[0, 0]), q / (2 * lam) * (1 - np.exp(-2 * lam * dt)), rtol=1e-12)
+
+
+def test_lyapunov_solution():
+    F = jnp.array([[0.0, 1.0], [-4.0, -0.3]])
+    W = jnp.array([[0.0, 0.0], [0.0, 2.0]])
+    P = solve_lyapunov(F, W)
+    np.testing.assert_allclose(np.asarray(F @ P + P @ F.T + W), 0.0, atol=1e-12)
+
+
+def test_sum_and_product_kernels():
+    a, b = Matern(0), Matern(1)
+    pa, pb = KernelParams(jnp.asarray(2.0), jnp.asarray(0.5)), KernelParams(jnp.asarray(1.0), jnp.asarray(2.0))
+    tau = LAGS[:20]
+    s, m = a + b, a * b
+    np.testing.assert_allclose(np.asarray(s.state_covariance(tau, (pa, pb))),
+                               closed_form(0, tau, 2.0, 0.5) + closed_form(1, tau, 1.0, 2.0), rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(m.state_covariance(tau, (pa, pb))),
+                               closed_form(0, tau, 2.0, 0.5) * closed_form(1, tau, 1.0, 2.0), rtol=1e-8)
+
+
+def test_kernel_names_and_differentiability():
+    assert kernel_from_name("matern52") == Matern(2)
+    with pytest.raises(KeyError):
+        kernel_from_name("rbf")
+    g = jax.grad(lambda ell: Matern(1).state_space(KernelParams(jnp.asarray(1.0), ell)).Pinf[1, 1])(0.7)
+    # Pinf[1,1] = variance * lambda^2 = 3 / ell^2  ->  derivative -6 / ell^3
+    assert np.isclose(float(g), -6 / 0.7**3, rtol=1e-10)
+
+
+def test_augmented_model_accelerometer_row_and_stationarity():
+    model = LatentForceModel(LinearSystem(), Matern(1), [Sensor("acceleration", 0, 0.1)])
+    p = dict(m=2.0, c=0.5, k=8.0, force_variance=3.0, force_lengthscale=0.6)
+    H, _ = model.observation(p)
+    np.testing.assert_allclose(np.asarray(H[0]), [-4.0, -0.25, 0.5, 0.0])  # (-k/m, -c/m, 1/m, 0): Eq. 23b
+    F, W = model.continuous(p)
+    m0, P0 = model.stationary_initial(p)
+    np.testing.assert_allclose(np.asarray(F @ P0 + P0 @ F.T + W), 0.0, atol=1e-10)
+    A, Q = model.discretise(p, 0.05)
+    np.testing.assert_allclose(np.asarray(A @ P0 @ A.T + Q), np.asarray(P0), rtol=1e-8, atol=1e-10)
+    # the nonlinear drift of a linear system equals the linear drift
+    x = jnp.array([0.1, -0.2, 0.3, 0.05])
+    np.testing.assert_allclose(np.asarray(model.drift(p, x)), np.asarray(F @ x), rtol=1e-12)
+
+
+def test_mdof_augmented_model():
+    M = jnp.diag(jnp.array([1.0, 2.0]))
+    K = jnp.array([[30.0, -10.0], [-10.0, 10.0]])
+    C = 0.02 * K + 0.1 * M
+    model = LatentForceModel(LinearSystem(ndof=2, force_dofs=(1,)), Matern(0),
+                             [Sensor("acceleration", 0, 0.1), Sensor("displacement", 1, 0.01)])
+    p = dict(M=M, C=C, K=K, force_variance=1.0, force_lengthscale=0.3)
+    assert model.n_state == 5
+    F, _ = model.continuous(p)
+    np.testing.assert_allclose(np.asarray(F[2:4, 4]), [0.0, 0.5])  # force on DOF 1 through M^-1
+    H, _ = model.observation(p)
+    np.testing.assert_allclose(np.asarray(H[1]), [0, 1, 0, 0, 0])
+
+
+def test_duffing_has_no_linear_form_but_a_linear_part():
+    model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
+    p = dict(m=1.0, c=20.0, k=1e4, k3=1e9, force_variance=20.0, force_lengthscale=0.1)
+    with pytest.raises(TypeError):
+        model.continuous(p)
+    F, _ = model.continuous(p, linear_part=True)
+    assert float(F[1, 0]) == -1e4
+    x = jnp.array([1e-3, 0.0, 0.0])
+    assert np.isclose(float(model.drift(p, x)[1]), -(1e4 * 1e-3 + 1e9 * 1e-9))
