@@ -298,7 +298,8 @@ def test_lowfreq_move_matches_exact_conditional():
 
 def test_lowfreq_basis_is_orthonormal_dct():
     B = np.asarray(pgas.lowfreq_basis(50, 12))
-    assert B.shape == (50, 12)
-    assert np.allclose(B.T @ B, np.eye(12), atol=1e-12)
+    assert B.shape == (50, 13)  # 12 DCT modes and the first innovation
+    assert np.allclose(B.T @ B, np.eye(13), atol=1e-12)
     assert np.allclose(B[:, 0], 1 / np.sqrt(50))
+    assert np.linalg.norm(B @ (B.T @ np.eye(50)[0]) - np.eye(50)[0]) < 1e-12
     assert pgas.lowfreq_basis(5, 16).shape == (5, 5)

@@ -74,3 +74,17 @@ def table(rows: list[list[str]], header: list[str]) -> str:
 
 def fmt(x: float) -> str:
     return f"{x:.4g}"
+
+
+def run_cases_concurrently(jobs):
+    """Run independent demo cases in two threads and return their results in order.
+
+    Each case is mostly small XLA ops and compilation, which use one core; JAX
+    releases the GIL while it compiles and executes, so two cases on the
+    2 cores of a laptop take about the time of one.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        futures = [pool.submit(job) for job in jobs]
+        return [f.result() for f in futures]

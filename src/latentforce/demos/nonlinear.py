@@ -26,12 +26,13 @@ calibration (the truth inside the ±3 sd band), not by the paper's NMSE.
 
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 
 import numpy as np
 
-from latentforce.demos.common import fmt, table, write_case
+from latentforce.demos.common import fmt, run_cases_concurrently, table, write_case
 from latentforce.results import check_out_dir, coverage, nmse
 
 SYSTEM = {"type": "duffing", "m": 1.0, "c": 20.0, "k": 1.0e4, "k3": 1.0e9}
@@ -97,13 +98,11 @@ def _run(name: str, force: str, out: Path, quick: bool, seed: int, overwrite: bo
          f"{len(columns['time'])} samples at {FS:g} Hz; acceleration noise sd {acc_sd:.3g} (1 % RMS)")
     cases = [("acceleration only (the paper's case)", out, None),
              ("acceleration + displacement", out / "with-displacement", disp_sd)]
-    for title, folder, dsd in cases:
-        bar = progress(f"pgas {folder.name}") if progress else None
-        cfg = _config(acc_sd, dsd, quick, seed)
-        _, _, result, _ = write_case(folder, cfg, columns, overwrite=overwrite or folder != out,
-                                     progress=bar, seed=seed)
-        if bar is not None:
-            bar.close()
+    out.mkdir(parents=True, exist_ok=True)  # before its with-displacement/ subfolder
+    jobs = [functools.partial(write_case, folder, _config(acc_sd, dsd, quick, seed), columns,
+                              overwrite=True, seed=seed) for _, folder, dsd in cases]
+    echo("running both cases ...")
+    for (title, folder, _), (_, _, result, _) in zip(cases, run_cases_concurrently(jobs)):
         if force == "gp":
             result.diagnostics["true_params"] = {"force_variance": TRUE_VARIANCE,
                                                  "force_lengthscale": TRUE_LENGTHSCALE}

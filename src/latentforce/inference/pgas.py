@@ -277,13 +277,25 @@ def noncentred_log_target(hyper: Hyper, pm: smc.ParticleModel, od: ObservationDe
 # ---------------------------------------------------------------------------
 # Low-frequency trajectory move in the non-centred coordinates
 # ---------------------------------------------------------------------------
-def lowfreq_basis(T: int, K: int) -> Float[Array, "T K"]:
-    r"""The ``K`` lowest-frequency orthonormal DCT-II vectors, :math:`b_k(t) \propto \cos(\pi k (t + 1/2) / T)`."""
+def lowfreq_basis(T: int, K: int) -> Float[Array, "T K1"]:
+    r"""Orthonormal basis of the ``K`` lowest DCT-II vectors, :math:`\cos(\pi k (t + 1/2) / T)`, and of :math:`e_1`.
+
+    :math:`e_1` (the first innovation, i.e. the initial force state) is
+    added because the weakly observed start-up direction (initial force and
+    displacement moving together, decaying over a lengthscale) is local to
+    the start of the record and not spanned by a few global modes. ``K + 1``
+    columns (``T`` when ``K >= T``).
+    """
     K = min(int(K), int(T))
     t = np.arange(T)[:, None] + 0.5
     k = np.arange(K)[None, :]
     B = np.sqrt(2.0 / T) * np.cos(np.pi * k * t / T)
     B[:, 0] = 1.0 / np.sqrt(T)
+    if K < T:
+        e1 = np.zeros(T)
+        e1[0] = 1.0
+        e1 -= B @ (B.T @ e1)
+        B = np.concatenate([B, (e1 / np.linalg.norm(e1))[:, None]], axis=1)
     return jnp.asarray(B)
 
 
