@@ -26,6 +26,28 @@ app = typer.Typer(
 )
 
 
+def _enable_compilation_cache() -> None:
+    """Keep compiled XLA programs between runs (JAX's persistent cache).
+
+    The samplers compile a few large programs (tens of seconds on a laptop);
+    caching them makes every later run with the same shapes start at once.
+    ``LATENTFORCE_CACHE_DIR`` moves the cache; ``LATENTFORCE_CACHE_DIR=""``
+    turns it off.
+    """
+    cache = os.environ.get("LATENTFORCE_CACHE_DIR",
+                           os.path.join(os.path.expanduser("~"), ".cache", "latentforce", "xla"))
+    if not cache:
+        return
+    try:
+        import jax
+
+        os.makedirs(cache, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    except (OSError, AttributeError):  # an unwritable home or an older JAX: run uncached
+        pass
+
+
 def _fail(message: str, code: int = 1) -> None:
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(code)
@@ -37,6 +59,7 @@ def handle_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
+            _enable_compilation_cache()
             return fn(*args, **kwargs)
         except LatentForceError as err:
             _fail(str(err))
