@@ -67,7 +67,7 @@ def jonswap_components(rng, *, omega_p: float | None = None, gamma: float = 3.3,
 
 
 def simulate_case(seed: int, n_samples: int):
-    """Truth and measurement for the OMA case; returns the data columns and noise sd.
+    r"""Truth and measurement for the OMA case; returns the data columns and noise sd.
 
     For a linear SDOF structure under a sum of harmonics the steady-state
     response is exact and analytic, each harmonic through the frequency
