@@ -129,6 +129,8 @@ def estimate(
     finally:
         progress.close()
     write_results(out, result, overwrite=force)
+    for warning in result.diagnostics.get("warnings", []):
+        typer.echo(f"warning: {warning}", err=True)
     typer.echo(f"{problem.inference.method}: results written to {out}/ "
                f"(summary.csv, summary.json, posterior.nc, figures/) in {result.wall_time_s:.1f} s")
 

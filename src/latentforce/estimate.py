@@ -191,6 +191,17 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
                         "discretisation": settings.discretisation, "proposal": settings.proposal,
                         "resampling": "multinomial", "log_likelihood_note":
                             "particle-filter estimate of log p(y | theta), mean over the last sweeps"})
+    from latentforce.priors import Flat
+
+    flat = [n for n, (prior, _) in free.items() if isinstance(prior, Flat)]
+    if flat:
+        record_s = len(dataset.time) * dataset.dt
+        diagnostics.setdefault("warnings", []).append(
+            f"flat prior on {', '.join(flat)}: on a record of {record_s:.3g} s a Matérn force's variance "
+            "and lengthscale are pinned mainly in one combination (variance/lengthscale^(2p+1) for "
+            "Matérn-(p+1/2)), so with a flat "
+            "prior the posterior can be improper along that ridge and the slow part of the force "
+            "wanders. Use proper priors (e.g. lognormal) on the force hyperparameters; see docs/config.md.")
     truth = common["truth"]
     if truth:
         from latentforce.results import coverage
@@ -206,19 +217,7 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
         sample_stats={"log_likelihood": ll, "switch_rate": out.switch_rate, "ess_per_particle": out.ess},
         acceptance=[float(a) for a in out.acceptance],
         log_likelihood=float(np.mean(ll[:, -max(1, ll.shape[1] // 10):])) if ll.size else float("nan"),
-        point_estimate=point, diagnostics=_jsonable(diagnostics),
+        point_estimate=point, diagnostics=diagnostics,  # made JSON-safe by the writer
         param_summary=summarise_parameters(out.theta) if out.theta else None,
         wall_time_s=_time.perf_counter() - t0, **common)
 
-
-def _jsonable(value):
-    """Diagnostics as plain JSON types (arrays become lists)."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    return value
