@@ -174,6 +174,11 @@ class LatentForceModel:
         nd, nm = self.ndof, self.n_mech
         _, _, Hf, _ = self.force_state_space(params)
         z, v = x[:nd], x[nd:nm]
+        return self.sensor_readout(z, v, lambda: self.system.acceleration(params, z, v, Hf @ x[nm:]))
+
+    def sensor_readout(self, z, v, acceleration):
+        """The sensors' noise-free values from displacement ``z``, velocity ``v`` and
+        ``acceleration()``, a callable evaluated only if an accelerometer is present."""
         out = []
         acc = None
         for s in self.sensors:
@@ -183,7 +188,7 @@ class LatentForceModel:
                 out.append(v[s.dof])
             else:
                 if acc is None:
-                    acc = self.system.acceleration(params, z, v, Hf @ x[nm:])
+                    acc = acceleration()
                 out.append(acc[s.dof])
         return jnp.stack(out)
 

@@ -104,19 +104,13 @@ def kalman_filter(
 
 
 def log_likelihood(A, Q, H, R, m0, P0, y, mask=None) -> Float[Array, ""]:
-    """Exact log-likelihood ``log p(y_{1:T})``; the filter without storing moments."""
-    if mask is None:
-        mask = jnp.isfinite(y)
-    y = jnp.where(mask, y, 0.0)
+    """Exact log-likelihood ``log p(y_{1:T})``.
 
-    def _step(carry, inputs):
-        m, P, ll = carry
-        y_t, mask_t = inputs
-        m_f, P_f, ll_t = _update(m, P, H, R, y_t, mask_t)
-        return (A @ m_f, symmetrise(A @ P_f @ A.T + Q), ll + ll_t), None
-
-    (_, _, ll), _ = jax.lax.scan(_step, (m0, P0, jnp.zeros(())), (y, mask))
-    return ll
+    The filter's own value: under ``jit`` the stored moments it does not need
+    are dropped by dead-code elimination, so this costs no more memory than a
+    separate likelihood-only recursion.
+    """
+    return kalman_filter(A, Q, H, R, m0, P0, y, mask).log_likelihood
 
 
 def rts_smoother(A: Float[Array, "n n"], filtered: FilterResult) -> SmootherResult:

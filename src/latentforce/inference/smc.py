@@ -272,18 +272,7 @@ class ParticleModel:
         out with the precomputed :math:`M^{-1}` for speed."""
         nd = self.ndof
         z, v = mech[:nd], mech[nd:]
-        out = []
-        acc = None
-        for s in self.model.sensors:
-            if s.quantity == "displacement":
-                out.append(z[s.dof])
-            elif s.quantity == "velocity":
-                out.append(v[s.dof])
-            else:
-                if acc is None:
-                    acc = self.acceleration(z, v, self._hold(xf, 0.0))
-                out.append(acc[s.dof])
-        return jnp.stack(out)
+        return self.model.sensor_readout(z, v, lambda: self.acceleration(z, v, self._hold(xf, 0.0)))
 
     def offset(self, mech: Float[Array, " nm"]) -> Float[Array, " d"]:
         """:math:`c(\\mathrm{mech})`: the observation with the force states at zero."""
