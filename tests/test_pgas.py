@@ -57,8 +57,8 @@ def _grid_problem():
     pm = smc.ParticleModel(model, params, 0.05)
     free = {"force_variance": (LogNormal(0.0, 1.0), 1.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 0.5)}
     hyper = pgas.Hyper(params, free)
-    xf = pgas.gp_prior_path(jax.random.key(0), pm.force_transition(1.0, 0.5), 200)
-    return pm, hyper, xf
+    g = pgas.gp_prior_path(jax.random.key(0), pm.transition(1.0, 0.5), 200)
+    return pm, hyper, g
 
 
 def _grid_moments(pm, hyper, xf):
@@ -148,10 +148,9 @@ def test_duffing_gibbs_runs_and_converges():
     """Full blocked Gibbs on a short Duffing problem: finite output, hyperparameter R-hat."""
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("displacement", 0, 0.01), Sensor("acceleration", 0, 0.1)])
     params = dict(m=1.0, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthscale=0.5)
-    pm = smc.ParticleModel(model, params, 0.02)
-    ft = pm.force_transition(1.0, 0.5)
-    xf = pgas.gp_prior_path(jax.random.key(5), ft, 200)
-    path = pm.mech_path(jnp.zeros(2), xf)
+    pm = smc.ParticleModel(model, params, 0.02, initial=(0.0, 0.01))
+    path = pm.path(pgas.gp_prior_path(jax.random.key(5), pm.transition(1.0, 0.5), 200))
+    xf = path[:, 2:]
     y = jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path)
     y = y + jax.random.normal(jax.random.key(6), y.shape) * jnp.array([0.01, 0.1])
     free = {"force_variance": (LogNormal(0.0, 1.0), 2.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 1.0)}
@@ -166,11 +165,11 @@ def test_duffing_gibbs_runs_and_converges():
 
 def test_whiten_colour_and_observation_density():
     """Innovations round-trip; the masked observation log-likelihood vs a direct sum."""
-    pm, hyper, xf = _grid_problem()
-    ft = pm.force_transition(1.3, 0.4)
-    eps = pgas.whiten(ft, xf)
-    assert np.allclose(pgas.colour(ft, eps), xf, atol=1e-10)
-    path = pm.mech_path(jnp.array([0.01, -0.02]), xf)
+    pm, hyper, g = _grid_problem()
+    tr = pm.transition(1.3, 0.4)
+    eps = pgas.whiten(tr, g)
+    assert np.allclose(pgas.colour(tr, eps), g, atol=1e-10)
+    path = pm.path(g)
     y = np.asarray(jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path)) + 0.05
     mask = np.ones_like(y, dtype=bool)
     mask[::7] = False
@@ -180,24 +179,23 @@ def test_whiten_colour_and_observation_density():
     assert abs(float(pgas.observation_log_likelihood(pm, od, path)) - direct) < 1e-8
     # the non-centred target at the path's own theta rebuilds the same path
     x = hyper.to_unconstrained(jnp.array([1.3, 0.4]))
-    lt, rebuilt = pgas.noncentred_log_target(hyper, pm, od, x, eps, path[0, :2])
+    lt, rebuilt = pgas.noncentred_log_target(hyper, pm, od, x, eps)
     assert np.allclose(rebuilt, path, atol=1e-10)
     assert abs(float(lt) - (direct + float(hyper.log_prior(x)))) < 1e-6
 
 
 def test_noncentred_mh_matches_grid_posterior():
     """The adaptive kernel on the non-centred target (innovations fixed) vs 2-D quadrature."""
-    pm, hyper, xf = _grid_problem()
-    xf = xf[:60]
-    ft = pm.force_transition(1.0, 0.5)
-    path = pm.mech_path(jnp.zeros(2), xf)
+    pm, hyper, g = _grid_problem()
+    g = g[:60]
+    path = pm.path(g)
     y = np.asarray(jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path))
     y = y + 0.1 * np.asarray(jax.random.normal(jax.random.key(2), y.shape))
     od = pgas.observation_density(pm, y, np.ones_like(y, dtype=bool))
-    eps = pgas.whiten(ft, xf)
+    eps = pgas.whiten(pm.transition(1.0, 0.5), g)
 
     def log_target(x):
-        return pgas.noncentred_log_target(hyper, pm, od, x, eps, jnp.zeros(2))[0]
+        return pgas.noncentred_log_target(hyper, pm, od, x, eps)[0]
 
     burn, n = 1000, 6000
     schedule = jnp.asarray(pgas.adaptation_schedule(burn))
@@ -243,12 +241,13 @@ def test_lowfreq_move_matches_exact_conditional():
     match within 5 Monte-Carlo standard errors (batch means).
     """
     prob = linear_problem(T=60, missing=False)
-    pm, ft = prob["pm"], prob["ft"]
+    pm, tr = prob["pm"], prob["tr"]
     mask = np.asarray(prob["mask"]).copy()
     mask[:, 0] = False  # acceleration only
     od = pgas.observation_density(pm, prob["y"], mask)
-    frame = pgas.LowFrequencyFrame(ft, prob["m0"], smc._chol(prob["P0m"]), pgas.lowfreq_basis(60, 8))
-    start = pm.mech_path(jnp.array([0.3, -1.0]), 2.0 * pgas.gp_prior_path(jax.random.key(4), ft, 60))
+    frame = pgas.LowFrequencyFrame(tr, pgas.lowfreq_basis(60, 8))
+    g_start = 2.0 * pgas.gp_prior_path(jax.random.key(4), tr, 60)
+    start = pm.path(g_start.at[0, pm.nfx:].set(jnp.array([0.3, -1.0]) - pm.mech0_mean))
     w_start, eps_perp = pgas.lowfreq_coordinates(pm, frame, start)
     assert np.allclose(pgas.lowfreq_path(pm, frame, eps_perp, w_start), start, atol=1e-9)
 
@@ -268,7 +267,7 @@ def test_lowfreq_move_matches_exact_conditional():
 
     burn, n, steps = 200, 2000, 5
     # the Gauss-Newton shape is computed at a different, dispersed path (exact here: the model is linear)
-    init = pgas.lowfreq_init(pm, od, frame, pm.mech_path(jnp.zeros(2), pgas.gp_prior_path(jax.random.key(9), ft, 60)))
+    init = pgas.lowfreq_init(pm, od, frame, pm.path(pgas.gp_prior_path(jax.random.key(9), tr, 60)))
     assert np.allclose(np.asarray(init.cov), cov, rtol=1e-6, atol=1e-10)
 
     @jax.jit

@@ -60,6 +60,7 @@ import logging
 import math
 import os
 import re
+import threading
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -289,6 +290,9 @@ def summary_columns(result: RunResult) -> list[str]:
 # ---------------------------------------------------------------------------
 
 
+_FIGURE_LOCK = threading.Lock()
+
+
 def write_results(
     out_dir: Path, result: RunResult, *, overwrite: bool = False, figures: bool = True
 ) -> None:
@@ -305,7 +309,10 @@ def write_results(
     _replace(out_dir / "posterior.nc", lambda p: tree.to_netcdf(p, engine=_ENGINE))
     _write_summaries(out_dir, result)
     if figures:
-        _write_figures(out_dir, result)
+        # matplotlib's state (pyplot, the mathtext parser) is not thread-safe, and the
+        # demos write their cases from two threads
+        with _FIGURE_LOCK:
+            _write_figures(out_dir, result)
 
 
 def check_out_dir(out_dir: Path, overwrite: bool) -> None:

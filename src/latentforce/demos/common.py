@@ -36,8 +36,12 @@ def to_toml(config: dict) -> str:
     return "\n".join(lines)
 
 
-def write_case(folder: Path, config: dict, columns: dict, *, overwrite: bool, progress=None, seed=0):
+def write_case(folder: Path, config: dict, columns: dict, *, overwrite: bool, progress=None, seed=0,
+               diagnostics: dict | None = None):
     """Write ``data.csv`` and ``config.toml``, run the estimate on them, write the results.
+
+    ``diagnostics`` are added to the result's (e.g. the true hyperparameters, which
+    the histograms then mark).
 
     The estimate reads the data file back through the same loader as
     ``latentforce estimate``, so the demo exercises the user's path.
@@ -55,6 +59,7 @@ def write_case(folder: Path, config: dict, columns: dict, *, overwrite: bool, pr
     dataset = load_data(data_file, problem.columns, time_column=settings.time_column,
                         sample_rate=settings.sample_rate, missing=settings.missing)
     result, extras = estimate.run(problem, dataset, seed=seed, progress=progress)
+    result.diagnostics.update(diagnostics or {})
     # data.csv and config.toml are ours: the folder check above already passed.
     write_results(folder, result, overwrite=True)
     return problem, dataset, result, extras

@@ -99,16 +99,12 @@ def _run(name: str, force: str, out: Path, quick: bool, seed: int, overwrite: bo
     cases = [("acceleration only (the paper's case)", out, None),
              ("acceleration + displacement", out / "with-displacement", disp_sd)]
     out.mkdir(parents=True, exist_ok=True)  # before its with-displacement/ subfolder
+    truth = ({"true_params": {"force_variance": TRUE_VARIANCE, "force_lengthscale": TRUE_LENGTHSCALE}}
+             if force == "gp" else {})  # marked on the histograms
     jobs = [functools.partial(write_case, folder, _config(acc_sd, dsd, quick, seed), columns,
-                              overwrite=True, seed=seed) for _, folder, dsd in cases]
+                              overwrite=True, seed=seed, diagnostics=truth) for _, folder, dsd in cases]
     echo("running both cases ...")
     for (title, folder, _), (_, _, result, _) in zip(cases, run_cases_concurrently(jobs)):
-        if force == "gp":
-            result.diagnostics["true_params"] = {"force_variance": TRUE_VARIANCE,
-                                                 "force_lengthscale": TRUE_LENGTHSCALE}
-            from latentforce.results import write_results
-
-            write_results(folder, result, overwrite=True)  # redraw with the true hyperparameters marked
         _eom_figure(sim, folder / "figures" / "eom_terms.png")
         _report(title, folder, result, force, echo)
     echo(f"done in {time.perf_counter() - t0:.1f} s; results in {out}/ and {out / 'with-displacement'}/")

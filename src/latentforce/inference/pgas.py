@@ -6,20 +6,24 @@ iterations of Metropolis-within-Gibbs for the GP hyperparameters
 :math:`\theta \subseteq \{\sigma_f^2, \ell\}` given the trajectory
 (Eq. 23-25), each of ``mh_steps`` random-walk steps. Because the mechanical
 map :math:`\Phi` does not depend on :math:`\theta`, the observation terms of
-Eq. (25) cancel and the MH target is the GP path density times the prior.
+Eq. (25) cancel and the MH target is the density of the latent path
+:math:`g = (x_f, w)` (force states and within-step mechanical noise,
+:mod:`smc`) times the prior.
 
 **Low-frequency trajectory move.** With acceleration-only data the weakly
 observed direction of the path is a slow, coherent shift of force and
 displacement (:math:`\delta u \approx k\,\delta z` leaves the acceleration
-unchanged). The ancestor-sampling splice keeps the reference's future force
+unchanged). The ancestor-sampling splice keeps the reference's future latent
 and changes only the mechanical state, so the sweep alone cannot move that
 component and chains stay where they start. After each sweep
 ``lowfreq_steps`` Metropolis steps (:func:`lowfreq_move`) therefore move, at
-fixed :math:`\theta`, the ``lowfreq_modes`` lowest DCT-II modes of the
-whitened force innovations and the whitened initial mechanical state (the
+fixed :math:`\theta`, the ``lowfreq_modes`` lowest DCT-II modes (and the
+first innovation) of every column of the latent's whitened innovations (the
 non-centred coordinates, prior :math:`N(0, I)`), the path being rebuilt by
-``colour`` and ``mech_path``; the proposal's shape is a Gauss-Newton
-posterior covariance at the initial path and its scale adapts in burn-in.
+``colour`` and :meth:`~smc.ParticleModel.path`; the proposal's shape is a
+Gauss-Newton posterior covariance at the initial path (for nonlinear
+systems recomputed at each chain's path at the end of the burn-in windows)
+and its scale adapts in burn-in.
 
 **Sampling space.** The random walk runs in *log* space,
 :math:`x = \log\theta` (this method's choice, overriding the softplus default
@@ -95,29 +99,15 @@ _RESHAPE_AT = (0.05, 0.1, 0.2, 0.4, 0.7)
 # Hyperparameter step (Eq. 23-25)
 # ---------------------------------------------------------------------------
 def gp_path_log_density(pm: smc.ParticleModel, variance, lengthscale,
-                        xf: Float[Array, "T nf"]) -> Float[Array, ""]:
-    r""":math:`\log p(x_{f,1:T} \mid \theta)` of the force-state GP, vectorised over time (no scan)."""
-    kp_A, kp_Q, kp_P = _single_force_transition(pm, variance, lengthscale)
-    T = xf.shape[0]
-    X = jnp.reshape(xf, (T, pm.nforce, pm.kdim))
-    cQ = smc._chol(kp_Q)
-    cP = smc._chol(kp_P)
-    resid = X[1:] - jnp.einsum("ij,tfj->tfi", kp_A, X[:-1])
-    w = jax.scipy.linalg.solve_triangular(cQ, jnp.reshape(resid, (-1, pm.kdim)).T, lower=True)
-    w1 = jax.scipy.linalg.solve_triangular(cP, X[0].T, lower=True)
-    logdetQ = 2.0 * jnp.sum(jnp.log(jnp.diag(cQ)))
-    logdetP = 2.0 * jnp.sum(jnp.log(jnp.diag(cP)))
-    n_trans = (T - 1) * pm.nforce
-    return (-0.5 * (jnp.sum(w**2) + jnp.sum(w1**2))
-            - 0.5 * (n_trans * logdetQ + pm.nforce * logdetP) - 0.5 * T * pm.nfx * _LOG_2PI)
-
-
-def _single_force_transition(pm, variance, lengthscale):
-    from latentforce.kernels import KernelParams
-
-    kp = KernelParams(jnp.asarray(variance, dtype=float), jnp.asarray(lengthscale, dtype=float))
-    A, Q = pm.model.kernel.discretise(kp, pm.dt)
-    return A, symmetrise(Q), pm.model.kernel.state_space(kp).Pinf
+                        g: Float[Array, "T nl"]) -> Float[Array, ""]:
+    r""":math:`\log p(g_{1:T} \mid \theta)` of the latent path (force states and within-step
+    mechanical noise, :mod:`smc`), vectorised over time (no scan)."""
+    tr = pm.transition(variance, lengthscale)
+    T, nl = g.shape
+    eps = whiten(tr, g)
+    logdetQ = 2.0 * jnp.sum(jnp.log(jnp.diag(smc._chol(tr.Q))))
+    logdetP = 2.0 * jnp.sum(jnp.log(jnp.diag(smc._chol(tr.Pinf))))
+    return -0.5 * jnp.sum(eps**2) - 0.5 * ((T - 1) * logdetQ + logdetP) - 0.5 * T * nl * _LOG_2PI
 
 
 class Hyper:
@@ -163,10 +153,10 @@ class Hyper:
             lp = lp + prior.log_prob(theta[i]) + x[i]
         return lp
 
-    def log_target(self, pm, x: Float[Array, " p"], xf: Float[Array, "T nf"]) -> Float[Array, ""]:
-        """Centred MH target in log space: prior + log-Jacobian + GP path density (module doc)."""
+    def log_target(self, pm, x: Float[Array, " p"], g: Float[Array, "T nl"]) -> Float[Array, ""]:
+        """Centred MH target in log space: prior + log-Jacobian + latent path density (module doc)."""
         var, ls = self.values(x)
-        return self.log_prior(x) + gp_path_log_density(pm, var, ls, xf)
+        return self.log_prior(x) + gp_path_log_density(pm, var, ls, g)
 
 
 def init_proposal(hyper: Hyper, log_target: Callable, x: Float[Array, " p"],
@@ -205,26 +195,26 @@ def proposal_covariance(state: mcmc.RWMState) -> Float[Array, "p p"]:
 # ---------------------------------------------------------------------------
 # Non-centred (interweaving) step: Yu & Meng (2011), ASIS
 # ---------------------------------------------------------------------------
-def whiten(ft: smc.ForceTransition, xf: Float[Array, "T nf"]) -> Float[Array, "T nf"]:
-    r"""Innovations :math:`\varepsilon_1 = L_\infty^{-1} x_{f,1}`, :math:`\varepsilon_t = L_Q^{-1}(x_{f,t} - A_f x_{f,t-1})`."""
-    cP, cQ = smc._chol(ft.Pinf), smc._chol(ft.Q)
-    e1 = jax.scipy.linalg.solve_triangular(cP, xf[0], lower=True)
-    resid = xf[1:] - xf[:-1] @ ft.A.T
+def whiten(tr: smc.Transition, g: Float[Array, "T nl"]) -> Float[Array, "T nl"]:
+    r"""Innovations :math:`\varepsilon_1 = L_\infty^{-1} g_1`, :math:`\varepsilon_t = L_Q^{-1}(g_t - A g_{t-1})`."""
+    cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
+    e1 = jax.scipy.linalg.solve_triangular(cP, g[0], lower=True)
+    resid = g[1:] - g[:-1] @ tr.A.T
     e = jax.scipy.linalg.solve_triangular(cQ, resid.T, lower=True).T
     return jnp.concatenate([e1[None], e])
 
 
-def colour(ft: smc.ForceTransition, eps: Float[Array, "T nf"]) -> Float[Array, "T nf"]:
-    """The force-state path with innovations ``eps`` (inverse of :func:`whiten`)."""
-    x1 = smc._chol(ft.Pinf) @ eps[0]
-    noise = eps[1:] @ smc._chol(ft.Q).T
+def colour(tr: smc.Transition, eps: Float[Array, "T nl"]) -> Float[Array, "T nl"]:
+    """The latent path with innovations ``eps`` (inverse of :func:`whiten`)."""
+    g1 = smc._chol(tr.Pinf) @ eps[0]
+    noise = eps[1:] @ smc._chol(tr.Q).T
 
-    def _step(x, q):
-        nxt = ft.A @ x + q
+    def _step(g, q):
+        nxt = tr.A @ g + q
         return nxt, nxt
 
-    _, xs = jax.lax.scan(_step, x1, noise)
-    return jnp.concatenate([x1[None], xs])
+    _, gs = jax.lax.scan(_step, g1, noise)
+    return jnp.concatenate([g1[None], gs])
 
 
 class ObservationDensity(NamedTuple):
@@ -261,16 +251,16 @@ def observation_log_likelihood(pm: smc.ParticleModel, od: ObservationDensity,
 
 
 def noncentred_log_target(hyper: Hyper, pm: smc.ParticleModel, od: ObservationDensity,
-                          x: Float[Array, " p"], eps: Float[Array, "T nf"],
-                          mech1: Float[Array, " nm"]) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
-    r"""Target of :math:`x = \log\theta` given the innovations and :math:`\mathrm{mech}_1`, and the rebuilt path.
+                          x: Float[Array, " p"], eps: Float[Array, "T nl"]
+                          ) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
+    r"""Target of :math:`x = \log\theta` given the latent's innovations, and the rebuilt path.
 
-    :math:`\log p(\theta) + \sum_i x_i + \log p(y \mid x_{1:T}(\theta, \varepsilon, \mathrm{mech}_1))`:
+    :math:`\log p(\theta) + \sum_i x_i + \log p(y \mid x_{1:T}(\theta, \varepsilon))`:
     the innovations' density does not depend on :math:`\theta` and, the
     innovations being held fixed, there is no path Jacobian.
     """
     var, ls = hyper.values(x)
-    path = pm.mech_path(mech1, colour(pm.force_transition(var, ls), eps))
+    path = pm.path(colour(pm.transition(var, ls), eps))
     return hyper.log_prior(x) + observation_log_likelihood(pm, od, path), path
 
 
@@ -300,36 +290,34 @@ def lowfreq_basis(T: int, K: int) -> Float[Array, "T K1"]:
 
 
 class LowFrequencyFrame(NamedTuple):
-    r"""What a low-frequency move holds fixed: :math:`\theta` (through ``ft``), the initial-state prior, the basis.
+    r"""What a low-frequency move holds fixed: :math:`\theta` (through ``tr``) and the basis.
 
-    The path is coordinatised as :math:`\mathrm{mech}_1 = m_0 + L_0 w_m` and
-    :math:`\varepsilon = \varepsilon_\perp + B W` (``W`` of shape ``(K, nf)``,
-    :math:`B^\top\varepsilon_\perp = 0`), with :math:`\varepsilon` the
-    innovations of :func:`whiten`; the move samples :math:`w = (\mathrm{vec}\,W, w_m)`.
+    With :math:`\varepsilon` the latent's innovations (:func:`whiten`; the
+    first row whitens the initial force and mechanical states), the path is
+    coordinatised by :math:`W = B^\top \varepsilon` (``(K, nl)``: every
+    latent column, the force states and the within-step mechanical noise)
+    and :math:`\varepsilon_\perp = \varepsilon - B W`, held fixed. :math:`B`
+    contains :math:`e_1`, so the initial state is moved too. The move samples
+    :math:`w = \mathrm{vec}\,W`.
     """
 
-    ft: smc.ForceTransition
-    mech0_mean: Float[Array, " nm"]
-    chol0: Float[Array, "nm nm"]
+    tr: smc.Transition
     basis: Float[Array, "T K"]
 
 
 def lowfreq_coordinates(pm: smc.ParticleModel, frame: LowFrequencyFrame,
-                        path: Float[Array, "T n"]) -> tuple[Float[Array, " q"], Float[Array, "T nf"]]:
+                        path: Float[Array, "T n"]) -> tuple[Float[Array, " q"], Float[Array, "T nl"]]:
     """``(w, eps_perp)`` of a path (inverse of :func:`lowfreq_path`)."""
-    eps = whiten(frame.ft, path[:, pm.nm:])
+    eps = whiten(frame.tr, pm.latent(path))
     W = frame.basis.T @ eps
-    w_m = jax.scipy.linalg.solve_triangular(frame.chol0, path[0, :pm.nm] - frame.mech0_mean, lower=True)
-    return jnp.concatenate([W.ravel(), w_m]), eps - frame.basis @ W
+    return W.ravel(), eps - frame.basis @ W
 
 
-def lowfreq_path(pm: smc.ParticleModel, frame: LowFrequencyFrame, eps_perp: Float[Array, "T nf"],
+def lowfreq_path(pm: smc.ParticleModel, frame: LowFrequencyFrame, eps_perp: Float[Array, "T nl"],
                  w: Float[Array, " q"]) -> Float[Array, "T n"]:
-    """The full path with low-frequency coordinates ``w`` (``colour`` then ``mech_path``)."""
-    K = frame.basis.shape[1]
-    W = jnp.reshape(w[:K * pm.nfx], (K, pm.nfx))
-    mech1 = frame.mech0_mean + frame.chol0 @ w[K * pm.nfx:]
-    return pm.mech_path(mech1, colour(frame.ft, eps_perp + frame.basis @ W))
+    """The full path with low-frequency coordinates ``w`` (``colour`` then :meth:`~smc.ParticleModel.path`)."""
+    W = jnp.reshape(w, (frame.basis.shape[1], pm.nl))
+    return pm.path(colour(frame.tr, eps_perp + frame.basis @ W))
 
 
 def lowfreq_log_target(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
@@ -411,28 +399,28 @@ def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: smc.ParticleModel, od: Obse
 # ---------------------------------------------------------------------------
 # Initialisation: extended Kalman smoother
 # ---------------------------------------------------------------------------
-def extended_kalman_smoother(pm: smc.ParticleModel, ft: smc.ForceTransition, y, mask,
-                             mech0_mean, mech0_cov) -> Float[Array, "T n"]:
-    r"""Smoothed means of :math:`x_t = (\Phi(\mathrm{mech}_{t-1}, x_{f,t-1}), A_f x_{f,t-1}) + (0, q_t)`.
+def extended_kalman_smoother(pm: smc.ParticleModel, tr: smc.Transition, y, mask) -> Float[Array, "T n"]:
+    r"""Smoothed means of the sampler's state-space model in ``(mech, x_f)``.
 
-    Extended Kalman filter (Jacobians by ``jax.jacfwd``) with the Kalman
-    update of :mod:`latentforce.inference.kalman` applied to the linearised
+    The transition is :math:`x_t = (\Phi(\mathrm{mech}_{t-1}, x_{f,t-1}) + E x_{f,t-1},
+    A_f x_{f,t-1}) + q_t` with the latent's joint noise :math:`q_t`
+    (:meth:`~smc.ParticleModel.linear_discrete`). Extended Kalman filter
+    (Jacobians by ``jax.jacfwd``) with the Kalman update of
+    :mod:`latentforce.inference.kalman` applied to the linearised
     observation, then an RTS pass with the per-step Jacobians (Särkkä 2013,
     Alg. 9.5). Exact for linear systems.
     """
-    nm, n = pm.nm, pm.n_state
+    nm, nfx, n = pm.nm, pm.nfx, pm.n_state
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool)
+    _, Qd, _, m0, P0 = pm.linear_discrete(tr)
+    A_f, E = tr.A[:nfx, :nfx], tr.A[nfx:, :nfx]
 
     def f(x):
-        return jnp.concatenate([pm.phi(x[:nm], x[nm:]), ft.A @ x[nm:]])
+        return jnp.concatenate([pm.phi(x[:nm], x[nm:]) + E @ x[nm:], A_f @ x[nm:]])
 
     def h(x):
         return pm.offset(x[:nm]) + pm.D @ x[nm:]
-
-    Qd = jnp.zeros((n, n)).at[nm:, nm:].set(ft.Q)
-    m0 = jnp.concatenate([jnp.asarray(mech0_mean, dtype=float), jnp.zeros(pm.nfx)])
-    P0 = jax.scipy.linalg.block_diag(jnp.asarray(mech0_cov, dtype=float), ft.Pinf)
 
     def _filter(carry, inputs):
         m, P = carry
@@ -447,12 +435,11 @@ def extended_kalman_smoother(pm: smc.ParticleModel, ft: smc.ForceTransition, y, 
         return (m_p, P_p), (m_f, P_f, m_p, P_p, F)
 
     _, (ms, Ps, mps, Pps, Fs) = jax.lax.scan(_filter, (m0, P0), (y, mask))
-    eye = jnp.eye(n)
 
     def _smooth(carry, inputs):
         m_next, P_next = carry
         m_f, P_f, m_p, P_p, F = inputs
-        G = jnp.linalg.solve(P_p + 1e-12 * jnp.trace(P_p) / n * eye, F @ P_f).T
+        G = jnp.linalg.solve(P_p + 1e-12 * jnp.diag(jnp.diagonal(P_p)), F @ P_f).T
         m_s = m_f + G @ (m_next - m_p)
         P_s = symmetrise(P_f + G @ (P_next - P_p) @ G.T)
         return (m_s, P_s), m_s
@@ -461,19 +448,9 @@ def extended_kalman_smoother(pm: smc.ParticleModel, ft: smc.ForceTransition, y, 
     return jnp.concatenate([msm, ms[-1:]])
 
 
-def gp_prior_path(key: Array, ft: smc.ForceTransition, T: int) -> Float[Array, "T nf"]:
-    """One draw of the force-state path from the stationary GP prior."""
-    k1, k2 = jax.random.split(key)
-    nf = ft.A.shape[0]
-    x1 = smc._chol(ft.Pinf) @ jax.random.normal(k1, (nf,))
-    noise = jax.random.normal(k2, (T - 1, nf)) @ smc._chol(ft.Q).T
-
-    def _step(x, q):
-        nxt = ft.A @ x + q
-        return nxt, nxt
-
-    _, xs = jax.lax.scan(_step, x1, noise)
-    return jnp.concatenate([x1[None], xs])
+def gp_prior_path(key: Array, tr: smc.Transition, T: int) -> Float[Array, "T nl"]:
+    """One draw of the latent path from its prior."""
+    return colour(tr, jax.random.normal(key, (T, tr.A.shape[0])))
 
 
 # ---------------------------------------------------------------------------
@@ -557,7 +534,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     mechanical state, else ``model.default_initial``. ``progress(done,
     total, accept_rate)`` is called between scan chunks.
     """
-    pm = smc.ParticleModel(model, params, dt, discretisation)
+    pm = smc.ParticleModel(model, params, dt, discretisation, initial)
     hyper = Hyper(params, free)
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool) & jnp.isfinite(y)
@@ -574,7 +551,6 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     thin = max(1, -(-post_sweeps // max(1, int(thin_draws))))
     n_draws = -(-post_sweeps // thin) if post_sweeps > 0 else 0
     tpoints = np.unique(np.linspace(0, T - 1, time_points).round().astype(int))
-    mech0_mean, mech0_cov = pm.initial_mech(initial)
     sweep = smc.make_sweep(pm, particles, proposal=proposal, resampling=resampling, conditional=True,
                            ancestor_sampling=ancestor_sampling, unroll=unroll)
     target_acc = mcmc.target_acceptance(max(p, 1))
@@ -584,20 +560,19 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     if n_lf < 0:
         raise ValueError(f"lowfreq_steps must be non-negative, got {lowfreq_steps}")
     basis = lowfreq_basis(T, lowfreq_modes)
-    chol0 = smc._chol(jnp.asarray(mech0_cov, dtype=float))
 
     # ---- initialisation (outside the loop; never from the truth)
     k_init, k_chains = jax.random.split(key)
     x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
     var0, ls0 = hyper.values(x0)
-    ft0 = pm.force_transition(var0, ls0)
-    eks = extended_kalman_smoother(pm, ft0, y, mask, mech0_mean, mech0_cov)
+    tr0 = pm.transition(var0, ls0)
+    eks = extended_kalman_smoother(pm, tr0, y, mask)
+    g_eks = pm.latent(eks)
     chain_keys = jax.random.split(k_chains, chains)
 
     def _init_chain(ck):
         k_path, k_theta, k_run = jax.random.split(ck, 3)
-        xf = eks[:, pm.nm:] + 0.5 * gp_prior_path(k_path, ft0, T)
-        ref = pm.mech_path(eks[0, :pm.nm], xf)
+        ref = pm.path(g_eks + 0.5 * gp_prior_path(k_path, tr0, T))
         # dispersed start: theta_0 exp(0.5 eps); the log density is set at the first block
         rwm = init_proposal(hyper, lambda x: jnp.zeros(()), x0 + 0.5 * jax.random.normal(k_theta, (p,)))
         return ChainState(k_run, ref, rwm, rwm, rwm_lf0, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)),
@@ -605,23 +580,35 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
 
     ref_q = _summary_quantities(pm, eks)  # centring of the running sums (numerical stability)
     od = observation_density(pm, y, mask)
-    # the Gauss-Newton shape is exact for linear models: only the scale adapts
-    rwm_lf0 = lowfreq_init(pm, od, LowFrequencyFrame(ft0, jnp.asarray(mech0_mean, dtype=float), chol0, basis), eks)
+    # the Gauss-Newton shape is exact for linear models; for nonlinear ones it is
+    # recomputed at each chain's own path at the end of the burn-in windows
+    # (adaptation: burn-in only), and the scale adapts throughout the burn-in
+    rwm_lf0 = lowfreq_init(pm, od, LowFrequencyFrame(tr0, basis), eks)
     lf_reshape = jnp.asarray((-1,))
+    lf_regauge = () if pm.is_linear else tuple(
+        sorted({int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1}))
     interweave = bool(interweave) and p > 0
     state0 = jax.vmap(_init_chain)(chain_keys)
 
-    def _block(state: ChainState, _):
+    def _regauge(rwm_lf, frame, path):
+        new = lowfreq_init(pm, od, frame, path)
+        return new._replace(log_scale=rwm_lf.log_scale, count=rwm_lf.count)
+
+    def _block(state: ChainState, b):
+        """One Gibbs block of one chain; ``b``, the block index, is shared by the chains."""
         key, k_sweep, k_mh, k_lf = jax.random.split(state.key, 4)
-        b = state.block
         var, ls = hyper.values(state.rwm.x)
-        ft = pm.force_transition(var, ls)
-        sc = smc.sweep_constants(pm, ft, y, mask, mech0_mean, mech0_cov, proposal)
+        tr = pm.transition(var, ls)
+        sc = smc.sweep_constants(pm, tr, y, mask, proposal)
         out = sweep(k_sweep, sc, state.reference)
         path = out.trajectory
         rwm_lf, acc_lf = state.rwm_lf, jnp.zeros(())
         if n_lf:
-            frame = LowFrequencyFrame(ft, jnp.asarray(mech0_mean, dtype=float), chol0, basis)
+            frame = LowFrequencyFrame(tr, basis)
+            if lf_regauge:
+                # b is not batched over chains, so this stays a conditional under vmap
+                rwm_lf = jax.lax.cond(jnp.any(b == jnp.asarray(lf_regauge)), _regauge,
+                                      lambda r, f, x: r, rwm_lf, frame, path)
             rwm_lf, path, accs_lf = lowfreq_move(k_lf, rwm_lf, pm, od, frame, path, n_lf, adapt=b < burn_blocks,
                                                  step0=b * n_lf, reshape_steps=lf_reshape)
             acc_lf = jnp.mean(accs_lf.astype(float))
@@ -645,15 +632,14 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
             return jax.lax.scan(_one, r, (jax.random.split(key_, n_mh), jnp.arange(n_mh)))
 
         def _mh_iter(carry, inp):
-            rwm, rwm_nc, path_ = carry
+            rwm, rwm_nc, path_, g_ = carry
             k_it, j = inp
             if not p:
                 return carry, (rwm.x, jnp.zeros(()), jnp.zeros(()))
             k_c, k_nc = jax.random.split(k_it)
-            xf = path_[:, pm.nm:]
 
             def centred(x):
-                return hyper.log_target(pm, x, xf)
+                return hyper.log_target(pm, x, g_)
 
             # the conditioning path may have changed: refresh the current point's target
             rwm = rwm._replace(logdensity=centred(rwm.x))
@@ -661,25 +647,26 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
             acc_nc = jnp.zeros(())
             if interweave:
                 var_, ls_ = hyper.values(rwm.x)
-                eps = whiten(pm.force_transition(var_, ls_), xf)
-                mech1 = path_[0, :pm.nm]
+                eps = whiten(pm.transition(var_, ls_), g_)
 
                 def noncentred(x):
-                    return noncentred_log_target(hyper, pm, od, x, eps, mech1)[0]
+                    return noncentred_log_target(hyper, pm, od, x, eps)[0]
 
                 rwm_nc = rwm_nc._replace(x=rwm.x, logdensity=noncentred(rwm.x))
                 rwm_nc, accs_nc = _steps(k_nc, rwm_nc, noncentred, j)
                 moved = jnp.any(accs_nc)
-                rebuilt = noncentred_log_target(hyper, pm, od, rwm_nc.x, eps, mech1)[1]
+                var_, ls_ = hyper.values(rwm_nc.x)
+                g_new = colour(pm.transition(var_, ls_), eps)
                 # keep the path bit-for-bit when nothing moved (no round-off drift)
-                path_ = jnp.where(moved, rebuilt, path_)
+                path_ = jnp.where(moved, pm.path(g_new), path_)
+                g_ = jnp.where(moved, g_new, g_)
                 rwm = rwm._replace(x=rwm_nc.x)
                 acc_nc = jnp.mean(accs_nc.astype(float))
-            return (rwm, rwm_nc, path_), (rwm.x, jnp.mean(accs.astype(float)), acc_nc)
+            return (rwm, rwm_nc, path_, g_), (rwm.x, jnp.mean(accs.astype(float)), acc_nc)
 
         js = b * k_every + jnp.arange(k_every)
-        (rwm, rwm_nc, path_end), (xs, accs, accs_nc) = jax.lax.scan(
-            _mh_iter, (state.rwm, state.rwm_nc, path), (jax.random.split(k_mh, k_every), js))
+        (rwm, rwm_nc, path_end, _), (xs, accs, accs_nc) = jax.lax.scan(
+            _mh_iter, (state.rwm, state.rwm_nc, path, pm.latent(path)), (jax.random.split(k_mh, k_every), js))
         theta = hyper.to_constrained(xs)
         fp = path[tpoints][:, pm.nm + pm.kdim * np.arange(pm.nforce)]
         new = ChainState(key, path_end, rwm, rwm_nc, rwm_lf, b + 1, sum1, sum2, state.count + wgt, draws)
@@ -691,13 +678,14 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     chunk_len = -(-n_blocks // n_chunks)
 
     @jax.jit
-    def _run_chunk(states):
-        return jax.vmap(lambda s: jax.lax.scan(_block, s, None, length=chunk_len))(states)
+    def _run_chunk(states, blocks):
+        states, info = jax.lax.scan(lambda s, b: jax.vmap(_block, (0, None))(s, b), states, blocks)
+        return states, jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), info)  # chains first
 
     infos = []
     states = state0
     for c in range(n_chunks):
-        states, info = _run_chunk(states)
+        states, info = _run_chunk(states, jnp.arange(c * chunk_len, (c + 1) * chunk_len, dtype=jnp.int32))
         infos.append(jax.tree_util.tree_map(np.asarray, info))
         if progress is not None:
             acc = float(np.mean(info.accept))

@@ -2,50 +2,77 @@ r"""Sequential Monte Carlo for the latent force model: filter, conditional SMC, 
 
 The model (re-parametrised so that it has no degenerate transition)
 -------------------------------------------------------------------
-The augmented state is :math:`x_t = (\mathrm{mech}_t, x_{f,t})` with
+The state is :math:`x_t = (\mathrm{mech}_t, x_{f,t})` with
 :math:`\mathrm{mech} = (z, \dot z)` (``2 ndof``) and the force states
-:math:`x_f` (``nforce * kernel.dim``). The mechanical states carry no process
-noise in the model of Rogers et al. (Vibration 2020, Eq. 18-20), so the
-transition density of :math:`x_t` is singular and the ancestor weights of
-Eq. (22) degenerate. We therefore take as the Markov latent the force-state
-process alone, an exact linear-Gaussian GP transition
+:math:`x_f` (``nforce * kernel.dim``). In the model of Rogers et al.
+(Vibration 2020, Eq. 18-20) discretised by Euler-Maruyama the mechanical
+states get no process noise, so the transition density of :math:`x_t` is
+singular and the ancestor weights of Eq. (22) degenerate. That is an
+artefact of the discretisation: over a step the force varies, and the
+mechanical states' response to that variation is random. Its exact
+covariance is tiny but not zero (Duffing case: about 1e-4 m/s in velocity,
+2e-8 m in displacement per step), and leaving it out makes the mechanical
+states' posterior too narrow against a continuous-time truth.
 
-.. math:: x_{f,1} \sim N(0, P_{\infty,f}), \qquad
-          x_{f,t} = A_f x_{f,t-1} + q_t,\; q_t \sim N(0, Q_f),
+We take as the Markov latent :math:`g_t = (x_{f,t}, w_t)`: the force states
+and the mechanical states' within-step noise, a linear-Gaussian process
 
-plus the initial mechanical state :math:`\mathrm{mech}_1 \sim N(m_0, P_0)`;
-the mechanical states are the deterministic function
-:math:`\mathrm{mech}_t = \Phi(\mathrm{mech}_{t-1}, x_{f,t-1})` of that
-latent (:class:`ParticleModel.phi`: one RK4 or Euler step of
-:math:`M\ddot z + h(z,\dot z) = B u` with the force held as the Taylor
-polynomial of the Matérn derivative states at :math:`t-1`; independent of
-the GP hyperparameters). Every sensor is linear in :math:`x_{f,t}` given
+.. math:: g_1 \sim N(0, \mathrm{diag}(P_{\infty,f}, P_0)), \qquad
+          g_t = A g_{t-1} + q_t,\; q_t \sim N(0, Q),\qquad
+          A = \begin{pmatrix} A_f & 0 \\ E & 0 \end{pmatrix},
+
+where :math:`(A_f, Q)` is the exact (Van Loan) discretisation of the force
+SDE stacked on the system linearised about rest, with :math:`Q` the joint
+covariance of the force-state innovation and the mechanical response to it
+(:meth:`ParticleModel.transition`). The mechanical states are a
+deterministic function of the latent path,
+
+.. math:: \mathrm{mech}_1 = m_0 + w_1, \qquad
+          \mathrm{mech}_t = \Phi(\mathrm{mech}_{t-1}, x_{f,t-1}) + w_t,
+
+:math:`\Phi` one RK4 (or Euler) step of :math:`M\ddot z + h(z,\dot z) = B u`
+with the force held as the Taylor polynomial of the Matérn derivative
+states (:class:`ParticleModel.phi`, independent of the hyperparameters), and
+:math:`E x_{f,t-1}` the mean correction from that hold to the force's
+conditional mean within the step. For linear systems this *is* the exact
+discretisation of the continuous model up to RK4's error in the homogeneous
+step (tested); for nonlinear ones the within-step noise is that of the
+linearised system, an error of relative order :math:`(\Delta t)^2` times the
+change of stiffness. Every sensor is linear in :math:`x_{f,t}` given
 :math:`\mathrm{mech}_t`:
 
 .. math:: y_t = c(\mathrm{mech}_t) + D x_{f,t} + v_t,\qquad v_t \sim N(0, R).
 
-The model is non-Markovian in :math:`x_f`; conditional SMC with ancestor
+The model is non-Markovian in :math:`g`; conditional SMC with ancestor
 sampling for non-Markovian models is Lindsten, Jordan & Schön (2014, JMLR,
 Sec. 4-5).
 
 Proposals
 ---------
-``"optimal"`` (default): given :math:`x_{t-1}`, :math:`\mathrm{mech}_t` is known,
-so the locally optimal proposal is exact and Gaussian:
-:math:`x_{f,t} \mid x_{t-1}, y_t \sim N(m + K(y_t - c - D m),\, Q_f - K S K^T)`
-with :math:`m = A_f x_{f,t-1}`, :math:`S = D Q_f D^T + R`,
-:math:`K = Q_f D^T S^{-1}`; the first-stage weight is
-:math:`p(y_t \mid x_{t-1}) = N(y_t; c + D m, S)` (fully adapted auxiliary
-filter, Pitt & Shephard 2001). ``K``, ``S`` and the proposal covariance do not
-depend on the particle: they are computed once per sweep, so a particle
-costs a mean shift. ``"bootstrap"``: :math:`x_{f,t} \sim N(A_f x_{f,t-1}, Q_f)`,
-weight :math:`g(y_t \mid x_t)` (Algorithm 1, Vibration 2020).
+``"optimal"`` (default): given :math:`x_{t-1}`, the prediction
+:math:`\bar{\mathrm{mech}}_t = \Phi(\mathrm{mech}_{t-1}, x_{f,t-1})` is known and
+:math:`\mathrm{mech}_t = \bar{\mathrm{mech}}_t + w_t`, so with the observation
+linearised in :math:`w_t` about rest (:math:`c(\bar{\mathrm{mech}} + w) \approx
+c(\bar{\mathrm{mech}}) + C w`, exact for linear systems) the locally optimal
+proposal is Gaussian:
+:math:`g_t \mid x_{t-1}, y_t \sim N(m + K(y_t - c(\bar{\mathrm{mech}}_t) - \tilde D m),\, Q - K S K^T)`
+with :math:`m = A g_{t-1}`, :math:`\tilde D = (D, C)`,
+:math:`S = \tilde D Q \tilde D^T + R`, :math:`K = Q \tilde D^T S^{-1}`; the
+first-stage weight is :math:`\psi_t = \log N(y_t; c(\bar{\mathrm{mech}}_t) + \tilde D m, S)`
+(fully adapted auxiliary filter, Pitt & Shephard 2001), and the
+second-stage weight is the exact observation density over the linearised
+one (zero for linear systems; for the Duffing case the linearisation error
+is far below the noise, since :math:`w` is tiny). ``K``, ``S`` and the
+proposal covariance do not depend on the particle: they are computed once
+per sweep, so a particle costs a mean shift. ``"bootstrap"``:
+:math:`g_t \sim N(A g_{t-1}, Q)`, weight :math:`g(y_t \mid x_t)` (Algorithm 1,
+Vibration 2020). At ``t = 1`` every particle predicts :math:`m_0` and the
+prior :math:`N(0, \mathrm{diag}(P_{\infty,f}, P_0))`.
 
 Both are written as one auxiliary particle filter: at step ``t`` resample
-with :math:`\log w_{t-1} + \psi_t` (``psi = log p(y_t | x_{t-1})`` for the
-optimal proposal, 0 for the bootstrap), propose, and weight with the
-second-stage weight (``log g`` for the bootstrap, 0 for the optimal proposal).
-The marginal-likelihood estimate (Eq. 5, Vibration 2020) is
+with :math:`\log w_{t-1} + \psi_t` (``psi`` = 0 for the bootstrap), propose,
+and weight with the second-stage weight. The marginal-likelihood estimate
+(Eq. 5, Vibration 2020) is
 :math:`\log\hat Z = \sum_t [\operatorname{logsumexp}(\log \bar w_{t-1} + \psi_t)
 + \operatorname{logsumexp}(\log w^{(2)}_t) - \log N]`, unbiased for :math:`Z`.
 
@@ -60,15 +87,15 @@ Ancestor sampling (Eq. 21, Vibration 2020, corrected)
 -----------------------------------------------------
 The reference at ``t`` takes ancestor ``a`` with
 
-.. math:: P(a = i) \propto \bar w^i_{t-1}\, f_f(x'_{f,t} \mid x^i_{f,t-1})\, \exp\Delta^i_t,
+.. math:: P(a = i) \propto \bar w^i_{t-1}\, f(g'_t \mid g^i_{t-1})\, \exp\Delta^i_t,
 
 where :math:`\bar w_{t-1}` are the filter's normalised weights targeting
 :math:`p(x_{1:t-1}, y_{1:t-1})` (the published MATLAB omits them: an error)
 and :math:`\Delta^i_t = \log p(y_{t:T} \mid \text{spliced}) - \log p(y_{t:T} \mid x')`
-is the change of the future log-likelihood when the reference's future force
-path is driven from particle ``i``'s state (the non-Markovian AS weight of
-Lindsten et al. 2014, Eq. 29). With
-:math:`\delta_t = \Phi(\mathrm{mech}^i_{t-1}, x^i_{f,t-1}) - \mathrm{mech}'_t`,
+is the change of the future log-likelihood when the reference's future latent
+path (force and within-step noise) is driven from particle ``i``'s state (the
+non-Markovian AS weight of Lindsten et al. 2014, Eq. 29). With
+:math:`\delta_t = \Phi(\mathrm{mech}^i_{t-1}, x^i_{f,t-1}) - \Phi(\mathrm{mech}'_{t-1}, x'_{f,t-1})`,
 :math:`\delta_{s+1} = J_s \delta_s` and residual change :math:`C_s \delta_s`
 (:math:`J_s = \partial\Phi/\partial\mathrm{mech}`,
 :math:`C_s = \partial c/\partial \mathrm{mech}` at the reference),
@@ -100,13 +127,13 @@ from jax.scipy.linalg import cho_factor, cho_solve, solve_triangular
 from jaxtyping import Array, Bool, Float, Int
 
 from latentforce.kernels import KernelParams, Matern
-from latentforce.linalg import symmetrise
+from latentforce.linalg import symmetrise, van_loan
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
 #: Jitter added to covariances before a Cholesky factorisation, relative to
-#: their mean diagonal: keeps Q_f of smooth (high-order) Matérn kernels and
-#: the proposal covariance Q_f - K S K^T (rank-deficient up to roundoff when a
+#: each diagonal entry: keeps Q of smooth (high-order) Matérn kernels and
+#: the proposal covariance Q - K S K^T (rank-deficient up to roundoff when a
 #: sensor sees a force state almost noise-free) factorisable.
 JITTER = 1e-10
 
@@ -166,23 +193,29 @@ def effective_sample_size(log_weights: Float[Array, " N"]) -> Float[Array, ""]:
 # ---------------------------------------------------------------------------
 # The model in the form the particle methods need
 # ---------------------------------------------------------------------------
-class ForceTransition(NamedTuple):
-    """The force-state GP for all forces at one value of the hyperparameters."""
+class Transition(NamedTuple):
+    r"""Linear-Gaussian transition of the latent :math:`g_t = (x_{f,t}, w_t)` at one value of the hyperparameters.
 
-    A: Float[Array, "nf nf"]
-    Q: Float[Array, "nf nf"]
-    Pinf: Float[Array, "nf nf"]
+    :math:`g_1 \sim N(0, P_\infty)`, :math:`g_t = A g_{t-1} + q_t`,
+    :math:`q_t \sim N(0, Q)` (``A`` acts on the force block only; module doc).
+    """
+
+    A: Float[Array, "nl nl"]
+    Q: Float[Array, "nl nl"]
+    Pinf: Float[Array, "nl nl"]
 
 
 class ParticleModel:
     r"""Static view of a :class:`~latentforce.models.LatentForceModel` for particle methods.
 
-    Holds the model, the fixed system/sensor parameters ``params``, ``dt`` and
-    the discretisation; everything that depends on the GP hyperparameters is
-    computed by :meth:`force_transition` from a traced ``(variance, lengthscale)``.
+    Holds the model, the fixed system/sensor parameters ``params``, ``dt``,
+    the discretisation and the prior ``N(mech0_mean, mech0_cov)`` of the
+    initial mechanical state (``initial = (mean, sd)``, else the model's
+    default); everything that depends on the GP hyperparameters is computed
+    by :meth:`transition` from a traced ``(variance, lengthscale)``.
     """
 
-    def __init__(self, model, params: dict, dt: float, discretisation: str = "rk4"):
+    def __init__(self, model, params: dict, dt: float, discretisation: str = "rk4", initial=None):
         if discretisation not in DISCRETISATIONS:
             raise ValueError(f"unknown discretisation {discretisation!r}; valid: {DISCRETISATIONS}")
         self.model = model
@@ -194,19 +227,24 @@ class ParticleModel:
         self.nforce = model.nforce
         self.kdim = model.kernel.dim
         self.nfx = model.nforce * model.kernel.dim
+        self.nl = self.nfx + self.nm
         self.n_state = model.n_state
         self.n_obs = model.n_obs
+        self.is_linear = bool(model.system.is_linear)
         self.R = jnp.asarray(model.noise_covariance())
-        if isinstance(model.kernel, Matern):
-            # Taylor coefficients s^k / k! of the held force, over the derivative states.
-            self._taylor = True
-        else:  # composite kernels: zero-order hold of u = H_f x_f
-            self._taylor = False
+        # Matérn: the force held as the Taylor polynomial of its derivative states;
+        # composite kernels: zero-order hold of u = H_f x_f
+        self._taylor = isinstance(model.kernel, Matern)
         self._Minv = jnp.linalg.inv(model.system.mass(self.params))
         self._B = model.system.input_matrix()
-        zero_mech = jnp.zeros(self.nm)
+        zero_mech, zero_f = jnp.zeros(self.nm), jnp.zeros(self.nfx)
         self.D = jax.jacfwd(lambda xf: self.model.observe(self._gp_dummy(), jnp.concatenate([zero_mech, xf])))(
-            jnp.zeros(self.nfx))
+            zero_f)
+        # Observation Jacobian in the latent (x_f, w) about rest: the proposal's linearisation
+        self.D_latent = jnp.concatenate([self.D, jax.jacfwd(self.offset)(zero_mech)], axis=1)
+        # d Phi / d x_f of the step's hold (the linear part's force response of phi)
+        self._phi_force = jax.jacfwd(self.phi, argnums=1)(zero_mech, zero_f)
+        self.mech0_mean, self.mech0_cov = self.initial_mech(initial)
 
     # ----- pieces of the model ---------------------------------------------
     def _hold(self, xf: Float[Array, " nf"], s) -> Float[Array, " nforce"]:
@@ -278,13 +316,36 @@ class ParticleModel:
         """:math:`c(\\mathrm{mech})`: the observation with the force states at zero."""
         return self._observe(mech, jnp.zeros(self.nfx))
 
-    def force_transition(self, variance, lengthscale) -> ForceTransition:
-        """``(A_f, Q_f, Pinf_f)`` for all forces (block diagonal), exact (Van Loan)."""
+    def force_transition(self, variance, lengthscale):
+        """``(A_f, Q_f, Pinf_f)`` of the force states alone (block diagonal over forces)."""
         kp = KernelParams(jnp.asarray(variance, dtype=float), jnp.asarray(lengthscale, dtype=float))
         A, Q = self.model.kernel.discretise(kp, self.dt)
         Pinf = self.model.kernel.state_space(kp).Pinf
         eye = jnp.eye(self.nforce)
-        return ForceTransition(jnp.kron(eye, A), symmetrise(jnp.kron(eye, Q)), symmetrise(jnp.kron(eye, Pinf)))
+        return jnp.kron(eye, A), symmetrise(jnp.kron(eye, Q)), symmetrise(jnp.kron(eye, Pinf))
+
+    def transition(self, variance, lengthscale) -> Transition:
+        r"""The latent's transition at :math:`\theta = (\sigma_f^2, \ell)` (module doc, "within-step noise").
+
+        The joint covariance of the force-state innovation and the mechanical
+        states' within-step response to it is the exact (Van Loan) one of the
+        system linearised about rest; the force block is the kernel's own
+        (robust for coarse steps). ``E`` corrects the mean of :math:`w_t` for
+        the difference between the conditional-mean force within the step and
+        :meth:`phi`'s Taylor hold, so that for linear systems the model is the
+        exact discretisation up to the RK4 error of the homogeneous step.
+        """
+        nm, nfx = self.nm, self.nfx
+        A_f, Q_f, P_f = self.force_transition(variance, lengthscale)
+        prm = {**self.params, "force_variance": variance, "force_lengthscale": lengthscale}
+        F, W = self.model.continuous(prm, linear_part=True)
+        A, Q = van_loan(F, W, self.dt)
+        perm = np.r_[np.arange(nm, nm + nfx), np.arange(nm)]  # (x_f, mech) order
+        Qg = Q[perm][:, perm].at[:nfx, :nfx].set(Q_f)
+        E = A[:nm, nm:] - self._phi_force
+        Ag = jnp.zeros((self.nl, self.nl)).at[:nfx, :nfx].set(A_f).at[nfx:, :nfx].set(E)
+        Pg = jax.scipy.linalg.block_diag(P_f, self.mech0_cov)
+        return Transition(Ag, symmetrise(Qg), symmetrise(Pg))
 
     def initial_mech(self, initial=None):
         """``(mean, cov)`` of the initial mechanical state: ``initial = (mean, sd)`` or the model default."""
@@ -296,32 +357,48 @@ class ParticleModel:
         m0, P0 = self.model.default_initial({**self.params, "force_variance": 1.0, "force_lengthscale": 1.0})
         return m0[: self.nm], symmetrise(P0[: self.nm, : self.nm])
 
-    def mech_path(self, mech1: Float[Array, " nm"], xf: Float[Array, "T nf"]) -> Float[Array, "T n"]:
-        """The full state path ``(mech, x_f)`` driven deterministically by a force-state path."""
+    def path(self, g: Float[Array, "T nl"]) -> Float[Array, "T n"]:
+        r"""The state path ``(mech, x_f)`` of a latent path :math:`g = (x_f, w)`:
+        :math:`\mathrm{mech}_1 = m_0 + w_1`, :math:`\mathrm{mech}_t = \Phi(\mathrm{mech}_{t-1}, x_{f,t-1}) + w_t`."""
+        nfx = self.nfx
+        xf, w = g[:, :nfx], g[:, nfx:]
+        mech1 = self.mech0_mean + w[0]
 
-        def _step(mech, xf_prev):
-            nxt = self.phi(mech, xf_prev)
+        def _step(mech, inputs):
+            xf_prev, w_t = inputs
+            nxt = self.phi(mech, xf_prev) + w_t
             return nxt, nxt
 
-        _, mechs = jax.lax.scan(_step, mech1, xf[:-1])
+        _, mechs = jax.lax.scan(_step, mech1, (xf[:-1], w[1:]))
         return jnp.concatenate([jnp.concatenate([mech1[None], mechs]), xf], axis=1)
 
-    def linear_discrete(self, ft: ForceTransition):
-        """Jacobians of the full one-step map and the observation (exact for linear systems).
-
-        Returns ``(A_d, Q_d, H)`` of ``x_t = A_d x_{t-1} + (0, q)``, ``y = H x + v``,
-        for tests against the Kalman filter and for the extended Kalman smoother.
-        """
+    def latent(self, path: Float[Array, "T n"]) -> Float[Array, "T nl"]:
+        """The latent path of a state path (inverse of :meth:`path`, vectorised over time)."""
         nm = self.nm
+        mech, xf = path[:, :nm], path[:, nm:]
+        pred = self.phi_particles(mech[:-1], xf[:-1])
+        w = jnp.concatenate([(mech[0] - self.mech0_mean)[None], mech[1:] - pred])
+        return jnp.concatenate([xf, w], axis=1)
+
+    def linear_discrete(self, tr: Transition):
+        """The sampler's discrete model of the state ``(mech, x_f)`` as a linear-Gaussian one.
+
+        Returns ``(A_d, Q_d, H, m_1, P_1)``: ``x_t = A_d x_{t-1} + q``,
+        ``q ~ N(0, Q_d)``, ``y = H x + v``, ``x_1 ~ N(m_1, P_1)``: exact for
+        linear systems (tests against the Kalman filter), the linearisation
+        about rest otherwise; the extended Kalman smoother uses its pieces.
+        """
+        nm, nfx = self.nm, self.nfx
+        perm = np.r_[np.arange(nfx, nfx + nm), np.arange(nfx)]  # (mech, x_f) order
 
         def step(x):
-            return jnp.concatenate([self.phi(x[:nm], x[nm:]), ft.A @ x[nm:]])
+            return jnp.concatenate([self.phi(x[:nm], x[nm:]) + tr.A[nfx:, :nfx] @ x[nm:], tr.A[:nfx, :nfx] @ x[nm:]])
 
         x0 = jnp.zeros(self.n_state)
         A_d = jax.jacfwd(step)(x0)
-        Q_d = jnp.zeros((self.n_state, self.n_state)).at[nm:, nm:].set(ft.Q)
         H = jax.jacfwd(lambda x: self._observe(x[:nm], x[nm:]))(x0)
-        return A_d, Q_d, H
+        m1 = jnp.concatenate([self.mech0_mean, jnp.zeros(nfx)])
+        return A_d, tr.Q[perm][:, perm], H, m1, tr.Pinf[perm][:, perm]
 
 
 def _mv1(M, x):
@@ -341,9 +418,12 @@ def _quad(X: Float[Array, "N k"], M: Float[Array, "k k"]) -> Float[Array, " N"]:
 
 
 def _chol(P):
-    n = P.shape[-1]
-    scale = jnp.trace(P) / n
-    return jnp.linalg.cholesky(symmetrise(P) + JITTER * scale * jnp.eye(n, dtype=P.dtype))
+    """Cholesky factor with a jitter relative to each diagonal entry (the latent's covariances
+    span many orders of magnitude: the force innovation and the within-step displacement;
+    zero diagonal entries get the mean diagonal's scale)."""
+    d = jnp.diagonal(P)
+    d = jnp.where(d > 0, d, jnp.mean(jnp.abs(d)))
+    return jnp.linalg.cholesky(symmetrise(P) + JITTER * jnp.diag(d))
 
 
 # ---------------------------------------------------------------------------
@@ -353,17 +433,17 @@ class SweepConstants(NamedTuple):
     """Everything a sweep needs that does not depend on the particles (one per theta)."""
 
     y: Float[Array, "T d"]  # zero where masked
-    D: Float[Array, "T d nf"]  # masked rows zeroed
+    D: Float[Array, "T d nl"]  # linearised observation of the latent; masked rows zeroed
     Rinv: Float[Array, "T d d"]  # masked channels: zero rows/cols
     obs_const: Float[Array, " T"]  # -0.5 (log|R_t| + n_obs log 2 pi)
-    A: Float[Array, "nf nf"]
-    Q_inv: Float[Array, "nf nf"]
-    L: Float[Array, "T nf nf"]  # proposal covariance Cholesky factor at each step
-    K: Float[Array, "T nf d"]  # proposal gain (zero for the bootstrap)
+    A: Float[Array, "nl nf"]  # the latent's transition (it acts on the force block only)
+    Q_scale: Float[Array, " nl"]  # sqrt(diag Q)
+    Q_inv: Float[Array, "nl nl"]  # inverse of the correlation matrix of Q
+    L: Float[Array, "T nl nl"]  # proposal covariance Cholesky factor at each step
+    K: Float[Array, "T nl d"]  # proposal gain (zero for the bootstrap)
     Sinv: Float[Array, "T d d"]  # first-stage innovation precision (optimal proposal)
     S_const: Float[Array, " T"]  # -0.5 (log|S_t| + n_obs log 2 pi)
     mech0_mean: Float[Array, " nm"]
-    mech0_chol: Float[Array, "nm nm"]
     maskf: Float[Array, "T d"]
 
 
@@ -372,8 +452,7 @@ def _masked_R(R, maskf):
     return R_t
 
 
-def sweep_constants(pm: ParticleModel, ft: ForceTransition, y, mask, mech0_mean, mech0_cov,
-                    proposal: str = "optimal") -> SweepConstants:
+def sweep_constants(pm: ParticleModel, tr: Transition, y, mask, proposal: str = "optimal") -> SweepConstants:
     """Precompute masked observation matrices, ``K, S``, Cholesky factors (once per sweep/theta)."""
     if proposal not in PROPOSALS:
         raise ValueError(f"unknown proposal {proposal!r}; valid: {PROPOSALS}")
@@ -381,7 +460,7 @@ def sweep_constants(pm: ParticleModel, ft: ForceTransition, y, mask, mech0_mean,
     maskf = mask.astype(float)
     T = y.shape[0]
     yz = jnp.where(mask, jnp.nan_to_num(y), 0.0)
-    D_t = pm.D[None] * maskf[:, :, None]
+    D_t = pm.D_latent[None] * maskf[:, :, None]
     R_t = jax.vmap(_masked_R, (None, 0))(pm.R, maskf)
     n_obs = jnp.sum(maskf, axis=1)
 
@@ -393,10 +472,12 @@ def sweep_constants(pm: ParticleModel, ft: ForceTransition, y, mask, mech0_mean,
 
     Rinv, logdetR = jax.vmap(_inv_logdet)(R_t, maskf)
     obs_const = -0.5 * (logdetR + n_obs * _LOG_2PI)
-    Qc = _chol(ft.Q)
-    Q_inv = cho_solve((Qc, True), jnp.eye(ft.Q.shape[0]))
-    # step 0 uses the stationary covariance, every later step Q_f
-    prior_cov = jnp.concatenate([ft.Pinf[None], jnp.broadcast_to(ft.Q, (T - 1,) + ft.Q.shape)])
+    # the ancestor weights' quadratic form in scaled coordinates (Q spans many decades)
+    q_scale = jnp.sqrt(jnp.maximum(jnp.diagonal(tr.Q), 1e-300))
+    Qc = _chol(tr.Q / jnp.outer(q_scale, q_scale))
+    Q_inv = cho_solve((Qc, True), jnp.eye(pm.nl))
+    # step 0 uses the initial covariance, every later step Q
+    prior_cov = jnp.concatenate([tr.Pinf[None], jnp.broadcast_to(tr.Q, (T - 1,) + tr.Q.shape)])
     if proposal == "optimal":
         def _gain(P, Dm, Rm, m):
             S = symmetrise(Dm @ P @ Dm.T + Rm)
@@ -409,11 +490,10 @@ def sweep_constants(pm: ParticleModel, ft: ForceTransition, y, mask, mech0_mean,
         S_const = -0.5 * (logdetS + n_obs * _LOG_2PI)
     else:
         L = jax.vmap(_chol)(prior_cov)
-        K = jnp.zeros((T, pm.nfx, pm.n_obs))
+        K = jnp.zeros((T, pm.nl, pm.n_obs))
         Sinv, S_const = Rinv, obs_const
-    return SweepConstants(yz, D_t, Rinv, obs_const, ft.A, symmetrise(Q_inv), L, K, Sinv, S_const,
-                          jnp.asarray(mech0_mean, dtype=float), _chol(jnp.asarray(mech0_cov, dtype=float)),
-                          maskf)
+    return SweepConstants(yz, D_t, Rinv, obs_const, tr.A[:, :pm.nfx], q_scale, symmetrise(Q_inv), L, K, Sinv,
+                          S_const, pm.mech0_mean, maskf)
 
 
 def ancestor_information(pm: ParticleModel, sc: SweepConstants, reference: Float[Array, "T n"]):
@@ -428,7 +508,7 @@ def ancestor_information(pm: ParticleModel, sc: SweepConstants, reference: Float
     J = jax.vmap(jax.jacfwd(pm.phi, argnums=0))(mech[:-1], xf[:-1])  # (T-1, nm, nm)
     C = jax.vmap(jax.jacfwd(pm.offset))(mech) * sc.maskf[:, :, None]  # (T, d, nm)
     c = jax.vmap(pm.offset)(mech) * sc.maskf
-    e = sc.y - c - jnp.einsum("tdf,tf->td", sc.D, xf)
+    e = sc.y - c - jnp.einsum("tdf,tf->td", sc.D[:, :, :pm.nfx], xf)
     CtRinv = jnp.einsum("tdm,tde->tme", C, sc.Rinv)
     Lam_obs = jnp.einsum("tme,ten->tmn", CtRinv, C)
     eta_obs = jnp.einsum("tme,te->tm", CtRinv, e)
@@ -492,7 +572,8 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
     if conditional:
         # the valid conditional resampler for the N-1 free ancestors (module doc)
         resampling = "multinomial"
-    N, nm, nfx = n_particles, pm.nm, pm.nfx
+    N, nm, nfx, nl = n_particles, pm.nm, pm.nfx, pm.nl
+    linear = pm.is_linear
     ref = N - 1
     optimal = proposal == "optimal"
     with_as = conditional and ancestor_sampling
@@ -519,18 +600,20 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
     def sweep(key: Array, sc: SweepConstants, reference: Float[Array, "T n"]) -> SweepOutput:
         T = sc.y.shape[0]
         dtype = sc.y.dtype
-        k_init, k_step, k_fin = jax.random.split(key, 3)
+        k_step, k_fin = jax.random.split(key)
         # a sweep's random numbers in two large draws (per step: N resampling points and
-        # N x nfx proposal normals), the proposal noise formed outside the sequential loop.
+        # N x nl proposal normals), the proposal noise formed outside the sequential loop.
         # (Normals by inversion of 32-bit uniforms, half the random bits, measured ~2 ms
         # per sweep slower than jax.random.normal at T=1024.)
         k1, k2 = jax.random.split(k_step)
-        eps = jax.random.normal(k1, (T, N, nfx), dtype)
+        eps = jax.random.normal(k1, (T, N, nl), dtype)
         u = jax.random.uniform(k2, (T, N, 1), dtype)
         noise = jnp.einsum("tnf,tgf->tng", eps, sc.L)
         points = _points(resampling, u[:, :, 0])
-        z0 = jax.random.normal(k_init, (N, nm), dtype)
         u_fin = jax.random.uniform(k_fin, (), dtype)
+        # the reference's latent (x_f', w') and its one-step predictions Phi(x'_{t-1}) = mech'_t - w'_t
+        g_ref = pm.latent(reference)
+        ref_pred = reference[:, :nm] - g_ref[:, nfx:]
 
         if with_as:
             Lam, eta = ancestor_information(pm, sc, reference)
@@ -538,30 +621,10 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
             Lam = jnp.zeros((T, nm, nm))
             eta = jnp.zeros((T, nm))
 
-        # ---- t = 0: mech from its prior, x_f from the (optimal) proposal
-        mech = sc.mech0_mean + z0 @ sc.mech0_chol.T
-        if conditional:
-            mech = mech.at[ref].set(reference[0, :nm])
-        c = voffset(mech) * sc.maskf[0]
-        r = sc.y[0] - c  # prior force mean is zero
-        xf = _mv(r, sc.K[0]) + noise[0]
-        if conditional:
-            xf = xf.at[ref].set(reference[0, nm:])
-        if optimal:
-            logw0 = _obs_loglik(r, sc.Sinv[0], sc.S_const[0])
-        else:
-            r2 = r - _mv(xf, sc.D[0])
-            logw0 = _obs_loglik(r2, sc.Rinv[0], sc.obs_const[0])
-        x0 = jnp.concatenate([mech, xf], axis=1)
-
-        def _step(carry, inputs):
-            # g_prev: the previous step's (unnormalised) second-stage log weights; for the
-            # optimal proposal they are the t = 0 weights at t = 1 and zero after, so they
-            # come in as an input rather than as a carry written every step
-            y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t, Lam_t, eta_t, ref_t, g_in = inputs
-            x_prev, g_prev = (carry, g_in) if optimal else carry
-            mech_pred = pm.phi_particles(x_prev[:, :nm], x_prev[:, nm:])
-            m = _mv(x_prev[:, nm:], sc.A)
+        def _propagate(mech_pred, m, y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t, g_prev,
+                       Lam_t, eta_t, gref_t, rpred_t, first):
+            """Resample-move-weight at one step: returns the new particles, ancestors, the
+            resampling log weights and the second-stage log weights."""
             r = y_t - voffset(mech_pred) * m_t - _mv(m, D_t)
             if optimal:
                 res_logw = g_prev + _obs_loglik(r, Sinv_t, Sc_t)
@@ -572,39 +635,66 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
                 mean = m
             rows = [res_logw]
             if with_as:
-                log_f = -0.5 * _quad(ref_t[nm:] - m, sc.Q_inv)
-                delta = mech_pred - ref_t[:nm]
+                log_f = -0.5 * _quad((gref_t - m) / sc.Q_scale, sc.Q_inv)
+                delta = mech_pred - rpred_t
                 Delta = -0.5 * _quad(delta, Lam_t) + jnp.sum(delta * eta_t, axis=1)
                 rows.append(g_prev + log_f + Delta)
-            # the barrier stops XLA from fusing (and so recomputing) the RK4 step and
-            # the residuals into every consumer (reductions over particles, the gather)
-            moved, log_weights = jax.lax.optimization_barrier(
-                (jnp.concatenate([mech_pred, mean, r], axis=1), jnp.stack(rows)))
-            anc = _draw(log_weights, p_t)
-            if conditional and not ancestor_sampling:
-                anc = jnp.where(is_ref, ref, anc)
-            moved = moved[anc]
-            xf_new = moved[:, nm:nm + nfx] + noise_t
+            if first:
+                # t = 0: the particles are drawn from the proposal directly (no ancestors)
+                anc = jnp.arange(N, dtype=jnp.int32)
+                moved = (mech_pred, m, mean, r)
+            else:
+                # the barrier stops XLA from fusing (and so recomputing) the RK4 step and
+                # the residuals into every consumer (reductions over particles, the gather)
+                packed, log_weights = jax.lax.optimization_barrier(
+                    (jnp.concatenate([mech_pred, m, mean, r], axis=1), jnp.stack(rows)))
+                anc = _draw(log_weights, p_t)
+                if conditional and not ancestor_sampling:
+                    anc = jnp.where(is_ref, ref, anc)
+                packed = packed[anc]
+                moved = (packed[:, :nm], packed[:, nm:nm + nl], packed[:, nm + nl:nm + 2 * nl],
+                         packed[:, nm + 2 * nl:])
+            mech_a, m_a, mean_a, r_a = moved
+            g_new = mean_a + noise_t
             if conditional:
-                xf_new = jnp.where(is_ref[:, None], ref_t[nm:], xf_new)
-            x_new = jnp.concatenate([moved[:, :nm], xf_new], axis=1)
-            if optimal:
-                return x_new, (x_new, anc, res_logw)
-            # y - c - D x_f = r - D (x_f - m), r and m those of the ancestor
-            r2 = moved[:, nm + nfx:] - _mv(xf_new - moved[:, nm:nm + nfx], D_t)
-            g = _obs_loglik(r2, Rinv_t, oc_t)
+                g_new = jnp.where(is_ref[:, None], gref_t, g_new)
+            mech_new = mech_a + g_new[:, nfx:]
+            xf_new = g_new[:, :nfx]
+            if optimal and linear:
+                g = jnp.zeros(N, dtype)
+            else:
+                r_act = y_t - voffset(mech_new) * m_t - _mv(xf_new, D_t[:, :nfx])
+                g = _obs_loglik(r_act, Rinv_t, oc_t)
+                if optimal:
+                    r_lin = r_a - _mv(g_new - m_a, D_t)
+                    g = g - _obs_loglik(r_lin, Rinv_t, oc_t)
+            if first:
+                # the first step's weights: the first-stage predictive (equal over particles) and g
+                g = res_logw + g
+            return jnp.concatenate([mech_new, xf_new], axis=1), anc, res_logw, g
+
+        def _inputs(t):
+            return (sc.y[t], sc.D[t], sc.Rinv[t], sc.obs_const[t], sc.K[t], sc.Sinv[t], sc.S_const[t],
+                    sc.maskf[t], noise[t], points[t])
+
+        # ---- t = 0: every particle predicts mech_0 = m_0 and the latent prior mean 0
+        mech_pred0 = jnp.broadcast_to(sc.mech0_mean, (N, nm))
+        x0, _, _, logw0 = _propagate(mech_pred0, jnp.zeros((N, nl), dtype), *_inputs(0),
+                                     jnp.zeros(N, dtype), Lam[0], eta[0], g_ref[0], ref_pred[0], True)
+
+        def _step(carry, inputs):
+            x_prev, g_prev = carry
+            (y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t, Lam_t, eta_t, gref_t,
+             rpred_t) = inputs
+            mech_pred = pm.phi_particles(x_prev[:, :nm], x_prev[:, nm:])
+            m = _mv(x_prev[:, nm:], sc.A)
+            x_new, anc, res_logw, g = _propagate(mech_pred, m, y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t,
+                                                 noise_t, p_t, g_prev, Lam_t, eta_t, gref_t, rpred_t, False)
             return (x_new, g), (x_new, anc, res_logw, g)
 
         inputs = (sc.y[1:], sc.D[1:], sc.Rinv[1:], sc.obs_const[1:], sc.K[1:], sc.Sinv[1:],
-                  sc.S_const[1:], sc.maskf[1:], noise[1:], points[1:], Lam[1:], eta[1:], reference[1:])
-        if optimal:
-            g_in = jnp.zeros((T - 1, N), dtype).at[0].set(logw0)
-            _, (xs, ancs, res_logw) = jax.lax.scan(_step, x0, inputs + (g_in,), unroll=unroll)
-            gs = jnp.zeros((T - 1, N), dtype)
-            g_T = logw0 if T == 1 else gs[-1]
-        else:
-            (_, g_T), (xs, ancs, res_logw, gs) = jax.lax.scan(
-                _step, (x0, logw0), inputs + (jnp.zeros((T - 1, 0), dtype),), unroll=unroll)
+                  sc.S_const[1:], sc.maskf[1:], noise[1:], points[1:], Lam[1:], eta[1:], g_ref[1:], ref_pred[1:])
+        (_, g_T), (xs, ancs, res_logw, gs) = jax.lax.scan(_step, (x0, logw0), inputs, unroll=unroll)
         particles = jnp.concatenate([x0[None], xs])
         ancestors = jnp.concatenate([jnp.broadcast_to(jnp.arange(N, dtype=ancs.dtype), (1, N)), ancs])
         # Eq. (5) with unnormalised second-stage weights g_t:
@@ -628,10 +718,10 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
     return sweep
 
 
-def particle_filter(key: Array, pm: ParticleModel, ft: ForceTransition, y, mask, mech0_mean, mech0_cov,
-                    n_particles: int, *, proposal: str = "optimal", resampling: str = "multinomial"):
+def particle_filter(key: Array, pm: ParticleModel, tr: Transition, y, mask, n_particles: int, *,
+                    proposal: str = "optimal", resampling: str = "multinomial"):
     """Convenience wrapper: the (unconditional) particle filter; returns ``(log_likelihood, SweepOutput)``."""
-    sc = sweep_constants(pm, ft, jnp.asarray(y, dtype=float), mask, mech0_mean, mech0_cov, proposal)
+    sc = sweep_constants(pm, tr, jnp.asarray(y, dtype=float), mask, proposal)
     sweep = make_sweep(pm, n_particles, proposal=proposal, resampling=resampling, conditional=False)
     out = sweep(key, sc, jnp.zeros((sc.y.shape[0], pm.n_state)))
     return out.info.log_likelihood, out
