@@ -576,6 +576,7 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
     linear = pm.is_linear
     ref = N - 1
     optimal = proposal == "optimal"
+    correct = optimal and not linear  # second-stage correction of the linearised observation
     with_as = conditional and ancestor_sampling
     voffset = jax.vmap(pm.offset)
     log_N = math.log(N)
@@ -621,8 +622,8 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
             Lam = jnp.zeros((T, nm, nm))
             eta = jnp.zeros((T, nm))
 
-        def _propagate(mech_pred, m, y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t, g_prev,
-                       Lam_t, eta_t, gref_t, rpred_t, first):
+        def _propagate(mech_pred, m, g_prev, y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t,
+                       Lam_t, eta_t, gref_t, rpred_t, *, first):
             """Resample-move-weight at one step: returns the new particles, ancestors, the
             resampling log weights and the second-stage log weights."""
             r = y_t - voffset(mech_pred) * m_t - _mv(m, D_t)
@@ -633,28 +634,28 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
             else:
                 res_logw = g_prev
                 mean = m
-            rows = [res_logw]
-            if with_as:
-                log_f = -0.5 * _quad((gref_t - m) / sc.Q_scale, sc.Q_inv)
-                delta = mech_pred - rpred_t
-                Delta = -0.5 * _quad(delta, Lam_t) + jnp.sum(delta * eta_t, axis=1)
-                rows.append(g_prev + log_f + Delta)
+            # what a particle passes to its offspring (the prior mean only where the
+            # linearisation correction below needs it)
+            moved = [mech_pred, mean, r] + ([m] if correct else [])
             if first:
                 # t = 0: the particles are drawn from the proposal directly (no ancestors)
                 anc = jnp.arange(N, dtype=jnp.int32)
-                moved = (mech_pred, m, mean, r)
             else:
+                rows = [res_logw]
+                if with_as:
+                    log_f = -0.5 * _quad((gref_t - m) / sc.Q_scale, sc.Q_inv)
+                    delta = mech_pred - rpred_t
+                    Delta = -0.5 * _quad(delta, Lam_t) + jnp.sum(delta * eta_t, axis=1)
+                    rows.append(g_prev + log_f + Delta)
                 # the barrier stops XLA from fusing (and so recomputing) the RK4 step and
                 # the residuals into every consumer (reductions over particles, the gather)
                 packed, log_weights = jax.lax.optimization_barrier(
-                    (jnp.concatenate([mech_pred, m, mean, r], axis=1), jnp.stack(rows)))
+                    (jnp.concatenate(moved, axis=1), jnp.stack(rows)))
                 anc = _draw(log_weights, p_t)
                 if conditional and not ancestor_sampling:
                     anc = jnp.where(is_ref, ref, anc)
-                packed = packed[anc]
-                moved = (packed[:, :nm], packed[:, nm:nm + nl], packed[:, nm + nl:nm + 2 * nl],
-                         packed[:, nm + 2 * nl:])
-            mech_a, m_a, mean_a, r_a = moved
+                moved = jnp.split(packed[anc], np.cumsum([a.shape[1] for a in moved])[:-1], axis=1)
+            mech_a, mean_a, r_a = moved[:3]
             g_new = mean_a + noise_t
             if conditional:
                 g_new = jnp.where(is_ref[:, None], gref_t, g_new)
@@ -666,35 +667,31 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
                 r_act = y_t - voffset(mech_new) * m_t - _mv(xf_new, D_t[:, :nfx])
                 g = _obs_loglik(r_act, Rinv_t, oc_t)
                 if optimal:
-                    r_lin = r_a - _mv(g_new - m_a, D_t)
+                    r_lin = r_a - _mv(g_new - moved[3], D_t)
                     g = g - _obs_loglik(r_lin, Rinv_t, oc_t)
             if first:
                 # the first step's weights: the first-stage predictive (equal over particles) and g
                 g = res_logw + g
             return jnp.concatenate([mech_new, xf_new], axis=1), anc, res_logw, g
 
-        def _inputs(t):
-            return (sc.y[t], sc.D[t], sc.Rinv[t], sc.obs_const[t], sc.K[t], sc.Sinv[t], sc.S_const[t],
-                    sc.maskf[t], noise[t], points[t])
+        # the per-step inputs, in _propagate's order: step 0 below, steps 1.. in the scan
+        per_step = (sc.y, sc.D, sc.Rinv, sc.obs_const, sc.K, sc.Sinv, sc.S_const, sc.maskf, noise, points,
+                    Lam, eta, g_ref, ref_pred)
 
         # ---- t = 0: every particle predicts mech_0 = m_0 and the latent prior mean 0
         mech_pred0 = jnp.broadcast_to(sc.mech0_mean, (N, nm))
-        x0, _, _, logw0 = _propagate(mech_pred0, jnp.zeros((N, nl), dtype), *_inputs(0),
-                                     jnp.zeros(N, dtype), Lam[0], eta[0], g_ref[0], ref_pred[0], True)
+        x0, _, _, logw0 = _propagate(mech_pred0, jnp.zeros((N, nl), dtype), jnp.zeros(N, dtype),
+                                     *(a[0] for a in per_step), first=True)
 
         def _step(carry, inputs):
             x_prev, g_prev = carry
-            (y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t, Lam_t, eta_t, gref_t,
-             rpred_t) = inputs
             mech_pred = pm.phi_particles(x_prev[:, :nm], x_prev[:, nm:])
             m = _mv(x_prev[:, nm:], sc.A)
-            x_new, anc, res_logw, g = _propagate(mech_pred, m, y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t,
-                                                 noise_t, p_t, g_prev, Lam_t, eta_t, gref_t, rpred_t, False)
+            x_new, anc, res_logw, g = _propagate(mech_pred, m, g_prev, *inputs, first=False)
             return (x_new, g), (x_new, anc, res_logw, g)
 
-        inputs = (sc.y[1:], sc.D[1:], sc.Rinv[1:], sc.obs_const[1:], sc.K[1:], sc.Sinv[1:],
-                  sc.S_const[1:], sc.maskf[1:], noise[1:], points[1:], Lam[1:], eta[1:], g_ref[1:], ref_pred[1:])
-        (_, g_T), (xs, ancs, res_logw, gs) = jax.lax.scan(_step, (x0, logw0), inputs, unroll=unroll)
+        (_, g_T), (xs, ancs, res_logw, gs) = jax.lax.scan(
+            _step, (x0, logw0), tuple(a[1:] for a in per_step), unroll=unroll)
         particles = jnp.concatenate([x0[None], xs])
         ancestors = jnp.concatenate([jnp.broadcast_to(jnp.arange(N, dtype=ancs.dtype), (1, N)), ancs])
         # Eq. (5) with unnormalised second-stage weights g_t:
