@@ -69,6 +69,19 @@ def test_resamplers_are_unbiased(scheme):
     assert np.all(np.asarray(counts[:, 4]) == 0)  # zero weight never drawn
 
 
+def test_box_muller_normals_are_standard_normal():
+    from scipy import stats
+
+    x = np.asarray(smc.box_muller(jax.random.key(3, impl="rbg"), (301, 7, 3)))  # odd count: one pair cut
+    assert x.shape == (301, 7, 3) and np.all(np.isfinite(x))
+    flat = x.ravel()
+    assert stats.kstest(flat, "norm").pvalue > 1e-3
+    # the two halves (cos and sin of the same radius) are uncorrelated
+    half = flat.size // 2
+    assert abs(np.corrcoef(flat[:half], flat[half:2 * half])[0, 1]) < 4.0 / np.sqrt(half)
+    assert abs(np.mean(flat**2) - 1.0) < 5.0 * np.sqrt(2.0 / flat.size)
+
+
 def test_observation_and_step_match_the_model():
     model = LatentForceModel(Duffing(), Matern(1),
                              [Sensor("displacement", 0, 0.1), Sensor("velocity", 0, 0.1),

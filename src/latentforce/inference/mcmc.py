@@ -57,17 +57,24 @@ def init(x: Float[Array, " p"], logdensity: Callable, proposal_sd: Float[Array, 
 
 
 def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
-         adapt_shape: Bool[Array, ""], target: float) -> tuple[RWMState, RWMInfo]:
+         adapt_shape: Bool[Array, ""], target: float, aux=None):
     r"""One Metropolis step; adapts the proposal only where ``adapt`` is true.
 
     A proposal whose log density is not finite (e.g. a NaN likelihood from an
     unstable parameter set) is rejected, never propagated (STYLE 12).
+    Returns ``(state, info)``; with ``aux`` (a pytree belonging to the current
+    point) ``logdensity`` returns ``(log density, aux)`` and the step returns
+    ``(state, info, aux of the point kept)``, so that what the density
+    computed on the way (e.g. a rebuilt path) need not be computed again.
     """
     key_prop, key_acc = jax.random.split(key)
     p = state.x.shape[0]
     eps = jax.random.normal(key_prop, (p,), dtype=state.x.dtype)
     x_new = state.x + jnp.exp(state.log_scale) * (state.chol @ eps)
-    ld_new = logdensity(x_new)
+    if aux is None:
+        ld_new = logdensity(x_new)
+    else:
+        ld_new, aux_new = logdensity(x_new)
     ld_new = jnp.where(jnp.isfinite(ld_new), ld_new, -jnp.inf)
     log_alpha = jnp.minimum(ld_new - state.logdensity, 0.0)
     accepted = jnp.log(jax.random.uniform(key_acc, dtype=state.x.dtype)) < log_alpha
@@ -89,7 +96,10 @@ def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
     # Switching shape rescales: restart the scale near the optimal 2.38/sqrt(p).
     chol = jnp.where(use_new, new_chol * (2.38 / jnp.sqrt(p)), state.chol)
     log_scale = jnp.where(use_new, 0.0, log_scale)
-    return RWMState(x, ld, log_scale, chol, mean, cov, count), RWMInfo(accepted, ld)
+    out = RWMState(x, ld, log_scale, chol, mean, cov, count), RWMInfo(accepted, ld)
+    if aux is None:
+        return out
+    return out + (jax.tree_util.tree_map(lambda a, b: jnp.where(accepted, a, b), aux_new, aux),)
 
 
 def run_chain(key, state: RWMState, logdensity: Callable, n_steps: int, *, adapt,

@@ -104,9 +104,10 @@ def gp_path_log_density(pm: smc.ParticleModel, variance, lengthscale,
     mechanical noise, :mod:`smc`), vectorised over time (no scan)."""
     tr = pm.transition(variance, lengthscale)
     T, nl = g.shape
-    eps = whiten(tr, g)
-    logdetQ = 2.0 * jnp.sum(jnp.log(jnp.diag(smc._chol(tr.Q))))
-    logdetP = 2.0 * jnp.sum(jnp.log(jnp.diag(smc._chol(tr.Pinf))))
+    cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
+    eps = _whiten(tr, g, cP, cQ)
+    logdetQ = 2.0 * jnp.sum(jnp.log(jnp.diag(cQ)))
+    logdetP = 2.0 * jnp.sum(jnp.log(jnp.diag(cP)))
     return -0.5 * jnp.sum(eps**2) - 0.5 * ((T - 1) * logdetQ + logdetP) - 0.5 * T * nl * _LOG_2PI
 
 
@@ -172,19 +173,20 @@ def adaptation_schedule(burn_in_steps: int) -> tuple[int, ...]:
 
 
 def mh_step(key: Array, state: mcmc.RWMState, log_target: Callable, *, adapt: Array,
-            reshape: Array, target: float) -> tuple[mcmc.RWMState, mcmc.RWMInfo]:
+            reshape: Array, target: float, aux=None):
     """One random-walk MH step on the hyperparameters (``mcmc.step``), adaptive only where ``adapt``.
 
     ``state.logdensity`` must be ``log_target(state.x)`` (refresh it when the
     conditioning path changes). ``reshape``: reset the proposal shape from
     the running covariance, then restart the running moments. A non-finite
-    proposed target is a rejection (never a propagated NaN).
+    proposed target is a rejection (never a propagated NaN). With ``aux``,
+    as :func:`mcmc.step` (the target returns ``(log density, aux)``).
     """
-    state, info = mcmc.step(key, state, log_target, adapt, reshape & adapt, target)
+    out = mcmc.step(key, state, log_target, adapt, reshape & adapt, target, aux)
     restart = reshape & adapt
-    state = state._replace(mean=jnp.where(restart, state.x, state.mean),
-                           count=jnp.where(restart, 0.0, state.count))
-    return state, info
+    state = out[0]._replace(mean=jnp.where(restart, out[0].x, out[0].mean),
+                            count=jnp.where(restart, 0.0, out[0].count))
+    return (state,) + tuple(out[1:])
 
 
 def proposal_covariance(state: mcmc.RWMState) -> Float[Array, "p p"]:
@@ -197,11 +199,16 @@ def proposal_covariance(state: mcmc.RWMState) -> Float[Array, "p p"]:
 # ---------------------------------------------------------------------------
 def whiten(tr: smc.Transition, g: Float[Array, "T nl"]) -> Float[Array, "T nl"]:
     r"""Innovations :math:`\varepsilon_1 = L_\infty^{-1} g_1`, :math:`\varepsilon_t = L_Q^{-1}(g_t - A g_{t-1})`."""
-    cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
+    return _whiten(tr, g, smc._chol(tr.Pinf), smc._chol(tr.Q))
+
+
+def _whiten(tr: smc.Transition, g, cP, cQ):
+    # one small triangular inverse applied as a matrix product: XLA's CPU triangular
+    # solve with T right-hand sides cost ~1 ms at T = 1024, the product ~10 us
     e1 = jax.scipy.linalg.solve_triangular(cP, g[0], lower=True)
+    cQ_inv = jax.scipy.linalg.solve_triangular(cQ, jnp.eye(cQ.shape[0]), lower=True)
     resid = g[1:] - g[:-1] @ tr.A.T
-    e = jax.scipy.linalg.solve_triangular(cQ, resid.T, lower=True).T
-    return jnp.concatenate([e1[None], e])
+    return jnp.concatenate([e1[None], resid @ cQ_inv.T])
 
 
 def colour(tr: smc.Transition, eps: Float[Array, "T nl"]) -> Float[Array, "T nl"]:
@@ -252,16 +259,18 @@ def observation_log_likelihood(pm: smc.ParticleModel, od: ObservationDensity,
 
 def noncentred_log_target(hyper: Hyper, pm: smc.ParticleModel, od: ObservationDensity,
                           x: Float[Array, " p"], eps: Float[Array, "T nl"]
-                          ) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
-    r"""Target of :math:`x = \log\theta` given the latent's innovations, and the rebuilt path.
+                          ) -> tuple[Float[Array, ""], tuple[Float[Array, "T nl"], Float[Array, "T n"]]]:
+    r"""Target of :math:`x = \log\theta` given the latent's innovations, and the rebuilt latent and path.
 
     :math:`\log p(\theta) + \sum_i x_i + \log p(y \mid x_{1:T}(\theta, \varepsilon))`:
     the innovations' density does not depend on :math:`\theta` and, the
-    innovations being held fixed, there is no path Jacobian.
+    innovations being held fixed, there is no path Jacobian. Returns
+    ``(log target, (latent, path))``.
     """
     var, ls = hyper.values(x)
-    path = pm.path(colour(pm.transition(var, ls), eps))
-    return hyper.log_prior(x) + observation_log_likelihood(pm, od, path), path
+    g = colour(pm.transition(var, ls), eps)
+    path = pm.path(g)
+    return hyper.log_prior(x) + observation_log_likelihood(pm, od, path), (g, path)
 
 
 # ---------------------------------------------------------------------------
@@ -321,8 +330,9 @@ def lowfreq_path(pm: smc.ParticleModel, frame: LowFrequencyFrame, eps_perp: Floa
 
 
 def lowfreq_log_target(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
-                       eps_perp: Float[Array, "T nf"], w: Float[Array, " q"]) -> Float[Array, ""]:
-    r""":math:`\log N(w; 0, I) + \log p(y \mid x_{1:T}(w, \varepsilon_\perp))` up to a constant.
+                       eps_perp: Float[Array, "T nf"], w: Float[Array, " q"]
+                       ) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
+    r""":math:`\log N(w; 0, I) + \log p(y \mid x_{1:T}(w, \varepsilon_\perp))` up to a constant, and the path.
 
     The maps :math:`w \mapsto (\mathrm{mech}_1, \varepsilon) \mapsto x_{1:T}`
     are affine with a constant Jacobian, and the prior of
@@ -330,7 +340,8 @@ def lowfreq_log_target(pm: smc.ParticleModel, od: ObservationDensity, frame: Low
     coordinates, so this is the conditional posterior of :math:`w` given
     :math:`\varepsilon_\perp` and :math:`\theta`.
     """
-    return -0.5 * jnp.sum(w**2) + observation_log_likelihood(pm, od, lowfreq_path(pm, frame, eps_perp, w))
+    path = lowfreq_path(pm, frame, eps_perp, w)
+    return -0.5 * jnp.sum(w**2) + observation_log_likelihood(pm, od, path), path
 
 
 def lowfreq_init(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
@@ -384,15 +395,18 @@ def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: smc.ParticleModel, od: Obse
     def log_target(w_):
         return lowfreq_log_target(pm, od, frame, eps_perp, w_)
 
-    rwm = rwm._replace(x=w, logdensity=log_target(w))
+    # the path is the one at w (up to round-off): no rebuild for the current point's target
+    rwm = rwm._replace(x=w, logdensity=-0.5 * jnp.sum(w**2) + observation_log_likelihood(pm, od, path))
 
-    def _one(r, inp):
+    def _one(carry, inp):
+        r, x = carry
         k, s = inp
-        r, info = mh_step(k, r, log_target, adapt=adapt, reshape=jnp.any(step0 + s == reshape_steps), target=target)
-        return r, info.accepted
+        r, info, x = mh_step(k, r, log_target, adapt=adapt, reshape=jnp.any(step0 + s == reshape_steps),
+                             target=target, aux=x)
+        return (r, x), info.accepted
 
-    rwm, accs = jax.lax.scan(_one, rwm, (jax.random.split(key, n_steps), jnp.arange(n_steps)))
-    path = jnp.where(jnp.any(accs), lowfreq_path(pm, frame, eps_perp, rwm.x), path)
+    # the input path is returned bit-for-bit when nothing was accepted
+    (rwm, path), accs = jax.lax.scan(_one, (rwm, path), (jax.random.split(key, n_steps), jnp.arange(n_steps)))
     return rwm, path, accs
 
 
@@ -561,34 +575,39 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         raise ValueError(f"lowfreq_steps must be non-negative, got {lowfreq_steps}")
     basis = lowfreq_basis(T, lowfreq_modes)
 
-    # ---- initialisation (outside the loop; never from the truth)
-    k_init, k_chains = jax.random.split(key)
+    # ---- initialisation (outside the loop; never from the truth), one compiled program:
+    # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
     x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
-    var0, ls0 = hyper.values(x0)
-    tr0 = pm.transition(var0, ls0)
-    eks = extended_kalman_smoother(pm, tr0, y, mask)
-    g_eks = pm.latent(eks)
-    chain_keys = jax.random.split(k_chains, chains)
+    od = jax.jit(lambda y_, m_: observation_density(pm, y_, m_))(y, mask)
 
-    def _init_chain(ck):
-        k_path, k_theta, k_run = jax.random.split(ck, 3)
-        ref = pm.path(g_eks + 0.5 * gp_prior_path(k_path, tr0, T))
-        # dispersed start: theta_0 exp(0.5 eps); the log density is set at the first block
-        rwm = init_proposal(hyper, lambda x: jnp.zeros(()), x0 + 0.5 * jax.random.normal(k_theta, (p,)))
-        return ChainState(k_run, ref, rwm, rwm, rwm_lf0, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)),
-                          jnp.zeros((T, nq)), jnp.zeros(()), jnp.zeros((n_draws + 1, T, pm.n_state)))
+    @jax.jit
+    def _setup(key):
+        k_init, k_chains = jax.random.split(key)
+        var0, ls0 = hyper.values(x0)
+        tr0 = pm.transition(var0, ls0)
+        eks = extended_kalman_smoother(pm, tr0, y, mask)
+        g_eks = pm.latent(eks)
+        # the Gauss-Newton shape is exact for linear models; for nonlinear ones it is
+        # recomputed at each chain's own path at the end of the burn-in windows
+        # (adaptation: burn-in only), and the scale adapts throughout the burn-in
+        rwm_lf0 = lowfreq_init(pm, od, LowFrequencyFrame(tr0, basis), eks)
 
-    ref_q = _summary_quantities(pm, eks)  # centring of the running sums (numerical stability)
-    od = observation_density(pm, y, mask)
-    # the Gauss-Newton shape is exact for linear models; for nonlinear ones it is
-    # recomputed at each chain's own path at the end of the burn-in windows
-    # (adaptation: burn-in only), and the scale adapts throughout the burn-in
-    rwm_lf0 = lowfreq_init(pm, od, LowFrequencyFrame(tr0, basis), eks)
+        def _init_chain(ck):
+            k_path, k_theta, k_run = jax.random.split(ck, 3)
+            ref = pm.path(g_eks + 0.5 * gp_prior_path(k_path, tr0, T))
+            # dispersed start: theta_0 exp(0.5 eps); the log density is set at the first block
+            rwm = init_proposal(hyper, lambda x: jnp.zeros(()), x0 + 0.5 * jax.random.normal(k_theta, (p,)))
+            return ChainState(k_run, ref, rwm, rwm, rwm_lf0, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)),
+                              jnp.zeros((T, nq)), jnp.zeros(()), jnp.zeros((n_draws + 1, T, pm.n_state)))
+
+        # ref_q: centring of the running sums (numerical stability)
+        return jax.vmap(_init_chain)(jax.random.split(k_chains, chains)), _summary_quantities(pm, eks)
+
+    state0, ref_q = _setup(key)
     lf_reshape = jnp.asarray((-1,))
     lf_regauge = () if pm.is_linear else tuple(
         sorted({int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1}))
     interweave = bool(interweave) and p > 0
-    state0 = jax.vmap(_init_chain)(chain_keys)
 
     def _regauge(rwm_lf, frame, path):
         new = lowfreq_init(pm, od, frame, path)
@@ -622,14 +641,16 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         slot = jnp.where(post & (sidx % thin == 0), sidx // thin, n_draws)
         draws = state.draws.at[slot].set(path)
         # ---- state_every MH iterations given the path, each mh_steps steps
-        def _steps(key_, r, target, j):
-            def _one(r_, inp2):
+        def _steps(key_, r, target, j, aux=None):
+            def _one(carry, inp2):
+                r_, a_ = carry
                 kk, s_ = inp2
-                r_, info_ = mh_step(kk, r_, target, adapt=j < burn_in,
-                                    reshape=jnp.any(j * n_mh + s_ == reshape_steps), target=target_acc)
-                return r_, info_.accepted
+                out_ = mh_step(kk, r_, target, adapt=j < burn_in,
+                               reshape=jnp.any(j * n_mh + s_ == reshape_steps), target=target_acc, aux=a_)
+                return (out_[0], out_[2] if aux is not None else None), out_[1].accepted
 
-            return jax.lax.scan(_one, r, (jax.random.split(key_, n_mh), jnp.arange(n_mh)))
+            (r, aux), accs_ = jax.lax.scan(_one, (r, aux), (jax.random.split(key_, n_mh), jnp.arange(n_mh)))
+            return r, accs_, aux
 
         def _mh_iter(carry, inp):
             rwm, rwm_nc, path_, g_ = carry
@@ -643,23 +664,20 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
 
             # the conditioning path may have changed: refresh the current point's target
             rwm = rwm._replace(logdensity=centred(rwm.x))
-            rwm, accs = _steps(k_c, rwm, centred, j)
+            rwm, accs, _ = _steps(k_c, rwm, centred, j)
             acc_nc = jnp.zeros(())
             if interweave:
                 var_, ls_ = hyper.values(rwm.x)
                 eps = whiten(pm.transition(var_, ls_), g_)
 
                 def noncentred(x):
-                    return noncentred_log_target(hyper, pm, od, x, eps)[0]
+                    return noncentred_log_target(hyper, pm, od, x, eps)
 
-                rwm_nc = rwm_nc._replace(x=rwm.x, logdensity=noncentred(rwm.x))
-                rwm_nc, accs_nc = _steps(k_nc, rwm_nc, noncentred, j)
-                moved = jnp.any(accs_nc)
-                var_, ls_ = hyper.values(rwm_nc.x)
-                g_new = colour(pm.transition(var_, ls_), eps)
-                # keep the path bit-for-bit when nothing moved (no round-off drift)
-                path_ = jnp.where(moved, pm.path(g_new), path_)
-                g_ = jnp.where(moved, g_new, g_)
+                # at the current point the rebuilt path is the current one (up to round-off);
+                # the path is kept bit-for-bit when nothing moves (no round-off drift)
+                rwm_nc = rwm_nc._replace(x=rwm.x, logdensity=hyper.log_prior(rwm.x)
+                                         + observation_log_likelihood(pm, od, path_))
+                rwm_nc, accs_nc, (g_, path_) = _steps(k_nc, rwm_nc, noncentred, j, aux=(g_, path_))
                 rwm = rwm._replace(x=rwm_nc.x)
                 acc_nc = jnp.mean(accs_nc.astype(float))
             return (rwm, rwm_nc, path_, g_), (rwm.x, jnp.mean(accs.astype(float)), acc_nc)
