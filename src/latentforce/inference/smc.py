@@ -264,8 +264,7 @@ class ParticleModel:
             return D, D_latent, jax.jacfwd(self.phi, argnums=1)(zero_mech, zero_f)
 
         self.D, self.D_latent, self._phi_force = _jacobians()
-        self.mech0_mean, self.mech0_cov = jax.jit(self.initial_mech, static_argnums=0)(initial) if initial is None \
-            else self.initial_mech(initial)
+        self.mech0_mean, self.mech0_cov = jax.jit(self.initial_mech)(initial)  # None: an empty pytree
 
     # ----- pieces of the model ---------------------------------------------
     def _hold(self, xf: Float[Array, " nf"], s) -> Float[Array, " nforce"]:
