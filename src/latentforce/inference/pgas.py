@@ -64,10 +64,11 @@ median :math:`\ell` of several seconds). Use a proper prior on
 
 Chains are ``jax.vmap``-ed and iterations are a ``lax.scan``; Python only
 chunks the scan for progress reports. Initialisation never uses the truth:
-an extended Kalman smoother at the initial :math:`\theta` gives a mean force
-path; each chain adds half a draw of the GP prior (different per chain) and
-recomputes the mechanical states from it, and starts from
-:math:`\theta_0 \exp(0.5\,\varepsilon)` per parameter.
+an extended Kalman smoother at the initial :math:`\theta` gives a path that
+fits the data; each chain starts from it moved by twice its Gauss-Newton
+posterior sd in the low-frequency coordinates (:func:`dispersed_start`,
+different per chain), and from :math:`\theta_0 \exp(0.5\,\varepsilon)` per
+parameter.
 
 Use ``jax.random.key(seed, impl="rbg")`` for the key: the sweep draws its
 random numbers in a few large batches and the RBG generator is markedly
