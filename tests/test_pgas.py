@@ -304,6 +304,104 @@ def test_lowfreq_move_matches_exact_conditional():
     assert np.all(np.abs(sq.mean(0) - exact_sd**2) < 5 * se2), (np.sqrt(sq.mean(0)), exact_sd)
 
 
+@pytest.mark.parametrize("kernel,acc_only", [(Matern(0), True), (Matern(1), False)])
+def test_residual_move_matches_exact_conditional(kernel, acc_only):
+    """The residual-preserving move alone, from dispersed starts, vs its exact Gaussian target.
+
+    Linear SDOF at fixed theta; acceleration samples 10-14 missing (the map
+    keeps a virtual residual there). Matérn-1/2 with acceleration only, and
+    Matérn-3/2 (the force's derivative state held) with the displacement
+    channel too, whose residuals the move changes. The model being linear, the
+    map from the move's coordinates c to the path is affine, so the log target
+    is quadratic in c: its exact mean and covariance follow from its gradient
+    and Hessian, which the Gauss-Newton shape of ``residual_init`` must equal.
+    The chains' mean and mean-square error of the force's time average and of
+    the initial displacement must match within 5 Monte-Carlo standard errors.
+    """
+    T = 60
+    prob = linear_problem(T=T, missing=True, kernel=kernel)
+    pm, tr = prob["pm"], prob["tr"]
+    mask = np.asarray(prob["mask"]).copy()
+    if acc_only:
+        mask[:, 0] = False
+    od = pgas.observation_density(pm, prob["y"], mask)
+    rm = pgas.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx:]))
+    assert rm.applies and list(rm.rows) == [1] and list(rm.cols) == [0]
+    g_start = 2.0 * pgas.gp_prior_path(jax.random.key(4), tr, T)
+    start = pm.path(g_start.at[0, pm.nfx:].set(jnp.array([0.3, -1.0]) - pm.mech0_mean))
+    build = rm.builder(pm, od, start)
+    c0 = jnp.zeros(rm.dim)
+    assert np.allclose(build(c0)[1], start, atol=1e-9)
+    # the map keeps the acceleration residuals (and the force's derivative states)
+    moved = build(jax.random.normal(jax.random.key(1), (rm.dim,)))[1]
+    resid = lambda x: prob["y"][:, 1] - jax.vmap(pm._observe)(x[:, :pm.nm], x[:, pm.nm:])[:, 1]  # noqa: E731
+    assert np.allclose(np.where(mask[:, 1], resid(moved) - resid(start), 0.0), 0.0, atol=1e-9)
+    assert np.allclose(moved[:, pm.nm + 1:], start[:, pm.nm + 1:])
+    assert np.max(np.abs(moved[:, 0] - start[:, 0])) > 1e-3
+
+    def functionals(path):
+        return jnp.array([jnp.mean(path[:, pm.nm]), path[0, 0]])
+
+    lt = lambda c: pgas.residual_log_target(tr, pm, od, build, c)[0]  # noqa: E731
+    prec = -np.asarray(jax.jit(jax.hessian(lt))(c0))
+    cov = np.linalg.inv(prec)
+    c_mean = cov @ np.asarray(jax.jit(jax.grad(lt))(c0))
+
+    # independently: the path's density under the linear-Gaussian state-space model
+    # (linear_discrete), which the move's target must equal up to a constant
+    def state_space_density(c):
+        x = build(c)[1]
+        A_d, Q_d, H = prob["A_d"], prob["Q_d"], prob["H"]
+        lq = lambda r, S: -0.5 * r @ jnp.linalg.solve(S, r)  # noqa: E731
+        lp = lq(x[0] - prob["m0f"], prob["P0"]) + jnp.sum(jax.vmap(lq, (0, None))(x[1:] - x[:-1] @ A_d.T, Q_d))
+        r = (jnp.nan_to_num(prob["y"]) - x @ H.T) * mask
+        return lp - 0.5 * jnp.sum(r**2 / jnp.diag(pm.R))
+
+    prec_ss = -np.asarray(jax.jit(jax.hessian(state_space_density))(c0))
+    np.testing.assert_allclose(prec_ss, prec, rtol=1e-5, atol=1e-6 * np.abs(prec).max())
+    np.testing.assert_allclose(np.linalg.solve(prec_ss, np.asarray(jax.grad(state_space_density)(c0))), c_mean,
+                               atol=1e-5 * np.sqrt(np.diag(cov)).max())
+    J = np.asarray(jax.jit(jax.jacfwd(lambda c: functionals(build(c)[1])))(c0))
+    exact_mean = np.asarray(functionals(build(jnp.asarray(c_mean))[1]))
+    exact_sd = np.sqrt(np.diag(J @ cov @ J.T))
+    # the Gauss-Newton shape, computed at another path, is the exact covariance (linear model)
+    init = pgas.residual_init(rm, pm, od, tr, pm.path(pgas.gp_prior_path(jax.random.key(9), tr, T)))
+    assert np.allclose(np.asarray(init.cov), cov, rtol=1e-6, atol=1e-10 * np.abs(cov).max())
+
+    burn, n, steps = 200, 2000, 5
+
+    @jax.jit
+    def chain(key):
+        path0 = build(3.0 * jnp.sqrt(jnp.diag(cov)) * jax.random.normal(key, (rm.dim,)) + c_mean)[1]
+
+        def block(carry, inp):
+            rwm, path = carry
+            k, b = inp
+            rwm, path, accs = pgas.residual_move(k, rwm, rm, pm, od, tr, path, steps, adapt=b < burn)
+            return (rwm, path), (functionals(path), jnp.mean(accs.astype(float)))
+
+        keys = jax.random.split(jax.random.fold_in(key, 1), burn + n)
+        return jax.lax.scan(block, (init, path0), (keys, jnp.arange(burn + n)))[1]
+
+    f, acc = jax.vmap(chain)(jax.random.split(jax.random.key(7), 4))
+    f, acc = np.asarray(f)[:, burn:], np.asarray(acc)[:, burn:]
+    assert 0.1 < acc.mean() < 0.5, acc.mean()
+    bm = f.reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
+    se = bm.std(axis=0, ddof=1) / np.sqrt(bm.shape[0])
+    assert np.all(np.abs(f.reshape(-1, 2).mean(0) - exact_mean) < 5 * se), (f.mean((0, 1)), exact_mean, se)
+    sq = ((f - exact_mean) ** 2).reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
+    se2 = sq.std(axis=0, ddof=1) / np.sqrt(sq.shape[0])
+    assert np.all(np.abs(sq.mean(0) - exact_sd**2) < 5 * se2), (np.sqrt(sq.mean(0)), exact_sd)
+
+
+def test_residual_move_is_skipped_without_a_force_channel():
+    """Displacement sensors only: no channel sees the force, so there is nothing to solve for."""
+    model = LatentForceModel(Duffing(), Matern(0), [Sensor("displacement", 0, 1e-4)])
+    params = dict(m=1.0, c=20.0, k=1e4, k3=1e9, force_variance=20.0, force_lengthscale=0.1)
+    pm = smc.ParticleModel(model, params, 1 / 2048)
+    assert not pgas.ResidualMove(pm, 64, 8, jnp.ones(2)).applies
+
+
 def test_lowfreq_basis_is_orthonormal_dct():
     B = np.asarray(pgas.lowfreq_basis(50, 12))
     assert B.shape == (50, 13)  # 12 DCT modes and the first innovation

@@ -93,7 +93,9 @@ def simulate(key, model: LatentForceModel, params: dict, n_samples: int, dt: flo
     dt_fine = dt / substeps
     t_fine = np.arange(n_fine) * dt_fine
     if force is None:
-        u_fine = gp_force(key, model, params, n_fine, dt_fine)
+        # one compiled program: op by op, the kernel's discretisation alone compiled
+        # some hundred tiny programs (about 5 s of a quick demo)
+        u_fine = jax.jit(lambda k: gp_force(k, model, params, n_fine, dt_fine))(key)
     else:
         u_fine = jnp.reshape(jnp.asarray(force(t_fine), dtype=float), (n_fine, model.nforce))
     z, v, a = jax.jit(lambda u: integrate(model, params, u, dt_fine, z0, v0))(u_fine)

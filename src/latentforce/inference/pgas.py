@@ -25,6 +25,20 @@ Gauss-Newton posterior covariance at the initial path (for nonlinear
 systems recomputed at each chain's path at the end of the burn-in windows)
 and its scale adapts in burn-in.
 
+**Residual-preserving trajectory move.** On a stiffening system the slow
+direction is not a fixed combination of modes: the force follows a slow
+displacement offset through the *tangent* stiffness
+:math:`k + 3k_3 z(t)^2`, which varies fast, so holding the fast innovations
+(the move above) pins it (Duffing, acceleration only: conditional sd of the
+mean force a twentieth of the posterior's). After it, ``residual_steps``
+Metropolis steps (:func:`residual_move`, :class:`ResidualMove`) move the
+slow content of the mechanical within-step noise and rebuild the force
+sample by sample so that the acceleration predictions, hence the residuals,
+stay as they were; the map has a constant Jacobian, so the acceptance ratio
+is exact for any system (prior ratio times the other channels' likelihood
+ratio). Gauss-Newton shape, recomputed like the low-frequency move's;
+scale adapted in burn-in.
+
 **Sampling space.** The random walk runs in *log* space,
 :math:`x = \log\theta` (this method's choice, overriding the softplus default
 of INTERFACE.md; the priors stay on the physical values):
@@ -399,6 +413,191 @@ def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: smc.ParticleModel, od: Obse
     # the path is the one at w (up to round-off): no rebuild for the current point's target
     rwm = rwm._replace(x=w, logdensity=-0.5 * jnp.sum(w**2) + observation_log_likelihood(pm, od, path))
 
+    return _walk(key, rwm, log_target, path, n_steps, adapt=adapt, step0=step0, reshape_steps=reshape_steps,
+                 target=target)
+
+
+# ---------------------------------------------------------------------------
+# Residual-preserving trajectory move
+# ---------------------------------------------------------------------------
+class ResidualMove:
+    r"""Static pieces of the residual-preserving move for one model and record length.
+
+    **Why.** With acceleration-only data on a stiffening system the slow
+    direction of the posterior is a slow displacement offset :math:`\delta z(t)`
+    with the force following it, :math:`\delta u \approx k_t(t)\,\delta z`,
+    where the tangent stiffness :math:`k_t = k + 3k_3 z(t)^2` varies *fast*
+    along the path. The low-frequency move holds the fast content of the
+    force's innovations fixed, so it cannot make that step (its conditional
+    sd of the mean force is a twentieth of the posterior's on the Duffing
+    case), and the sweep's splices cannot either.
+
+    **The map.** Coordinates of the latent path :math:`(x_f, w)`: the within-step
+    mechanical noise :math:`w_{1:T}` (``w_1`` the initial state's offset), the
+    residuals :math:`\rho_t = y_t - c_S(\mathrm{mech}_t) - D_S x_{f,t}` of a set
+    :math:`S` of ``nforce`` channels whose force block :math:`D_S` (on the force
+    *value* states) is invertible, and the other force states (Matérn
+    derivatives), which are held. Given :math:`w` the force values follow
+    sample by sample, :math:`u_t = D_S^{-1}(y_{S,t} - \rho_t - c_S(\mathrm{mech}_t))`,
+    and :math:`\mathrm{mech}_{t+1} = \Phi(\mathrm{mech}_t, x_{f,t}) + w_{t+1}`:
+    a move in :math:`w` at fixed :math:`\rho` keeps the noise-free prediction
+    :math:`c_S(\mathrm{mech}_t) + D_S x_{f,t}` of every sample, observed or
+    missing, and only the other channels' residuals change. The map is
+    triangular in time with the constant diagonal block :math:`-D_S`, so its
+    Jacobian is constant.
+
+    **The move.** A symmetric random walk on :math:`w` in the span of the ``K``
+    lowest DCT-II modes of every mechanical component (from the second
+    sample on, scaled by the within-step noise sd times :math:`\sqrt T`) and
+    of the initial state (scaled by its prior sd), everything else in the
+    coordinates above held. The Jacobian being constant, the acceptance ratio
+    is the latent's prior density ratio times the likelihood ratio (1 on the
+    channels of :math:`S`); no linearisation enters it, so the move leaves
+    the exact posterior invariant for any system. The proposal's shape is a
+    Gauss-Newton covariance at a path (exact for linear systems), its scale
+    adapts in burn-in (:func:`residual_move`).
+
+    ``applies`` is False (the move is skipped) when no set of ``nforce``
+    channels sees the force values through an invertible block, e.g.
+    displacement sensors only, or a kernel whose force is a combination of
+    several states.
+    """
+
+    def __init__(self, pm: smc.ParticleModel, T: int, K: int, noise_sd: Float[Array, " nm"]):
+        D = np.asarray(pm.D)
+        self.cols = np.flatnonzero(np.any(D != 0.0, axis=0))
+        self.applies = len(self.cols) == pm.nforce and pm.nforce > 0
+        self.rows = np.zeros(0, dtype=int)
+        if self.applies:
+            import scipy.linalg
+
+            # the best-conditioned nforce channels: QR with column pivoting of D_cols^T
+            _, _, piv = scipy.linalg.qr(D[:, self.cols].T, pivoting=True)
+            self.rows = np.sort(piv[: pm.nforce])
+            block = D[np.ix_(self.rows, self.cols)]
+            self.applies = bool(np.linalg.cond(block) < 1e10)
+        self.Dinv = jnp.asarray(np.linalg.inv(D[np.ix_(self.rows, self.cols)])) if self.applies else None
+        self.K = min(int(K), int(T))
+        self.basis = lowfreq_basis(T, self.K)[:, : self.K].at[0].set(0.0)  # w_1 moves on its own
+        # noise_sd: the within-step noise sd at one fixed theta (the initial one in run_pgas),
+        # so that a proposal shape computed at one theta stays meaningful at another
+        self.scale_w = jnp.asarray(noise_sd) * math.sqrt(T)
+        self.scale_0 = jnp.sqrt(jnp.diagonal(pm.mech0_cov))
+        self.dim = (self.K + 1) * pm.nm
+
+    def delta_w(self, c: Float[Array, " q"]) -> Float[Array, "T nm"]:
+        """The change of the within-step noise for coordinates ``c``."""
+        C = jnp.reshape(c, (self.K + 1, -1))
+        return ((self.basis @ C[: self.K]) * self.scale_w).at[0].set(C[self.K] * self.scale_0)
+
+    def builder(self, pm: smc.ParticleModel, od: ObservationDensity, path: Float[Array, "T n"]):
+        """``c -> (latent, path)``: the path with noise ``w + delta_w(c)`` and the residuals of ``path`` kept."""
+        nm = pm.nm
+        rows, cols = self.rows, self.cols
+        g0 = pm.latent(path)
+        xf0, w0 = g0[:, : pm.nfx], g0[:, pm.nfx:]
+        pred = jax.vmap(pm.offset)(path[:, :nm]) + xf0 @ pm.D.T
+        # y_S,t - rho_t is the path's own noise-free prediction on S: the map keeps it,
+        # whether or not y_S,t was observed
+        target = pred[:, rows]
+        T = path.shape[0]
+        # the solved-for states as a scatter matrix (no indexed updates inside the scan:
+        # batched over chains they were slow on CPU)
+        scatter = jnp.zeros((pm.nfx, len(cols))).at[cols, jnp.arange(len(cols))].set(1.0)
+        keep = 1.0 - jnp.sum(scatter, axis=1)
+
+        def _force(mech, target_t, xf0_t):
+            # products as broadcast-multiply-sums: XLA fuses them (a dot per step,
+            # batched over chains, cost ten times the whole step on CPU)
+            u = smc._mv1(self.Dinv, target_t - pm.offset(mech)[rows])
+            return xf0_t * keep + smc._mv1(scatter, u)
+
+        def build(c):
+            w = w0 + self.delta_w(c)
+            mech1 = pm.mech0_mean + w[0]
+
+            def _step(mech, inp):
+                target_t, xf0_t, w_next = inp
+                xf = _force(mech, target_t, xf0_t)
+                # one stacked output: two (mech and xf), batched over chains, made XLA's
+                # CPU loop several times slower
+                return pm.phi(mech, xf) + w_next, jnp.concatenate([mech, xf])
+
+            last, rows_ = jax.lax.scan(_step, mech1, (target[:-1], xf0[:-1], w[1:]))
+            new_path = jnp.concatenate([rows_, jnp.concatenate([last, _force(last, target[-1], xf0[-1])])[None]])
+            return jnp.concatenate([new_path[:, nm:], w], axis=1), new_path
+
+        return build
+
+
+def residual_log_target(tr: smc.Transition, pm: smc.ParticleModel, od: ObservationDensity, build,
+                        c: Float[Array, " q"], cP=None, cQ=None) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
+    r"""Log target of the residual-preserving move up to a constant, and the path.
+
+    :math:`-\tfrac12|\varepsilon(c)|^2 + \log p(y \mid x_{1:T}(c))`, :math:`\varepsilon`
+    the latent's whitened innovations (its prior density up to a constant);
+    the map's Jacobian is constant (:class:`ResidualMove`).
+    """
+    cP = smc._chol(tr.Pinf) if cP is None else cP
+    cQ = smc._chol(tr.Q) if cQ is None else cQ
+    g, path = build(c)
+    return -0.5 * jnp.sum(_whiten(tr, g, cP, cQ) ** 2) + observation_log_likelihood(pm, od, path), path
+
+
+def residual_init(rm: ResidualMove, pm: smc.ParticleModel, od: ObservationDensity, tr: smc.Transition,
+                  path: Float[Array, "T n"]) -> mcmc.RWMState:
+    r"""Adaptation state of the residual-preserving walk, its shape a Gauss-Newton covariance at ``path``.
+
+    :math:`(2.38^2/q)(J_\varepsilon^\top J_\varepsilon + J_y^\top R^{-1} J_y)^{-1}`, the
+    Jacobians of the whitened innovations and of the predicted observations
+    with respect to the :math:`q` coordinates at ``path`` (the exact
+    posterior covariance of the coordinates for a linear model).
+    """
+    build = rm.builder(pm, od, path)
+    q = rm.dim
+    cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
+
+    def features(c):
+        g, x = build(c)
+        pred = (jax.vmap(pm.offset)(x[:, :pm.nm]) + x[:, pm.nm:] @ pm.D.T) * od.maskf
+        return _whiten(tr, g, cP, cQ).ravel(), pred
+
+    Je, Jy = jax.jacfwd(features)(jnp.zeros(q))
+    prec = symmetrise(Je.T @ Je + jnp.einsum("tim,tij,tjn->mn", Jy, od.Rinv, Jy))
+    cov = symmetrise(cho_solve((jnp.linalg.cholesky(prec), True), jnp.eye(q)))
+    chol = jnp.linalg.cholesky(cov) * (2.38 / math.sqrt(q))
+    return mcmc.RWMState(jnp.zeros(q), jnp.zeros(()), jnp.zeros(()), chol, jnp.zeros(q), cov, jnp.zeros(()))
+
+
+def residual_move(key: Array, rwm: mcmc.RWMState, rm: ResidualMove, pm: smc.ParticleModel,
+                  od: ObservationDensity, tr: smc.Transition, path: Float[Array, "T n"], n_steps: int, *,
+                  adapt: Array, target: float = 0.25
+                  ) -> tuple[mcmc.RWMState, Float[Array, "T n"], Float[Array, " n_steps"]]:
+    r"""``n_steps`` residual-preserving Metropolis steps (:class:`ResidualMove`) at fixed :math:`\theta`.
+
+    The coordinates are re-origined at ``path`` (``c = 0``); the proposal
+    :math:`c' = c + s L \xi` keeps ``rwm``'s shape :math:`L`, and its scale
+    :math:`s` follows Robbins-Monro towards ``target`` only where ``adapt``
+    (the frozen kernel is a plain Metropolis kernel). Returns the walk state,
+    the new path (the input path bit-for-bit when nothing was accepted) and
+    the acceptances.
+    """
+    build = rm.builder(pm, od, path)
+    cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
+
+    def log_target(c):
+        return residual_log_target(tr, pm, od, build, c, cP, cQ)
+
+    ld0 = -0.5 * jnp.sum(_whiten(tr, pm.latent(path), cP, cQ) ** 2) + observation_log_likelihood(pm, od, path)
+    rwm = rwm._replace(x=jnp.zeros_like(rwm.x), logdensity=ld0)
+    return _walk(key, rwm, log_target, path, n_steps, adapt=adapt, step0=jnp.zeros((), jnp.int32),
+                 reshape_steps=jnp.asarray((-1,)), target=target)
+
+
+def _walk(key, rwm: mcmc.RWMState, log_target: Callable, path, n_steps: int, *, adapt, step0, reshape_steps,
+          target):
+    """``n_steps`` of :func:`mh_step` whose target also returns the path (kept bit-for-bit on rejection)."""
+
     def _one(carry, inp):
         r, x = carry
         k, s = inp
@@ -406,7 +605,6 @@ def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: smc.ParticleModel, od: Obse
                              target=target, aux=x)
         return (r, x), info.accepted
 
-    # the input path is returned bit-for-bit when nothing was accepted
     (rwm, path), accs = jax.lax.scan(_one, (rwm, path), (jax.random.split(key, n_steps), jnp.arange(n_steps)))
     return rwm, path, accs
 
@@ -498,6 +696,7 @@ class ChainState(NamedTuple):
     rwm: mcmc.RWMState  # hyperparameters x = log(theta) and their centred random walk's adaptation
     rwm_nc: mcmc.RWMState  # the non-centred (interweaving) random walk's adaptation; its x mirrors rwm.x
     rwm_lf: mcmc.RWMState  # the low-frequency trajectory move's adaptation (x: its last coordinates)
+    rwm_rp: mcmc.RWMState  # the residual-preserving move's adaptation
     block: Array  # Gibbs block counter
     # running sums over post-burn-in state samples: (z, v, u) per time
     sum1: Float[Array, "T q"]
@@ -511,6 +710,7 @@ class BlockInfo(NamedTuple):
     accept: Float[Array, " k"]
     accept_noncentred: Float[Array, " k"]
     accept_lowfreq: Float[Array, ""]
+    accept_residual: Float[Array, ""]
     log_likelihood: Float[Array, ""]
     switch_rate: Float[Array, ""]
     ess: Float[Array, ""]
@@ -548,7 +748,8 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
              resampling: str = "multinomial", thin_draws: int = 200, initial=None,
              progress: Callable | None = None, chunk_blocks: int = 1000, unroll: int = 1,
              time_points: int = 5, ancestor_sampling: bool = True, interweave: bool = True,
-             lowfreq_modes: int = 16, lowfreq_steps: int = 5) -> PGASOutput:
+             lowfreq_modes: int = 16, lowfreq_steps: int = 5, residual_modes: int = 16,
+             residual_steps: int = 20) -> PGASOutput:
     r"""Blocked particle Gibbs (Algorithm 5, Vibration 2020) with the PGAS kernel of :mod:`smc`.
 
     ``params``: every model parameter (free hyperparameters too: their values
@@ -564,7 +765,11 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     ``lowfreq_steps`` Metropolis steps (:func:`lowfreq_move`; 0 disables)
     move the path's ``lowfreq_modes`` slowest innovation modes and its
     initial mechanical state at fixed :math:`\theta`; the moved path is the
-    next reference and the recorded sample. ``initial = (mean, sd)`` of the initial
+    next reference and the recorded sample. Then ``residual_steps``
+    residual-preserving steps (:func:`residual_move`; 0 disables; skipped
+    when no channel sees the force) move the ``residual_modes`` slowest
+    modes of the mechanical within-step noise, the force following so that
+    the acceleration predictions are kept. ``initial = (mean, sd)`` of the initial
     mechanical state, else ``model.default_initial``. ``progress(done,
     total, accept_rate)`` is called between scan chunks.
     """
@@ -594,11 +799,17 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     if n_lf < 0:
         raise ValueError(f"lowfreq_steps must be non-negative, got {lowfreq_steps}")
     basis = lowfreq_basis(T, lowfreq_modes)
+    n_rp = int(residual_steps)
+    if n_rp < 0:
+        raise ValueError(f"residual_steps must be non-negative, got {residual_steps}")
 
     # ---- initialisation (outside the loop; never from the truth), one compiled program:
     # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
     x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
     od = jax.jit(lambda y_, m_: observation_density(pm, y_, m_))(y, mask)
+    noise_sd = jax.jit(lambda: jnp.sqrt(jnp.diagonal(pm.transition(*hyper.values(x0)).Q)[pm.nfx:]))()
+    rm = ResidualMove(pm, T, residual_modes, noise_sd)
+    n_rp = n_rp if rm.applies else 0
 
     @jax.jit
     def _setup(key):
@@ -611,13 +822,14 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         # (adaptation: burn-in only), and the scale adapts throughout the burn-in
         frame0 = LowFrequencyFrame(tr0, basis)
         rwm_lf0 = lowfreq_init(pm, od, frame0, eks)
+        rwm_rp0 = residual_init(rm, pm, od, tr0, eks) if n_rp else rwm_lf0
 
         def _init_chain(ck):
             k_path, k_theta, k_run = jax.random.split(ck, 3)
             ref = dispersed_start(k_path, pm, frame0, rwm_lf0, eks)
             # dispersed start: theta_0 exp(0.5 eps); the log density is set at the first block
             rwm = init_proposal(hyper, lambda x: jnp.zeros(()), x0 + 0.5 * jax.random.normal(k_theta, (p,)))
-            return ChainState(k_run, ref, rwm, rwm, rwm_lf0, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)),
+            return ChainState(k_run, ref, rwm, rwm, rwm_lf0, rwm_rp0, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)),
                               jnp.zeros((T, nq)), jnp.zeros(()), jnp.zeros((n_draws + 1, T, pm.n_state)))
 
         # ref_q: centring of the running sums (numerical stability)
@@ -633,9 +845,13 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         new = lowfreq_init(pm, od, frame, path)
         return new._replace(log_scale=rwm_lf.log_scale, count=rwm_lf.count)
 
+    def _regauge_rp(rwm_rp, tr, path):
+        new = residual_init(rm, pm, od, tr, path)
+        return new._replace(log_scale=rwm_rp.log_scale, count=rwm_rp.count)
+
     def _block(state: ChainState, b):
         """One Gibbs block of one chain; ``b``, the block index, is shared by the chains."""
-        key, k_sweep, k_mh, k_lf = jax.random.split(state.key, 4)
+        key, k_sweep, k_mh, k_lf, k_rp = jax.random.split(state.key, 5)
         var, ls = hyper.values(state.rwm.x)
         tr = pm.transition(var, ls)
         sc = smc.sweep_constants(pm, tr, y, mask, proposal)
@@ -651,6 +867,13 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
             rwm_lf, path, accs_lf = lowfreq_move(k_lf, rwm_lf, pm, od, frame, path, n_lf, adapt=b < burn_blocks,
                                                  step0=b * n_lf, reshape_steps=lf_reshape)
             acc_lf = jnp.mean(accs_lf.astype(float))
+        rwm_rp, acc_rp = state.rwm_rp, jnp.zeros(())
+        if n_rp:
+            if lf_regauge:
+                rwm_rp = jax.lax.cond(jnp.any(b == jnp.asarray(lf_regauge)), _regauge_rp,
+                                      lambda r, t_, x: r, rwm_rp, tr, path)
+            rwm_rp, path, accs_rp = residual_move(k_rp, rwm_rp, rm, pm, od, tr, path, n_rp, adapt=b < burn_blocks)
+            acc_rp = jnp.mean(accs_rp.astype(float))
         # ---- accumulate post-burn-in state samples
         post = (b >= burn_blocks) & (b < n_blocks)
         wgt = post.astype(float)
@@ -707,8 +930,8 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
             _mh_iter, (state.rwm, state.rwm_nc, path, pm.latent(path)), (jax.random.split(k_mh, k_every), js))
         theta = hyper.to_constrained(xs)
         fp = path[tpoints][:, pm.nm + pm.kdim * np.arange(pm.nforce)]
-        new = ChainState(key, path_end, rwm, rwm_nc, rwm_lf, b + 1, sum1, sum2, state.count + wgt, draws)
-        info = BlockInfo(theta, accs, accs_nc, acc_lf, out.info.log_likelihood, out.info.switched,
+        new = ChainState(key, path_end, rwm, rwm_nc, rwm_lf, rwm_rp, b + 1, sum1, sum2, state.count + wgt, draws)
+        info = BlockInfo(theta, accs, accs_nc, acc_lf, acc_rp, out.info.log_likelihood, out.info.switched,
                          jnp.mean(out.info.ess), fp)
         return new, info
 
@@ -771,6 +994,7 @@ def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, to
         "acceptance_noncentred": np.reshape(info.accept_noncentred, (chains, -1))[:, burn_in:total].mean(axis=1).tolist()
         if hyper.names else [],
         "acceptance_lowfreq": info.accept_lowfreq[:, burn_blocks:].mean(axis=1).tolist(),
+        "acceptance_residual": info.accept_residual[:, burn_blocks:].mean(axis=1).tolist(),
     }
     diag.update(convergence_diagnostics(th_post, fp, tpoints))
     return PGASOutput(hyper.names, th_post, th_burn, np.asarray(states.draws)[:, :n_draws], state_mean, state_sd,
