@@ -717,6 +717,15 @@ class BlockInfo(NamedTuple):
     force_points: Float[Array, "P nforce"]
 
 
+class _Data(NamedTuple):
+    """The record and what is precomputed from it (arguments of the compiled programs)."""
+
+    y: Float[Array, "T d"]
+    mask: Array
+    od: ObservationDensity
+    ref_q: Float[Array, "T q"]  # centring of the running sums (the smoother's summary quantities)
+
+
 class PGASOutput(NamedTuple):
     """What :func:`run_pgas` returns (NumPy arrays; ``chains`` leading)."""
 
@@ -812,7 +821,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     n_rp = n_rp if rm.applies else 0
 
     @jax.jit
-    def _setup(key):
+    def _setup(key, y, mask, od):
         k_init, k_chains = jax.random.split(key)
         var0, ls0 = hyper.values(x0)
         tr0 = pm.transition(var0, ls0)
@@ -835,26 +844,26 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         # ref_q: centring of the running sums (numerical stability)
         return jax.vmap(_init_chain)(jax.random.split(k_chains, chains)), _summary_quantities(pm, eks)
 
-    state0, ref_q = _setup(key)
+    state0, ref_q = _setup(key, y, mask, od)
     lf_reshape = jnp.asarray((-1,))
     lf_regauge = () if pm.is_linear else tuple(
         sorted({int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1}))
     interweave = bool(interweave) and p > 0
 
-    def _regauge(rwm_lf, frame, path):
-        new = lowfreq_init(pm, od, frame, path)
+    def _regauge(rwm_lf, frame, path, data):
+        new = lowfreq_init(pm, data.od, frame, path)
         return new._replace(log_scale=rwm_lf.log_scale, count=rwm_lf.count)
 
-    def _regauge_rp(rwm_rp, tr, path):
-        new = residual_init(rm, pm, od, tr, path)
+    def _regauge_rp(rwm_rp, tr, path, data):
+        new = residual_init(rm, pm, data.od, tr, path)
         return new._replace(log_scale=rwm_rp.log_scale, count=rwm_rp.count)
 
-    def _block(state: ChainState, b):
-        """One Gibbs block of one chain; ``b``, the block index, is shared by the chains."""
+    def _block(state: ChainState, b, data: _Data):
+        """One Gibbs block of one chain; ``b``, the block index, and ``data`` are shared by the chains."""
         key, k_sweep, k_mh, k_lf, k_rp = jax.random.split(state.key, 5)
         var, ls = hyper.values(state.rwm.x)
         tr = pm.transition(var, ls)
-        sc = smc.sweep_constants(pm, tr, y, mask, proposal)
+        sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal)
         out = sweep(k_sweep, sc, state.reference)
         path = out.trajectory
         rwm_lf, acc_lf = state.rwm_lf, jnp.zeros(())
@@ -863,21 +872,21 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
             if lf_regauge:
                 # b is not batched over chains, so this stays a conditional under vmap
                 rwm_lf = jax.lax.cond(jnp.any(b == jnp.asarray(lf_regauge)), _regauge,
-                                      lambda r, f, x: r, rwm_lf, frame, path)
-            rwm_lf, path, accs_lf = lowfreq_move(k_lf, rwm_lf, pm, od, frame, path, n_lf, adapt=b < burn_blocks,
+                                      lambda r, f, x, d: r, rwm_lf, frame, path, data)
+            rwm_lf, path, accs_lf = lowfreq_move(k_lf, rwm_lf, pm, data.od, frame, path, n_lf, adapt=b < burn_blocks,
                                                  step0=b * n_lf, reshape_steps=lf_reshape)
             acc_lf = jnp.mean(accs_lf.astype(float))
         rwm_rp, acc_rp = state.rwm_rp, jnp.zeros(())
         if n_rp:
             if lf_regauge:
                 rwm_rp = jax.lax.cond(jnp.any(b == jnp.asarray(lf_regauge)), _regauge_rp,
-                                      lambda r, t_, x: r, rwm_rp, tr, path)
-            rwm_rp, path, accs_rp = residual_move(k_rp, rwm_rp, rm, pm, od, tr, path, n_rp, adapt=b < burn_blocks)
+                                      lambda r, t_, x, d: r, rwm_rp, tr, path, data)
+            rwm_rp, path, accs_rp = residual_move(k_rp, rwm_rp, rm, pm, data.od, tr, path, n_rp, adapt=b < burn_blocks)
             acc_rp = jnp.mean(accs_rp.astype(float))
         # ---- accumulate post-burn-in state samples
         post = (b >= burn_blocks) & (b < n_blocks)
         wgt = post.astype(float)
-        q = _summary_quantities(pm, path) - ref_q
+        q = _summary_quantities(pm, path) - data.ref_q
         sum1 = state.sum1 + wgt * q
         sum2 = state.sum2 + wgt * q**2
         sidx = b - burn_blocks
@@ -914,12 +923,12 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
                 eps = whiten(pm.transition(var_, ls_), g_)
 
                 def noncentred(x):
-                    return noncentred_log_target(hyper, pm, od, x, eps)
+                    return noncentred_log_target(hyper, pm, data.od, x, eps)
 
                 # at the current point the rebuilt path is the current one (up to round-off);
                 # the path is kept bit-for-bit when nothing moves (no round-off drift)
                 rwm_nc = rwm_nc._replace(x=rwm.x, logdensity=hyper.log_prior(rwm.x)
-                                         + observation_log_likelihood(pm, od, path_))
+                                         + observation_log_likelihood(pm, data.od, path_))
                 rwm_nc, accs_nc, (g_, path_) = _steps(k_nc, rwm_nc, noncentred, j, aux=(g_, path_))
                 rwm = rwm._replace(x=rwm_nc.x)
                 acc_nc = jnp.mean(accs_nc.astype(float))
@@ -938,15 +947,19 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     n_chunks = max(1, -(-n_blocks // int(chunk_blocks)))
     chunk_len = -(-n_blocks // n_chunks)
 
+    # the data are arguments, not constants of the program: a compiled program (and
+    # JAX's persistent cache entry) then serves every record of the same shape
+    data = _Data(y, mask, od, ref_q)
+
     @jax.jit
-    def _run_chunk(states, blocks):
-        states, info = jax.lax.scan(lambda s, b: jax.vmap(_block, (0, None))(s, b), states, blocks)
+    def _run_chunk(states, blocks, data):
+        states, info = jax.lax.scan(lambda s, b: jax.vmap(_block, (0, None, None))(s, b, data), states, blocks)
         return states, jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), info)  # chains first
 
     infos = []
     states = state0
     for c in range(n_chunks):
-        states, info = _run_chunk(states, jnp.arange(c * chunk_len, (c + 1) * chunk_len, dtype=jnp.int32))
+        states, info = _run_chunk(states, jnp.arange(c * chunk_len, (c + 1) * chunk_len, dtype=jnp.int32), data)
         infos.append(jax.tree_util.tree_map(np.asarray, info))
         if progress is not None:
             acc = float(np.mean(info.accept))
