@@ -51,6 +51,46 @@ def test_pgas_mixes_everywhere(linear_run):
     assert np.all(np.isfinite(out.log_likelihood))
 
 
+def test_pgas_matches_kalman_smoother_two_dof():
+    """A 2-DOF chain, force at DOF 0, accelerometers on both DOFs and missing samples: PGAS
+    (with the residual-preserving move solving on the accelerometer that sees the force)
+    against the exact smoother of the same discrete model, hyperparameters fixed."""
+    from latentforce.systems import LinearSystem
+
+    M = np.diag([1.0, 0.5])
+    K = np.array([[30.0, -10.0], [-10.0, 10.0]])
+    params = dict(M=M, C=0.02 * K + 0.1 * M, K=K, force_variance=1.0, force_lengthscale=0.5)
+    model = LatentForceModel(LinearSystem(ndof=2, force_dofs=(0,)), Matern(0),
+                             [Sensor("acceleration", 0, 0.05), Sensor("acceleration", 1, 0.05)])
+    dt, T = 0.05, 80
+    pm = smc.ParticleModel(model, params, dt, initial=(0.0, 0.1))
+    rm = pgas.ResidualMove(pm, T, 8, jnp.ones(pm.nm))
+    assert rm.applies and list(rm.rows) == [0]
+    A_d, Q_d, H, m1, P1 = (np.asarray(a) for a in pm.linear_discrete(pm.transition(1.0, 0.5)))
+    rng = np.random.default_rng(2)
+    x, ys = rng.multivariate_normal(m1, P1), []
+    for _ in range(T):
+        ys.append(H @ x + 0.05 * rng.normal(size=2))
+        x = A_d @ x + rng.multivariate_normal(np.zeros(pm.n_state), Q_d)
+    y = np.array(ys)
+    mask = np.ones(y.shape, bool)
+    mask[20:26, 0] = False
+    y[~mask] = np.nan
+    ks = kalman_smoother(A_d, Q_d, H, pm.R, m1, P1, jnp.asarray(y), jnp.asarray(mask))
+    out = pgas.run_pgas(jax.random.key(5, impl="rbg"), model, params, {}, y, mask, dt, particles=32,
+                        iterations=1200, burn_in=100, chains=4, initial=(0.0, 0.1))
+    km = np.asarray(ks.means)
+    ksd = np.sqrt(np.asarray(jnp.diagonal(ks.covs, axis1=1, axis2=2)))
+    for name, cols in [("displacement", (0, 1)), ("velocity", (2, 3)), ("force", (4,))]:
+        for j, i in enumerate(cols):
+            mean, sd = out.state_mean[name][:, j], out.state_sd[name][:, j]
+            nmse = np.mean((mean - km[:, i]) ** 2) / np.var(km[:, i])
+            assert nmse < 0.01 * 0.2, (name, j, nmse)
+            assert np.mean(np.abs(sd / ksd[:, i] - 1.0)) < 0.1, (name, j)
+    assert max(out.diagnostics["rhat"].values()) < 1.05, out.diagnostics["rhat"]
+    assert min(out.diagnostics["acceptance_residual"]) > 0.05
+
+
 def _grid_problem():
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
     params = dict(m=1.0, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthscale=0.5)
