@@ -277,6 +277,34 @@ def test_noncentred_mh_matches_grid_posterior():
     assert np.all(np.abs(theta.reshape(-1, 2).mean(0) - exact) < 5 * se), (theta.mean((0, 1)), exact, se)
 
 
+def _check_move_against_gaussian(move, record, init, start, burn, n, exact_mean, exact_sd):
+    """Four chains of a path move ``move(key, rwm, path, block) -> (rwm, path, accepted)`` from
+    ``start(key)``; the recorded functionals ``record(rwm, path)`` must have the exact mean and
+    mean-square error within 5 Monte-Carlo standard errors (batch means), and the acceptance
+    must be near the adapted target."""
+
+    @jax.jit
+    def chain(key):
+        def block(carry, inp):
+            rwm, path = carry
+            k, b = inp
+            rwm, path, accs = move(k, rwm, path, b)
+            return (rwm, path), (record(rwm, path), jnp.mean(accs.astype(float)))
+
+        keys = jax.random.split(jax.random.fold_in(key, 1), burn + n)
+        return jax.lax.scan(block, (init, start(key)), (keys, jnp.arange(burn + n)))[1]
+
+    f, acc = jax.vmap(chain)(jax.random.split(jax.random.key(7), 4))
+    f, acc = np.asarray(f)[:, burn:], np.asarray(acc)[:, burn:]
+    assert 0.1 < acc.mean() < 0.5, acc.mean()
+    bm = f.reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
+    se = bm.std(axis=0, ddof=1) / np.sqrt(bm.shape[0])
+    assert np.all(np.abs(f.reshape(-1, 2).mean(0) - exact_mean) < 5 * se), (f.mean((0, 1)), exact_mean, se)
+    sq = ((f - exact_mean) ** 2).reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
+    se2 = sq.std(axis=0, ddof=1) / np.sqrt(sq.shape[0])
+    assert np.all(np.abs(sq.mean(0) - exact_sd**2) < 5 * se2), (np.sqrt(sq.mean(0)), exact_sd)
+
+
 def test_lowfreq_move_matches_exact_conditional():
     """The low-frequency move alone, from dispersed starts, vs its exact Gaussian target.
 
@@ -319,29 +347,14 @@ def test_lowfreq_move_matches_exact_conditional():
     init = pgas.lowfreq_init(pm, od, frame, pm.path(pgas.gp_prior_path(jax.random.key(9), tr, 60)))
     assert np.allclose(np.asarray(init.cov), cov, rtol=1e-6, atol=1e-10)
 
-    @jax.jit
-    def chain(key):
-        path0 = pgas.lowfreq_path(pm, frame, eps_perp, w_start + 0.5 * jax.random.normal(key, w_start.shape))
+    def move(k, rwm, path, b):
+        return pgas.lowfreq_move(k, rwm, pm, od, frame, path, steps, adapt=b < burn, step0=b * steps,
+                                 reshape_steps=jnp.asarray((-1,)))
 
-        def block(carry, inp):
-            rwm, path = carry
-            k, b = inp
-            rwm, path, accs = pgas.lowfreq_move(k, rwm, pm, od, frame, path, steps, adapt=b < burn,
-                                                step0=b * steps, reshape_steps=jnp.asarray((-1,)))
-            return (rwm, path), (functionals(rwm.x), jnp.mean(accs.astype(float)))
-
-        keys = jax.random.split(jax.random.fold_in(key, 1), burn + n)
-        return jax.lax.scan(block, (init, path0), (keys, jnp.arange(burn + n)))[1]
-
-    f, acc = jax.vmap(chain)(jax.random.split(jax.random.key(7), 4))
-    f, acc = np.asarray(f)[:, burn:], np.asarray(acc)[:, burn:]
-    assert 0.1 < acc.mean() < 0.5, acc.mean()
-    bm = f.reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
-    se = bm.std(axis=0, ddof=1) / np.sqrt(bm.shape[0])
-    assert np.all(np.abs(f.reshape(-1, 2).mean(0) - exact_mean) < 5 * se), (f.mean((0, 1)), exact_mean, se)
-    sq = ((f - exact_mean) ** 2).reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
-    se2 = sq.std(axis=0, ddof=1) / np.sqrt(sq.shape[0])
-    assert np.all(np.abs(sq.mean(0) - exact_sd**2) < 5 * se2), (np.sqrt(sq.mean(0)), exact_sd)
+    _check_move_against_gaussian(
+        move, lambda rwm, path: functionals(rwm.x), init,
+        lambda key: pgas.lowfreq_path(pm, frame, eps_perp, w_start + 0.5 * jax.random.normal(key, w_start.shape)),
+        burn, n, exact_mean, exact_sd)
 
 
 @pytest.mark.parametrize("kernel,acc_only", [(Matern(0), True), (Matern(1), False)])
@@ -410,28 +423,13 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
 
     burn, n, steps = 200, 2000, 5
 
-    @jax.jit
-    def chain(key):
-        path0 = build(3.0 * jnp.sqrt(jnp.diag(cov)) * jax.random.normal(key, (rm.dim,)) + c_mean)[1]
+    def move(k, rwm, path, b):
+        return pgas.residual_move(k, rwm, rm, pm, od, tr, path, steps, adapt=b < burn)
 
-        def block(carry, inp):
-            rwm, path = carry
-            k, b = inp
-            rwm, path, accs = pgas.residual_move(k, rwm, rm, pm, od, tr, path, steps, adapt=b < burn)
-            return (rwm, path), (functionals(path), jnp.mean(accs.astype(float)))
-
-        keys = jax.random.split(jax.random.fold_in(key, 1), burn + n)
-        return jax.lax.scan(block, (init, path0), (keys, jnp.arange(burn + n)))[1]
-
-    f, acc = jax.vmap(chain)(jax.random.split(jax.random.key(7), 4))
-    f, acc = np.asarray(f)[:, burn:], np.asarray(acc)[:, burn:]
-    assert 0.1 < acc.mean() < 0.5, acc.mean()
-    bm = f.reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
-    se = bm.std(axis=0, ddof=1) / np.sqrt(bm.shape[0])
-    assert np.all(np.abs(f.reshape(-1, 2).mean(0) - exact_mean) < 5 * se), (f.mean((0, 1)), exact_mean, se)
-    sq = ((f - exact_mean) ** 2).reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
-    se2 = sq.std(axis=0, ddof=1) / np.sqrt(sq.shape[0])
-    assert np.all(np.abs(sq.mean(0) - exact_sd**2) < 5 * se2), (np.sqrt(sq.mean(0)), exact_sd)
+    _check_move_against_gaussian(
+        move, lambda rwm, path: functionals(path), init,
+        lambda key: build(3.0 * jnp.sqrt(jnp.diag(cov)) * jax.random.normal(key, (rm.dim,)) + c_mean)[1],
+        burn, n, exact_mean, exact_sd)
 
 
 def test_residual_move_is_skipped_without_a_force_channel():

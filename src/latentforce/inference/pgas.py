@@ -264,11 +264,15 @@ def observation_density(pm: smc.ParticleModel, y, mask) -> ObservationDensity:
     return ObservationDensity(yz, maskf, Rinv, const)
 
 
+def predicted_observations(pm: smc.ParticleModel, path: Float[Array, "T n"]) -> Float[Array, "T d"]:
+    r"""Noise-free observations :math:`c(\mathrm{mech}_t) + D x_{f,t}` of a path."""
+    return jax.vmap(pm.offset)(path[:, :pm.nm]) + path[:, pm.nm:] @ pm.D.T
+
+
 def observation_log_likelihood(pm: smc.ParticleModel, od: ObservationDensity,
                                path: Float[Array, "T n"]) -> Float[Array, ""]:
     r""":math:`\sum_t \log N(y_t; c(\mathrm{mech}_t) + D x_{f,t}, R)` over the observed channels."""
-    pred = jax.vmap(pm.offset)(path[:, :pm.nm]) + path[:, pm.nm:] @ pm.D.T
-    r = (od.y - pred) * od.maskf
+    r = (od.y - predicted_observations(pm, path)) * od.maskf
     return jnp.sum(od.const) - 0.5 * jnp.einsum("ti,tij,tj->", r, od.Rinv, r)
 
 
@@ -375,7 +379,7 @@ def lowfreq_init(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFreque
 
     def predicted(w_):
         x = lowfreq_path(pm, frame, eps_perp, w_)
-        return ((jax.vmap(pm.offset)(x[:, :pm.nm]) + x[:, pm.nm:] @ pm.D.T) * od.maskf).ravel()
+        return (predicted_observations(pm, x) * od.maskf).ravel()
 
     J = jnp.reshape(jax.jacfwd(predicted)(w), (od.y.shape[0], od.y.shape[1], q))
     prec = symmetrise(jnp.eye(q) + jnp.einsum("tim,tij,tjn->mn", J, od.Rinv, J))
@@ -474,8 +478,7 @@ class ResidualMove:
             # the best-conditioned nforce channels: QR with column pivoting of D_cols^T
             _, _, piv = scipy.linalg.qr(D[:, self.cols].T, pivoting=True)
             self.rows = np.sort(piv[: pm.nforce])
-            block = D[np.ix_(self.rows, self.cols)]
-            self.applies = bool(np.linalg.cond(block) < 1e10)
+            self.applies = bool(np.linalg.cond(D[np.ix_(self.rows, self.cols)]) < 1e10)
         self.Dinv = jnp.asarray(np.linalg.inv(D[np.ix_(self.rows, self.cols)])) if self.applies else None
         self.K = min(int(K), int(T))
         self.basis = lowfreq_basis(T, self.K)[:, : self.K].at[0].set(0.0)  # w_1 moves on its own
@@ -496,10 +499,9 @@ class ResidualMove:
         rows, cols = self.rows, self.cols
         g0 = pm.latent(path)
         xf0, w0 = g0[:, : pm.nfx], g0[:, pm.nfx:]
-        pred = jax.vmap(pm.offset)(path[:, :nm]) + xf0 @ pm.D.T
         # y_S,t - rho_t is the path's own noise-free prediction on S: the map keeps it,
         # whether or not y_S,t was observed
-        target = pred[:, rows]
+        target = predicted_observations(pm, path)[:, rows]
         T = path.shape[0]
         # the solved-for states as a scatter matrix (no indexed updates inside the scan:
         # batched over chains they were slow on CPU)
@@ -559,8 +561,7 @@ def residual_init(rm: ResidualMove, pm: smc.ParticleModel, od: ObservationDensit
 
     def features(c):
         g, x = build(c)
-        pred = (jax.vmap(pm.offset)(x[:, :pm.nm]) + x[:, pm.nm:] @ pm.D.T) * od.maskf
-        return _whiten(tr, g, cP, cQ).ravel(), pred
+        return _whiten(tr, g, cP, cQ).ravel(), predicted_observations(pm, x) * od.maskf
 
     Je, Jy = jax.jacfwd(features)(jnp.zeros(q))
     prec = symmetrise(Je.T @ Je + jnp.einsum("tim,tij,tjn->mn", Jy, od.Rinv, Jy))
