@@ -91,6 +91,69 @@ def test_pgas_matches_kalman_smoother_two_dof():
     assert min(out.diagnostics["acceptance_residual"]) > 0.05
 
 
+def _batch_se(draws, batches=20):
+    """Monte-Carlo standard error of the mean of ``draws`` ``(chains, n, k)`` by batch means."""
+    C, n, k = draws.shape
+    bm = draws[:, : n // batches * batches].reshape(C, batches, -1, k).mean(axis=2).reshape(-1, k)
+    return bm.std(axis=0, ddof=1) / np.sqrt(bm.shape[0])
+
+
+def test_gibbs_with_free_hyperparameters_matches_exact_marginal_posterior():
+    """The whole blocked Gibbs sampler with both hyperparameters free (every move on:
+    centred and non-centred MH, low-frequency and residual-preserving moves, adaptation)
+    on a linear SDOF against the exact answer of the same discrete model: p(theta | y) by
+    quadrature of the Kalman marginal likelihood on a log-space grid, and the states'
+    moments as the smoother's averaged over that posterior."""
+    from latentforce.inference.kalman import log_likelihood
+
+    prob = linear_problem(T=100, missing=True)
+    pm, y, mask = prob["pm"], prob["y"], prob["mask"]
+    free = {"force_variance": (LogNormal(0.0, 1.0), 2.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 1.0)}
+    hyper = pgas.Hyper(prob["params"], free)
+
+    def discrete(x):
+        return pm.linear_discrete(pm.transition(*hyper.values(x)))
+
+    def log_post(x):  # density of x = log(theta), the prior written out (not the sampler's)
+        A, Q, H, m1, P1 = discrete(x)
+        log_prior = sum(prior.log_prob(jnp.exp(x[i])) + x[i] for i, (prior, _) in enumerate(free.values()))
+        return log_likelihood(A, Q, H, pm.R, m1, P1, y, mask) + log_prior
+
+    g = np.linspace(-4.0, 3.0, 71)  # spacing 0.1 against posterior sds of about 0.5
+    G1, G2 = np.meshgrid(g, g, indexing="ij")
+    X = jnp.stack([G1.ravel(), G2.ravel()], axis=1)
+    lp = _on_grid(log_post, X).reshape(G1.shape)
+    w = np.exp(lp - lp.max())
+    assert max(w[0].max(), w[-1].max(), w[:, 0].max(), w[:, -1].max()) < 1e-5  # the grid holds the mass
+    w /= w.sum()
+    exact_mean = np.array([np.sum(w * G1), np.sum(w * G2)])
+    exact_m2 = np.array([np.sum(w * G1**2), np.sum(w * G2**2)])
+
+    def moments(x):
+        A, Q, H, m1, P1 = discrete(x)
+        s = kalman_smoother(A, Q, H, pm.R, m1, P1, y, mask)
+        return jnp.concatenate([s.means, jnp.diagonal(s.covs, axis1=1, axis2=2) + s.means**2], axis=1)
+
+    keep = w.ravel() > 1e-5 * w.max()
+    wk = w.ravel()[keep] / w.ravel()[keep].sum()
+    mom = np.einsum("k,ktn->tn", wk, _on_grid(moments, X[keep], chunk=512).reshape(int(keep.sum()), 100, -1))
+    n = pm.n_state
+    state_mean, state_sd = mom[:, :n], np.sqrt(mom[:, n:] - mom[:, :n] ** 2)
+
+    out = pgas.run_pgas(jax.random.key(4, impl="rbg"), prob["model"], prob["params"], free, y, mask, prob["dt"],
+                        particles=32, iterations=1000, burn_in=200, state_every=2, chains=4, mh_steps=2,
+                        residual_steps=20, initial=(0.0, 0.1))
+    x = np.log(np.stack([out.theta[k] for k in hyper.names], axis=-1))  # (chains, draws, 2)
+    assert np.all(np.abs(x.reshape(-1, 2).mean(0) - exact_mean) < 5 * _batch_se(x)), (x.mean((0, 1)), exact_mean)
+    assert np.all(np.abs((x**2).reshape(-1, 2).mean(0) - exact_m2) < 5 * _batch_se(x**2)), (
+        (x**2).mean((0, 1)), exact_m2)
+    assert max(out.diagnostics["rhat"].values()) < 1.1, out.diagnostics["rhat"]
+    for name, i in [("displacement", 0), ("velocity", 1), ("force", 2)]:
+        mean, sd = out.state_mean[name][:, 0], out.state_sd[name][:, 0]
+        assert np.mean((mean - state_mean[:, i]) ** 2) / np.var(state_mean[:, i]) < 0.01 * 0.2, name
+        assert np.mean(np.abs(sd / state_sd[:, i] - 1.0)) < 0.1, name
+
+
 def _grid_problem():
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
     params = dict(m=1.0, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthscale=0.5)

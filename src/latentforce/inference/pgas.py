@@ -759,7 +759,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
              progress: Callable | None = None, chunk_blocks: int = 1000, unroll: int = 1,
              time_points: int = 5, ancestor_sampling: bool = True, interweave: bool = True,
              lowfreq_modes: int = 16, lowfreq_steps: int = 5, residual_modes: int = 16,
-             residual_steps: int = 20) -> PGASOutput:
+             residual_steps: int = 60) -> PGASOutput:
     r"""Blocked particle Gibbs (Algorithm 5, Vibration 2020) with the PGAS kernel of :mod:`smc`.
 
     ``params``: every model parameter (free hyperparameters too: their values
