@@ -290,7 +290,7 @@ def test_whiten_colour_and_observation_density():
     assert abs(float(pgas.observation_log_likelihood(pm, od, path)) - direct) < 1e-8
     # the non-centred target at the path's own theta rebuilds the same path
     x = hyper.to_unconstrained(jnp.array([1.3, 0.4]))
-    lt, (g_rebuilt, rebuilt) = pgas.noncentred_log_target(hyper, pm, od, x, eps)
+    lt, (g_rebuilt, rebuilt, _) = pgas.noncentred_log_target(hyper, pm, od, x, eps)
     assert np.allclose(rebuilt, path, atol=1e-10)
     assert np.allclose(g_rebuilt, g, atol=1e-10)
     assert abs(float(lt) - (direct + float(hyper.log_prior(x)))) < 1e-6

@@ -117,7 +117,11 @@ def gp_path_log_density(pm: smc.ParticleModel, variance, lengthscale,
                         g: Float[Array, "T nl"]) -> Float[Array, ""]:
     r""":math:`\log p(g_{1:T} \mid \theta)` of the latent path (force states and within-step
     mechanical noise, :mod:`smc`), vectorised over time (no scan)."""
-    tr = pm.transition(variance, lengthscale)
+    return latent_log_density(pm.transition(variance, lengthscale), g)
+
+
+def latent_log_density(tr: smc.Transition, g: Float[Array, "T nl"]) -> Float[Array, ""]:
+    """:func:`gp_path_log_density` given the transition at :math:`\theta`."""
     T, nl = g.shape
     cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
     eps = _whiten(tr, g, cP, cQ)
@@ -278,18 +282,19 @@ def observation_log_likelihood(pm: smc.ParticleModel, od: ObservationDensity,
 
 def noncentred_log_target(hyper: Hyper, pm: smc.ParticleModel, od: ObservationDensity,
                           x: Float[Array, " p"], eps: Float[Array, "T nl"]
-                          ) -> tuple[Float[Array, ""], tuple[Float[Array, "T nl"], Float[Array, "T n"]]]:
-    r"""Target of :math:`x = \log\theta` given the latent's innovations, and the rebuilt latent and path.
+                          ) -> tuple[Float[Array, ""], tuple[Float[Array, "T nl"], Float[Array, "T n"], smc.Transition]
+                                     ]:
+    r"""Target of :math:`x = \log\theta` given the latent's innovations; the rebuilt latent, path and transition.
 
     :math:`\log p(\theta) + \sum_i x_i + \log p(y \mid x_{1:T}(\theta, \varepsilon))`:
     the innovations' density does not depend on :math:`\theta` and, the
     innovations being held fixed, there is no path Jacobian. Returns
-    ``(log target, (latent, path))``.
+    ``(log target, (latent, path, transition at theta))``.
     """
-    var, ls = hyper.values(x)
-    g = colour(pm.transition(var, ls), eps)
+    tr = pm.transition(*hyper.values(x))
+    g = colour(tr, eps)
     path = pm.path(g)
-    return hyper.log_prior(x) + observation_log_likelihood(pm, od, path), (g, path)
+    return hyper.log_prior(x) + observation_log_likelihood(pm, od, path), (g, path, tr)
 
 
 # ---------------------------------------------------------------------------
@@ -698,6 +703,9 @@ class ChainState(NamedTuple):
     rwm_nc: mcmc.RWMState  # the non-centred (interweaving) random walk's adaptation; its x mirrors rwm.x
     rwm_lf: mcmc.RWMState  # the low-frequency trajectory move's adaptation (x: its last coordinates)
     rwm_rp: mcmc.RWMState  # the residual-preserving move's adaptation
+    # the latent's transition at rwm.x, carried so that a compiled block evaluates the
+    # transition at only two places (its matrix exponentials were 40 % of the program)
+    tr: smc.Transition
     block: Array  # Gibbs block counter
     # running sums over post-burn-in state samples: (z, v, u) per time
     sum1: Float[Array, "T q"]
@@ -817,15 +825,23 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
     x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
     od = jax.jit(lambda y_, m_: observation_density(pm, y_, m_))(y, mask)
-    noise_sd = jax.jit(lambda: jnp.sqrt(jnp.diagonal(pm.transition(*hyper.values(x0)).Q)[pm.nfx:]))()
-    rm = ResidualMove(pm, T, residual_modes, noise_sd)
+    k_theta, k_chains = jax.random.split(key)
+
+    @jax.jit
+    def _start_transitions(k):
+        # the chains' dispersed starts theta_0 exp(0.5 eps), and the transitions at theta_0
+        # and at those, from one place in the program (each place compiles its own matrix
+        # exponentials: they dominated the compile time)
+        xs = x0 + 0.5 * jax.random.normal(k, (chains, p))
+        trs = jax.vmap(lambda x: pm.transition(*hyper.values(x)))(jnp.concatenate([x0[None], xs]))
+        return xs, jax.tree_util.tree_map(lambda a: a[0], trs), jax.tree_util.tree_map(lambda a: a[1:], trs)
+
+    xs0, tr0, trs0 = _start_transitions(k_theta)
+    rm = ResidualMove(pm, T, residual_modes, np.sqrt(np.diagonal(np.asarray(tr0.Q))[pm.nfx:]))
     n_rp = n_rp if rm.applies else 0
 
     @jax.jit
-    def _setup(key, y, mask, od):
-        k_init, k_chains = jax.random.split(key)
-        var0, ls0 = hyper.values(x0)
-        tr0 = pm.transition(var0, ls0)
+    def _setup(k_chains, y, mask, od, tr0, xs0, trs0):
         eks = extended_kalman_smoother(pm, tr0, y, mask)
         # the Gauss-Newton shape is exact for linear models; for nonlinear ones it is
         # recomputed at each chain's own path at the end of the burn-in windows
@@ -834,18 +850,19 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         rwm_lf0 = lowfreq_init(pm, od, frame0, eks)
         rwm_rp0 = residual_init(rm, pm, od, tr0, eks) if n_rp else rwm_lf0
 
-        def _init_chain(ck):
-            k_path, k_theta, k_run = jax.random.split(ck, 3)
+        def _init_chain(ck, x, tr):
+            k_path, k_run = jax.random.split(ck)
             ref = dispersed_start(k_path, pm, frame0, rwm_lf0, eks)
-            # dispersed start: theta_0 exp(0.5 eps); the log density is set at the first block
-            rwm = init_proposal(hyper, lambda x: jnp.zeros(()), x0 + 0.5 * jax.random.normal(k_theta, (p,)))
-            return ChainState(k_run, ref, rwm, rwm, rwm_lf0, rwm_rp0, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)),
-                              jnp.zeros((T, nq)), jnp.zeros(()), jnp.zeros((n_draws + 1, T, pm.n_state)))
+            # the log density is set at the first block
+            rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
+            return ChainState(k_run, ref, rwm, rwm, rwm_lf0, rwm_rp0, tr, jnp.zeros((), jnp.int32),
+                              jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
+                              jnp.zeros((n_draws + 1, T, pm.n_state)))
 
         # ref_q: centring of the running sums (numerical stability)
-        return jax.vmap(_init_chain)(jax.random.split(k_chains, chains)), _summary_quantities(pm, eks)
+        return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0), _summary_quantities(pm, eks)
 
-    state0, ref_q = _setup(key, y, mask, od)
+    state0, ref_q = _setup(k_chains, y, mask, od, tr0, xs0, trs0)
     lf_reshape = jnp.asarray((-1,))
     lf_regauge = () if pm.is_linear else tuple(
         sorted({int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1}))
@@ -862,8 +879,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     def _block(state: ChainState, b, data: _Data):
         """One Gibbs block of one chain; ``b``, the block index, and ``data`` are shared by the chains."""
         key, k_sweep, k_mh, k_lf, k_rp = jax.random.split(state.key, 5)
-        var, ls = hyper.values(state.rwm.x)
-        tr = pm.transition(var, ls)
+        tr = state.tr
         sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal)
         out = sweep(k_sweep, sc, state.reference)
         path = out.trajectory
@@ -906,22 +922,22 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
             return r, accs_, aux
 
         def _mh_iter(carry, inp):
-            rwm, rwm_nc, path_, g_ = carry
+            rwm, rwm_nc, path_, g_, tr_ = carry
             k_it, j = inp
             if not p:
                 return carry, (rwm.x, jnp.zeros(()), jnp.zeros(()))
             k_c, k_nc = jax.random.split(k_it)
 
-            def centred(x):
-                return hyper.log_target(pm, x, g_)
+            def centred(x):  # Hyper.log_target, keeping the transition
+                tr_x = pm.transition(*hyper.values(x))
+                return hyper.log_prior(x) + latent_log_density(tr_x, g_), tr_x
 
             # the conditioning path may have changed: refresh the current point's target
-            rwm = rwm._replace(logdensity=centred(rwm.x))
-            rwm, accs, _ = _steps(k_c, rwm, centred, j)
+            rwm = rwm._replace(logdensity=hyper.log_prior(rwm.x) + latent_log_density(tr_, g_))
+            rwm, accs, tr_ = _steps(k_c, rwm, centred, j, aux=tr_)
             acc_nc = jnp.zeros(())
             if interweave:
-                var_, ls_ = hyper.values(rwm.x)
-                eps = whiten(pm.transition(var_, ls_), g_)
+                eps = whiten(tr_, g_)
 
                 def noncentred(x):
                     return noncentred_log_target(hyper, pm, data.od, x, eps)
@@ -930,17 +946,18 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
                 # the path is kept bit-for-bit when nothing moves (no round-off drift)
                 rwm_nc = rwm_nc._replace(x=rwm.x, logdensity=hyper.log_prior(rwm.x)
                                          + observation_log_likelihood(pm, data.od, path_))
-                rwm_nc, accs_nc, (g_, path_) = _steps(k_nc, rwm_nc, noncentred, j, aux=(g_, path_))
+                rwm_nc, accs_nc, (g_, path_, tr_) = _steps(k_nc, rwm_nc, noncentred, j, aux=(g_, path_, tr_))
                 rwm = rwm._replace(x=rwm_nc.x)
                 acc_nc = jnp.mean(accs_nc.astype(float))
-            return (rwm, rwm_nc, path_, g_), (rwm.x, jnp.mean(accs.astype(float)), acc_nc)
+            return (rwm, rwm_nc, path_, g_, tr_), (rwm.x, jnp.mean(accs.astype(float)), acc_nc)
 
         js = b * k_every + jnp.arange(k_every)
-        (rwm, rwm_nc, path_end, _), (xs, accs, accs_nc) = jax.lax.scan(
-            _mh_iter, (state.rwm, state.rwm_nc, path, pm.latent(path)), (jax.random.split(k_mh, k_every), js))
+        (rwm, rwm_nc, path_end, _, tr_end), (xs, accs, accs_nc) = jax.lax.scan(
+            _mh_iter, (state.rwm, state.rwm_nc, path, pm.latent(path), tr), (jax.random.split(k_mh, k_every), js))
         theta = hyper.to_constrained(xs)
         fp = path[tpoints][:, pm.nm + pm.kdim * np.arange(pm.nforce)]
-        new = ChainState(key, path_end, rwm, rwm_nc, rwm_lf, rwm_rp, b + 1, sum1, sum2, state.count + wgt, draws)
+        new = ChainState(key, path_end, rwm, rwm_nc, rwm_lf, rwm_rp, tr_end, b + 1, sum1, sum2, state.count + wgt,
+                         draws)
         info = BlockInfo(theta, accs, accs_nc, acc_lf, acc_rp, out.info.log_likelihood, out.info.switched,
                          jnp.mean(out.info.ess), fp)
         return new, info
