@@ -236,11 +236,9 @@ def test_hyperparameter_mh_matches_grid_posterior():
     cov = np.asarray(jax.vmap(pgas.proposal_covariance)(states))
     assert np.all(np.isfinite(cov)) and np.all(np.linalg.eigvalsh(cov) > 0)
     # Monte-Carlo error by batch means (4 chains x 25 batches)
-    bm = theta.reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
-    se = bm.std(axis=0, ddof=1) / np.sqrt(bm.shape[0])
+    se = _batch_se(theta, 25)
     assert np.all(np.abs(theta.reshape(-1, 2).mean(0) - exact_mean) < 5 * se), (theta.mean((0, 1)), exact_mean, se)
-    sq = (theta**2).reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
-    se2 = sq.std(axis=0, ddof=1) / np.sqrt(sq.shape[0])
+    se2 = _batch_se(theta**2, 25)
     second = (theta**2).reshape(-1, 2).mean(0)
     assert np.all(np.abs(second - (exact_sd**2 + exact_mean**2)) < 5 * se2 + 1e-12), (second, exact_sd, exact_mean)
     acc = float(np.mean(accs))
@@ -335,8 +333,7 @@ def test_noncentred_mh_matches_grid_posterior():
     assert max(w[0].max(), w[-1].max(), w[:, 0].max(), w[:, -1].max()) < 1e-8
     w /= w.sum()
     exact = np.array([np.sum(w * np.exp(G1)), np.sum(w * np.exp(G2))])
-    bm = theta.reshape(4, 20, -1, 2).mean(axis=2).reshape(-1, 2)
-    se = bm.std(axis=0, ddof=1) / np.sqrt(bm.shape[0])
+    se = _batch_se(theta)
     assert np.all(np.abs(theta.reshape(-1, 2).mean(0) - exact) < 5 * se), (theta.mean((0, 1)), exact, se)
 
 
@@ -360,12 +357,11 @@ def _check_move_against_gaussian(move, record, init, start, burn, n, exact_mean,
     f, acc = jax.vmap(chain)(jax.random.split(jax.random.key(7), 4))
     f, acc = np.asarray(f)[:, burn:], np.asarray(acc)[:, burn:]
     assert 0.1 < acc.mean() < 0.5, acc.mean()
-    bm = f.reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
-    se = bm.std(axis=0, ddof=1) / np.sqrt(bm.shape[0])
+    se = _batch_se(f, 25)
     assert np.all(np.abs(f.reshape(-1, 2).mean(0) - exact_mean) < 5 * se), (f.mean((0, 1)), exact_mean, se)
-    sq = ((f - exact_mean) ** 2).reshape(4, 25, -1, 2).mean(axis=2).reshape(-1, 2)
-    se2 = sq.std(axis=0, ddof=1) / np.sqrt(sq.shape[0])
-    assert np.all(np.abs(sq.mean(0) - exact_sd**2) < 5 * se2), (np.sqrt(sq.mean(0)), exact_sd)
+    sq = (f - exact_mean) ** 2
+    ms = sq.reshape(-1, 2).mean(0)
+    assert np.all(np.abs(ms - exact_sd**2) < 5 * _batch_se(sq, 25)), (np.sqrt(ms), exact_sd)
 
 
 def test_lowfreq_move_matches_exact_conditional():

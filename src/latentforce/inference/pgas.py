@@ -821,7 +821,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     if n_rp < 0:
         raise ValueError(f"residual_steps must be non-negative, got {residual_steps}")
 
-    # ---- initialisation (outside the loop; never from the truth), one compiled program:
+    # ---- initialisation (outside the loop; never from the truth), in compiled programs:
     # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
     x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
     od = jax.jit(lambda y_, m_: observation_density(pm, y_, m_))(y, mask)
@@ -868,13 +868,13 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         sorted({int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1}))
     interweave = bool(interweave) and p > 0
 
-    def _regauge(rwm_lf, frame, path, data):
-        new = lowfreq_init(pm, data.od, frame, path)
-        return new._replace(log_scale=rwm_lf.log_scale, count=rwm_lf.count)
-
-    def _regauge_rp(rwm_rp, tr, path, data):
-        new = residual_init(rm, pm, data.od, tr, path)
-        return new._replace(log_scale=rwm_rp.log_scale, count=rwm_rp.count)
+    def _regauged(rwm, b, fresh: Callable):
+        """At the regauge blocks, the Gauss-Newton shape of ``fresh()`` with ``rwm``'s adapted scale."""
+        if not lf_regauge:
+            return rwm
+        # b is not batched over chains, so this stays a conditional under vmap
+        return jax.lax.cond(jnp.any(b == jnp.asarray(lf_regauge)),
+                            lambda r: fresh()._replace(log_scale=r.log_scale, count=r.count), lambda r: r, rwm)
 
     def _block(state: ChainState, b, data: _Data):
         """One Gibbs block of one chain; ``b``, the block index, and ``data`` are shared by the chains."""
@@ -886,18 +886,13 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         rwm_lf, acc_lf = state.rwm_lf, jnp.zeros(())
         if n_lf:
             frame = LowFrequencyFrame(tr, basis)
-            if lf_regauge:
-                # b is not batched over chains, so this stays a conditional under vmap
-                rwm_lf = jax.lax.cond(jnp.any(b == jnp.asarray(lf_regauge)), _regauge,
-                                      lambda r, f, x, d: r, rwm_lf, frame, path, data)
+            rwm_lf = _regauged(rwm_lf, b, lambda: lowfreq_init(pm, data.od, frame, path))
             rwm_lf, path, accs_lf = lowfreq_move(k_lf, rwm_lf, pm, data.od, frame, path, n_lf, adapt=b < burn_blocks,
                                                  step0=b * n_lf, reshape_steps=lf_reshape)
             acc_lf = jnp.mean(accs_lf.astype(float))
         rwm_rp, acc_rp = state.rwm_rp, jnp.zeros(())
         if n_rp:
-            if lf_regauge:
-                rwm_rp = jax.lax.cond(jnp.any(b == jnp.asarray(lf_regauge)), _regauge_rp,
-                                      lambda r, t_, x, d: r, rwm_rp, tr, path, data)
+            rwm_rp = _regauged(rwm_rp, b, lambda: residual_init(rm, pm, data.od, tr, path))
             rwm_rp, path, accs_rp = residual_move(k_rp, rwm_rp, rm, pm, data.od, tr, path, n_rp, adapt=b < burn_blocks)
             acc_rp = jnp.mean(accs_rp.astype(float))
         # ---- accumulate post-burn-in state samples
