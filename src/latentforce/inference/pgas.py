@@ -760,109 +760,64 @@ def _summary_quantities(pm: smc.ParticleModel, path: Float[Array, "T n"]):
     return jnp.concatenate([path[:, :2 * nd], path[:, force_idx]], axis=1)
 
 
-def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
-             particles: int = 50, iterations: int = 1000, burn_in: int = 500, state_every: int = 1,
-             chains: int = 4, mh_steps: int = 1, discretisation: str = "rk4", proposal: str = "optimal",
-             resampling: str = "multinomial", thin_draws: int = 200, initial=None,
-             progress: Callable | None = None, chunk_blocks: int = 1000, unroll: int = 1,
-             time_points: int = 5, ancestor_sampling: bool = True, interweave: bool = True,
-             lowfreq_modes: int = 16, lowfreq_steps: int = 5, residual_modes: int = 16,
-             residual_steps: int = 60) -> PGASOutput:
-    r"""Blocked particle Gibbs (Algorithm 5, Vibration 2020) with the PGAS kernel of :mod:`smc`.
+class Schedule(NamedTuple):
+    """Iteration bookkeeping of a Gibbs run (static integers; :func:`schedule`)."""
 
-    ``params``: every model parameter (free hyperparameters too: their values
-    are ignored except as fixed defaults). ``free``: ``name -> (prior, init)``
-    for a subset of ``force_variance, force_lengthscale`` (may be empty: the
-    trajectory is then sampled at fixed :math:`\theta`). ``y`` ``(T, d)`` may
-    hold NaN where ``mask`` is False. ``iterations`` are kept after
-    ``burn_in``; a PGAS sweep runs on iterations ``j % state_every == 0``,
-    and every iteration makes ``mh_steps`` Metropolis steps on
-    :math:`\theta` given the current path (the value recorded for the
-    iteration is the last); with ``interweave`` each iteration then makes
-    ``mh_steps`` non-centred steps (module doc). After each sweep,
-    ``lowfreq_steps`` Metropolis steps (:func:`lowfreq_move`; 0 disables)
-    move the path's ``lowfreq_modes`` slowest innovation modes and its
-    initial mechanical state at fixed :math:`\theta`; the moved path is the
-    next reference and the recorded sample. Then ``residual_steps``
-    residual-preserving steps (:func:`residual_move`; 0 disables; skipped
-    when no channel sees the force) move the ``residual_modes`` slowest
-    modes of the mechanical within-step noise, the force following so that
-    the acceleration predictions are kept. ``initial = (mean, sd)`` of the initial
-    mechanical state, else ``model.default_initial``. ``progress(done,
-    total, accept_rate)`` is called between scan chunks.
-    """
-    pm = smc.ParticleModel(model, params, dt, discretisation, initial)
-    hyper = Hyper(params, free)
-    y = jnp.asarray(y, dtype=float)
-    mask = jnp.asarray(mask, dtype=bool) & jnp.isfinite(y)
-    T = y.shape[0]
-    p = len(hyper.names)
-    k_every = int(state_every)
-    n_mh = int(mh_steps)
+    state_every: int
+    mh_steps: int
+    burn_in: int  # iterations
+    total: int  # iterations, burn-in included
+    n_blocks: int  # Gibbs blocks, one sweep each
+    burn_blocks: int  # blocks whose sweep is at an iteration < burn_in (they adapt)
+    thin: int  # every thin-th post-burn-in path is stored
+    n_draws: int  # stored paths
+
+
+def schedule(burn_in: int, iterations: int, state_every: int = 1, mh_steps: int = 1,
+             thin_draws: int = 200) -> Schedule:
+    """The blocks of a run of ``burn_in + iterations`` iterations, a sweep on every ``state_every``-th."""
+    k_every, n_mh = int(state_every), int(mh_steps)
     if n_mh < 1:
         raise ValueError(f"mh_steps must be at least 1, got {mh_steps}")
+    if k_every < 1:
+        raise ValueError(f"state_every must be at least 1, got {state_every}")
     total = int(burn_in) + int(iterations)
     n_blocks = -(-total // k_every)
-    burn_blocks = -(-int(burn_in) // k_every)  # blocks whose sweep is at j < burn_in
+    burn_blocks = -(-int(burn_in) // k_every)
     post_sweeps = n_blocks - burn_blocks
     thin = max(1, -(-post_sweeps // max(1, int(thin_draws))))
     n_draws = -(-post_sweeps // thin) if post_sweeps > 0 else 0
-    tpoints = np.unique(np.linspace(0, T - 1, time_points).round().astype(int))
+    return Schedule(k_every, n_mh, int(burn_in), total, n_blocks, burn_blocks, thin, n_draws)
+
+
+def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: ResidualMove, basis, tpoints, *,
+               particles: int = 50, proposal: str = "optimal", resampling: str = "multinomial",
+               ancestor_sampling: bool = True, unroll: int = 1, interweave: bool = True,
+               lowfreq_steps: int = 5, residual_steps: int = 60) -> Callable:
+    r"""``block(state, b, data) -> (state, BlockInfo)``: Gibbs block ``b`` of one chain (pure, jittable).
+
+    A PGAS sweep at the carried transition; ``lowfreq_steps`` low-frequency
+    moves (``basis``: :func:`lowfreq_basis`) and ``residual_steps``
+    residual-preserving moves (``rm``; skipped where it does not apply); the
+    post-burn-in running sums and thinned draws; then ``state_every``
+    Metropolis-within-Gibbs iterations of ``mh_steps`` centred and (with
+    ``interweave``) non-centred steps on :math:`\theta`. Blocks
+    ``b < sched.burn_blocks`` adapt the proposals (and, for nonlinear systems,
+    re-shape the path moves at the chain's path); later blocks are a fixed
+    kernel. ``b`` must be shared by vmapped chains (it drives conditionals);
+    ``data`` (:class:`_Data`) may be shared or batched. ``tpoints``: the
+    time indices whose force values are recorded.
+    """
+    p = len(hyper.names)
+    k_every, n_mh, burn_in = sched.state_every, sched.mh_steps, sched.burn_in
+    n_blocks, burn_blocks, thin, n_draws = sched.n_blocks, sched.burn_blocks, sched.thin, sched.n_draws
     sweep = smc.make_sweep(pm, particles, proposal=proposal, resampling=resampling, conditional=True,
                            ancestor_sampling=ancestor_sampling, unroll=unroll)
     target_acc = mcmc.target_acceptance(max(p, 1))
-    reshape_steps = jnp.asarray(adaptation_schedule(int(burn_in) * n_mh) or (-1,))
-    nq = 2 * pm.ndof + pm.nforce
+    reshape_steps = jnp.asarray(adaptation_schedule(burn_in * n_mh) or (-1,))
     n_lf = int(lowfreq_steps)
-    if n_lf < 0:
-        raise ValueError(f"lowfreq_steps must be non-negative, got {lowfreq_steps}")
-    basis = lowfreq_basis(T, lowfreq_modes)
-    n_rp = int(residual_steps)
-    if n_rp < 0:
-        raise ValueError(f"residual_steps must be non-negative, got {residual_steps}")
+    n_rp = int(residual_steps) if rm.applies else 0
 
-    # ---- initialisation (outside the loop; never from the truth), in compiled programs:
-    # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
-    x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
-    od = jax.jit(lambda y_, m_: observation_density(pm, y_, m_))(y, mask)
-    k_theta, k_chains = jax.random.split(key)
-
-    @jax.jit
-    def _start_transitions(k):
-        # the chains' dispersed starts theta_0 exp(0.5 eps), and the transitions at theta_0
-        # and at those, from one place in the program (each place compiles its own matrix
-        # exponentials: they dominated the compile time)
-        xs = x0 + 0.5 * jax.random.normal(k, (chains, p))
-        trs = jax.vmap(lambda x: pm.transition(*hyper.values(x)))(jnp.concatenate([x0[None], xs]))
-        return xs, jax.tree_util.tree_map(lambda a: a[0], trs), jax.tree_util.tree_map(lambda a: a[1:], trs)
-
-    xs0, tr0, trs0 = _start_transitions(k_theta)
-    rm = ResidualMove(pm, T, residual_modes, np.sqrt(np.diagonal(np.asarray(tr0.Q))[pm.nfx:]))
-    n_rp = n_rp if rm.applies else 0
-
-    @jax.jit
-    def _setup(k_chains, y, mask, od, tr0, xs0, trs0):
-        eks = extended_kalman_smoother(pm, tr0, y, mask)
-        # the Gauss-Newton shape is exact for linear models; for nonlinear ones it is
-        # recomputed at each chain's own path at the end of the burn-in windows
-        # (adaptation: burn-in only), and the scale adapts throughout the burn-in
-        frame0 = LowFrequencyFrame(tr0, basis)
-        rwm_lf0 = lowfreq_init(pm, od, frame0, eks)
-        rwm_rp0 = residual_init(rm, pm, od, tr0, eks) if n_rp else rwm_lf0
-
-        def _init_chain(ck, x, tr):
-            k_path, k_run = jax.random.split(ck)
-            ref = dispersed_start(k_path, pm, frame0, rwm_lf0, eks)
-            # the log density is set at the first block
-            rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
-            return ChainState(k_run, ref, rwm, rwm, rwm_lf0, rwm_rp0, tr, jnp.zeros((), jnp.int32),
-                              jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
-                              jnp.zeros((n_draws + 1, T, pm.n_state)))
-
-        # ref_q: centring of the running sums (numerical stability)
-        return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0), _summary_quantities(pm, eks)
-
-    state0, ref_q = _setup(k_chains, y, mask, od, tr0, xs0, trs0)
     lf_reshape = jnp.asarray((-1,))
     lf_regauge = () if pm.is_linear else tuple(
         sorted({int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1}))
@@ -877,7 +832,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
                             lambda r: fresh()._replace(log_scale=r.log_scale, count=r.count), lambda r: r, rwm)
 
     def _block(state: ChainState, b, data: _Data):
-        """One Gibbs block of one chain; ``b``, the block index, and ``data`` are shared by the chains."""
+        """One Gibbs block of one chain (:func:`make_block`)."""
         key, k_sweep, k_mh, k_lf, k_rp = jax.random.split(state.key, 5)
         tr = state.tr
         sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal)
@@ -957,6 +912,104 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
                          jnp.mean(out.info.ess), fp)
         return new, info
 
+    return _block
+
+
+def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
+             particles: int = 50, iterations: int = 1000, burn_in: int = 500, state_every: int = 1,
+             chains: int = 4, mh_steps: int = 1, discretisation: str = "rk4", proposal: str = "optimal",
+             resampling: str = "multinomial", thin_draws: int = 200, initial=None,
+             progress: Callable | None = None, chunk_blocks: int = 1000, unroll: int = 1,
+             time_points: int = 5, ancestor_sampling: bool = True, interweave: bool = True,
+             lowfreq_modes: int = 16, lowfreq_steps: int = 5, residual_modes: int = 16,
+             residual_steps: int = 60) -> PGASOutput:
+    r"""Blocked particle Gibbs (Algorithm 5, Vibration 2020) with the PGAS kernel of :mod:`smc`.
+
+    ``params``: every model parameter (free hyperparameters too: their values
+    are ignored except as fixed defaults). ``free``: ``name -> (prior, init)``
+    for a subset of ``force_variance, force_lengthscale`` (may be empty: the
+    trajectory is then sampled at fixed :math:`\theta`). ``y`` ``(T, d)`` may
+    hold NaN where ``mask`` is False. ``iterations`` are kept after
+    ``burn_in``; a PGAS sweep runs on iterations ``j % state_every == 0``,
+    and every iteration makes ``mh_steps`` Metropolis steps on
+    :math:`\theta` given the current path (the value recorded for the
+    iteration is the last); with ``interweave`` each iteration then makes
+    ``mh_steps`` non-centred steps (module doc). After each sweep,
+    ``lowfreq_steps`` Metropolis steps (:func:`lowfreq_move`; 0 disables)
+    move the path's ``lowfreq_modes`` slowest innovation modes and its
+    initial mechanical state at fixed :math:`\theta`; the moved path is the
+    next reference and the recorded sample. Then ``residual_steps``
+    residual-preserving steps (:func:`residual_move`; 0 disables; skipped
+    when no channel sees the force) move the ``residual_modes`` slowest
+    modes of the mechanical within-step noise, the force following so that
+    the acceleration predictions are kept. ``initial = (mean, sd)`` of the initial
+    mechanical state, else ``model.default_initial``. ``progress(done,
+    total, accept_rate)`` is called between scan chunks.
+    """
+    pm = smc.ParticleModel(model, params, dt, discretisation, initial)
+    hyper = Hyper(params, free)
+    y = jnp.asarray(y, dtype=float)
+    mask = jnp.asarray(mask, dtype=bool) & jnp.isfinite(y)
+    T = y.shape[0]
+    p = len(hyper.names)
+    sched = schedule(burn_in, iterations, state_every, mh_steps, thin_draws)
+    tpoints = np.unique(np.linspace(0, T - 1, time_points).round().astype(int))
+    nq = 2 * pm.ndof + pm.nforce
+    n_lf = int(lowfreq_steps)
+    if n_lf < 0:
+        raise ValueError(f"lowfreq_steps must be non-negative, got {lowfreq_steps}")
+    basis = lowfreq_basis(T, lowfreq_modes)
+    n_rp = int(residual_steps)
+    if n_rp < 0:
+        raise ValueError(f"residual_steps must be non-negative, got {residual_steps}")
+
+    # ---- initialisation (outside the loop; never from the truth), in compiled programs:
+    # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
+    x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
+    od = jax.jit(lambda y_, m_: observation_density(pm, y_, m_))(y, mask)
+    k_theta, k_chains = jax.random.split(key)
+
+    @jax.jit
+    def _start_transitions(k):
+        # the chains' dispersed starts theta_0 exp(0.5 eps), and the transitions at theta_0
+        # and at those, from one place in the program (each place compiles its own matrix
+        # exponentials: they dominated the compile time)
+        xs = x0 + 0.5 * jax.random.normal(k, (chains, p))
+        trs = jax.vmap(lambda x: pm.transition(*hyper.values(x)))(jnp.concatenate([x0[None], xs]))
+        return xs, jax.tree_util.tree_map(lambda a: a[0], trs), jax.tree_util.tree_map(lambda a: a[1:], trs)
+
+    xs0, tr0, trs0 = _start_transitions(k_theta)
+    rm = ResidualMove(pm, T, residual_modes, np.sqrt(np.diagonal(np.asarray(tr0.Q))[pm.nfx:]))
+    n_rp = n_rp if rm.applies else 0
+
+    @jax.jit
+    def _setup(k_chains, y, mask, od, tr0, xs0, trs0):
+        eks = extended_kalman_smoother(pm, tr0, y, mask)
+        # the Gauss-Newton shape is exact for linear models; for nonlinear ones it is
+        # recomputed at each chain's own path at the end of the burn-in windows
+        # (adaptation: burn-in only), and the scale adapts throughout the burn-in
+        frame0 = LowFrequencyFrame(tr0, basis)
+        rwm_lf0 = lowfreq_init(pm, od, frame0, eks)
+        rwm_rp0 = residual_init(rm, pm, od, tr0, eks) if n_rp else rwm_lf0
+
+        def _init_chain(ck, x, tr):
+            k_path, k_run = jax.random.split(ck)
+            ref = dispersed_start(k_path, pm, frame0, rwm_lf0, eks)
+            # the log density is set at the first block
+            rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
+            return ChainState(k_run, ref, rwm, rwm, rwm_lf0, rwm_rp0, tr, jnp.zeros((), jnp.int32),
+                              jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
+                              jnp.zeros((sched.n_draws + 1, T, pm.n_state)))
+
+        # ref_q: centring of the running sums (numerical stability)
+        return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0), _summary_quantities(pm, eks)
+
+    state0, ref_q = _setup(k_chains, y, mask, od, tr0, xs0, trs0)
+    block = make_block(pm, hyper, sched, rm, basis, tpoints, particles=particles, proposal=proposal,
+                       resampling=resampling, ancestor_sampling=ancestor_sampling, unroll=unroll,
+                       interweave=interweave, lowfreq_steps=n_lf, residual_steps=n_rp)
+
+    n_blocks = sched.n_blocks
     n_chunks = max(1, -(-n_blocks // int(chunk_blocks)))
     chunk_len = -(-n_blocks // n_chunks)
 
@@ -966,7 +1019,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
 
     @jax.jit
     def _run_chunk(states, blocks, data):
-        states, info = jax.lax.scan(lambda s, b: jax.vmap(_block, (0, None, None))(s, b, data), states, blocks)
+        states, info = jax.lax.scan(lambda s, b: jax.vmap(block, (0, None, None))(s, b, data), states, blocks)
         return states, jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), info)  # chains first
 
     infos = []
@@ -976,10 +1029,11 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         infos.append(jax.tree_util.tree_map(np.asarray, info))
         if progress is not None:
             acc = float(np.mean(info.accept))
-            progress(min((c + 1) * chunk_len, n_blocks) * k_every, n_blocks * k_every, acc)
+            progress(min((c + 1) * chunk_len, n_blocks) * sched.state_every, n_blocks * sched.state_every, acc)
     info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)
     info = jax.tree_util.tree_map(lambda a: a[:, :n_blocks], info)
-    return _assemble(pm, hyper, states, info, ref_q, burn_in, total, burn_blocks, n_draws, tpoints)
+    return _assemble(pm, hyper, states, info, ref_q, sched.burn_in, sched.total, sched.burn_blocks, sched.n_draws,
+                     tpoints)
 
 
 def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, total, burn_blocks,
