@@ -175,8 +175,13 @@ class Hyper:
 
     def log_target(self, pm, x: Float[Array, " p"], g: Float[Array, "T nl"]) -> Float[Array, ""]:
         """Centred MH target in log space: prior + log-Jacobian + latent path density (module doc)."""
-        var, ls = self.values(x)
-        return self.log_prior(x) + gp_path_log_density(pm, var, ls, g)
+        return self.log_target_and_transition(pm, x, g)[0]
+
+    def log_target_and_transition(self, pm, x: Float[Array, " p"], g: Float[Array, "T nl"]
+                                  ) -> tuple[Float[Array, ""], smc.Transition]:
+        """:meth:`log_target` and the latent's transition at ``x`` (which the sampler carries)."""
+        tr = pm.transition(*self.values(x))
+        return self.log_prior(x) + latent_log_density(tr, g), tr
 
 
 def init_proposal(hyper: Hyper, log_target: Callable, x: Float[Array, " p"],
@@ -878,9 +883,8 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
                 return carry, (rwm.x, jnp.zeros(()), jnp.zeros(()))
             k_c, k_nc = jax.random.split(k_it)
 
-            def centred(x):  # Hyper.log_target, keeping the transition
-                tr_x = pm.transition(*hyper.values(x))
-                return hyper.log_prior(x) + latent_log_density(tr_x, g_), tr_x
+            def centred(x):
+                return hyper.log_target_and_transition(pm, x, g_)
 
             # the conditioning path may have changed: refresh the current point's target
             rwm = rwm._replace(logdensity=hyper.log_prior(rwm.x) + latent_log_density(tr_, g_))
