@@ -694,7 +694,7 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
                                 jnp.zeros((), jnp.int32),
                                 jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
                                 jnp.zeros((n_draws + 1, T, pm.n_state)))
-        return state, pgas._Data(y, mask, od, jnp.zeros((T, nq)))
+        return state, pgas.BlockData(y, mask, od, jnp.zeros((T, nq)))
 
     @jax.jit
     def run(keys):

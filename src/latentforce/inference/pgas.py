@@ -76,7 +76,9 @@ lengthscales far beyond the record (Duffing case, 0.5 s record: posterior
 median :math:`\ell` of several seconds). Use a proper prior on
 :math:`\sigma_f^2` or :math:`\ell` when the record spans few lengthscales.
 
-Chains are ``jax.vmap``-ed and iterations are a ``lax.scan``; Python only
+One Gibbs block of one chain is :func:`make_block` (a pure function of the chain
+state, the block index and the data); :func:`run_pgas` initialises the chains,
+``jax.vmap``-s the block over them and runs the blocks in a ``lax.scan``; Python only
 chunks the scan for progress reports. Initialisation never uses the truth:
 an extended Kalman smoother at the initial :math:`\theta` gives a path that
 fits the data; each chain starts from it moved by twice its Gauss-Newton
@@ -731,7 +733,7 @@ class BlockInfo(NamedTuple):
     force_points: Float[Array, "P nforce"]
 
 
-class _Data(NamedTuple):
+class BlockData(NamedTuple):
     """The record and what is precomputed from it (arguments of the compiled programs)."""
 
     y: Float[Array, "T d"]
@@ -810,7 +812,7 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
     ``b < sched.burn_blocks`` adapt the proposals (and, for nonlinear systems,
     re-shape the path moves at the chain's path); later blocks are a fixed
     kernel. ``b`` must be shared by vmapped chains (it drives conditionals);
-    ``data`` (:class:`_Data`) may be shared or batched. ``tpoints``: the
+    ``data`` (:class:`BlockData`) may be shared or batched. ``tpoints``: the
     time indices whose force values are recorded.
     """
     p = len(hyper.names)
@@ -836,7 +838,7 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
         return jax.lax.cond(jnp.any(b == jnp.asarray(lf_regauge)),
                             lambda r: fresh()._replace(log_scale=r.log_scale, count=r.count), lambda r: r, rwm)
 
-    def _block(state: ChainState, b, data: _Data):
+    def _block(state: ChainState, b, data: BlockData):
         """One Gibbs block of one chain (:func:`make_block`)."""
         key, k_sweep, k_mh, k_lf, k_rp = jax.random.split(state.key, 5)
         tr = state.tr
@@ -1019,7 +1021,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
 
     # the data are arguments, not constants of the program: a compiled program (and
     # JAX's persistent cache entry) then serves every record of the same shape
-    data = _Data(y, mask, od, ref_q)
+    data = BlockData(y, mask, od, ref_q)
 
     @jax.jit
     def _run_chunk(states, blocks, data):
