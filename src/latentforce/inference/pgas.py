@@ -814,6 +814,12 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
     kernel. ``b`` must be shared by vmapped chains (it drives conditionals);
     ``data`` (:class:`BlockData`) may be shared or batched. ``tpoints``: the
     time indices whose force values are recorded.
+
+    The caller's :class:`ChainState` must hold ``tr``, the transition at
+    ``rwm.x``, and ``draws`` with ``sched.n_draws + 1`` slots (the last is a
+    discard slot); ``data.ref_q`` centres the running sums (``(T, q)``, see
+    :func:`run_pgas`). The walks' ``logdensity`` fields are refreshed before
+    use.
     """
     p = len(hyper.names)
     k_every, n_mh, burn_in = sched.state_every, sched.mh_steps, sched.burn_in
@@ -824,6 +830,8 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
     reshape_steps = jnp.asarray(adaptation_schedule(burn_in * n_mh) or (-1,))
     n_lf = int(lowfreq_steps)
     n_rp = int(residual_steps) if rm.applies else 0
+    if n_lf < 0 or n_rp < 0:
+        raise ValueError(f"lowfreq_steps and residual_steps must be non-negative, got {n_lf} and {n_rp}")
 
     lf_reshape = jnp.asarray((-1,))
     lf_regauge = () if pm.is_linear else tuple(
