@@ -183,7 +183,12 @@ class Hyper:
                                   ) -> tuple[Float[Array, ""], smc.Transition]:
         """:meth:`log_target` and the latent's transition at ``x`` (which the sampler carries)."""
         tr = pm.transition(*self.values(x))
-        return self.log_prior(x) + latent_log_density(tr, g), tr
+        return self.log_target_given(tr, x, g), tr
+
+    def log_target_given(self, tr: smc.Transition, x: Float[Array, " p"], g: Float[Array, "T nl"]
+                         ) -> Float[Array, ""]:
+        """:meth:`log_target` when ``tr``, the transition at ``x``, is already known."""
+        return self.log_prior(x) + latent_log_density(tr, g)
 
 
 def init_proposal(hyper: Hyper, log_target: Callable, x: Float[Array, " p"],
@@ -828,10 +833,12 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
                            ancestor_sampling=ancestor_sampling, unroll=unroll)
     target_acc = mcmc.target_acceptance(max(p, 1))
     reshape_steps = jnp.asarray(adaptation_schedule(burn_in * n_mh) or (-1,))
-    n_lf = int(lowfreq_steps)
-    n_rp = int(residual_steps) if rm.applies else 0
-    if n_lf < 0 or n_rp < 0:
-        raise ValueError(f"lowfreq_steps and residual_steps must be non-negative, got {n_lf} and {n_rp}")
+    n_lf, n_rp = int(lowfreq_steps), int(residual_steps)
+    if n_lf < 0:
+        raise ValueError(f"lowfreq_steps must be non-negative, got {lowfreq_steps}")
+    if n_rp < 0:
+        raise ValueError(f"residual_steps must be non-negative, got {residual_steps}")
+    n_rp = n_rp if rm.applies else 0
 
     lf_reshape = jnp.asarray((-1,))
     lf_regauge = () if pm.is_linear else tuple(
@@ -897,7 +904,7 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
                 return hyper.log_target_and_transition(pm, x, g_)
 
             # the conditioning path may have changed: refresh the current point's target
-            rwm = rwm._replace(logdensity=hyper.log_prior(rwm.x) + latent_log_density(tr_, g_))
+            rwm = rwm._replace(logdensity=hyper.log_target_given(tr_, rwm.x, g_))
             rwm, accs, tr_ = _steps(k_c, rwm, centred, j, aux=tr_)
             acc_nc = jnp.zeros(())
             if interweave:
@@ -969,13 +976,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     sched = schedule(burn_in, iterations, state_every, mh_steps, thin_draws)
     tpoints = np.unique(np.linspace(0, T - 1, time_points).round().astype(int))
     nq = 2 * pm.ndof + pm.nforce
-    n_lf = int(lowfreq_steps)
-    if n_lf < 0:
-        raise ValueError(f"lowfreq_steps must be non-negative, got {lowfreq_steps}")
     basis = lowfreq_basis(T, lowfreq_modes)
-    n_rp = int(residual_steps)
-    if n_rp < 0:
-        raise ValueError(f"residual_steps must be non-negative, got {residual_steps}")
 
     # ---- initialisation (outside the loop; never from the truth), in compiled programs:
     # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
@@ -994,7 +995,11 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
 
     xs0, tr0, trs0 = _start_transitions(k_theta)
     rm = ResidualMove(pm, T, residual_modes, np.sqrt(np.diagonal(np.asarray(tr0.Q))[pm.nfx:]))
-    n_rp = n_rp if rm.applies else 0
+    # (make_block checks the step counts)
+    block = make_block(pm, hyper, sched, rm, basis, tpoints, particles=particles, proposal=proposal,
+                       resampling=resampling, ancestor_sampling=ancestor_sampling, unroll=unroll,
+                       interweave=interweave, lowfreq_steps=lowfreq_steps, residual_steps=residual_steps)
+    with_rp = rm.applies and int(residual_steps) > 0
 
     @jax.jit
     def _setup(k_chains, y, mask, od, tr0, xs0, trs0):
@@ -1004,7 +1009,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         # (adaptation: burn-in only), and the scale adapts throughout the burn-in
         frame0 = LowFrequencyFrame(tr0, basis)
         rwm_lf0 = lowfreq_init(pm, od, frame0, eks)
-        rwm_rp0 = residual_init(rm, pm, od, tr0, eks) if n_rp else rwm_lf0
+        rwm_rp0 = residual_init(rm, pm, od, tr0, eks) if with_rp else rwm_lf0
 
         def _init_chain(ck, x, tr):
             k_path, k_run = jax.random.split(ck)
@@ -1019,9 +1024,6 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0), _summary_quantities(pm, eks)
 
     state0, ref_q = _setup(k_chains, y, mask, od, tr0, xs0, trs0)
-    block = make_block(pm, hyper, sched, rm, basis, tpoints, particles=particles, proposal=proposal,
-                       resampling=resampling, ancestor_sampling=ancestor_sampling, unroll=unroll,
-                       interweave=interweave, lowfreq_steps=n_lf, residual_steps=n_rp)
 
     n_blocks = sched.n_blocks
     n_chunks = max(1, -(-n_blocks // int(chunk_blocks)))
