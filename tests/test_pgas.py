@@ -553,32 +553,36 @@ def test_dispersed_start_fits_data_and_spreads_the_slow_directions():
 # Nonlinear model: every path move leaves the joint distribution of (path, data) invariant
 # ---------------------------------------------------------------------------
 _JOINT_T, _JOINT_DT, _JOINT_NOISE = 40, 0.05, (0.01, 0.05)
+_JOINT_PARAMS = dict(m=1.0, c=0.5, k=10.0, k3=1000.0, force_variance=1.0, force_lengthscale=0.5)
+
+
+def _joint_model():
+    """The stiffening Duffing model of the joint checks and its missing samples (both channels)."""
+    model = LatentForceModel(Duffing(), Matern(0), [Sensor("displacement", 0, _JOINT_NOISE[0]),
+                                                     Sensor("acceleration", 0, _JOINT_NOISE[1])])
+    pm = smc.ParticleModel(model, _JOINT_PARAMS, _JOINT_DT, initial=(0.0, 0.05))
+    mask = np.ones((_JOINT_T, 2), bool)
+    mask[10:15, 1] = False
+    mask[20:25, 0] = False
+    return pm, jnp.asarray(mask)
+
+
+def _joint_draw(pm, tr, mask, k_path, k_noise):
+    """One (path, data) from the model at transition ``tr``; NaN where ``mask`` is False."""
+    x = pm.path(pgas.gp_prior_path(k_path, tr, _JOINT_T))
+    y = pgas.predicted_observations(pm, x) + jnp.asarray(_JOINT_NOISE) * jax.random.normal(k_noise, (_JOINT_T, 2))
+    return x, jnp.where(mask, y, jnp.nan)
 
 
 @pytest.fixture(scope="module")
 def duffing_joint():
     """A strongly stiffening Duffing model (at the rms displacement 3 k3 z^2 is about 1.5 k) and
     2000 independent draws of (path, data) from its joint prior, some samples of both channels missing."""
-    T = _JOINT_T
-    model = LatentForceModel(Duffing(), Matern(0), [Sensor("displacement", 0, _JOINT_NOISE[0]),
-                                                     Sensor("acceleration", 0, _JOINT_NOISE[1])])
-    params = dict(m=1.0, c=0.5, k=10.0, k3=1000.0, force_variance=1.0, force_lengthscale=0.5)
-    pm = smc.ParticleModel(model, params, _JOINT_DT, initial=(0.0, 0.05))
+    pm, mask = _joint_model()
     tr = pm.transition(1.0, 0.5)
-    mask = np.ones((T, 2), bool)
-    mask[10:15, 1] = False
-    mask[20:25, 0] = False
-    mask = jnp.asarray(mask)
-    noise = jnp.asarray(_JOINT_NOISE)
-
-    def draw(key):
-        k_path, k_noise = jax.random.split(key)
-        x = pm.path(pgas.gp_prior_path(k_path, tr, T))
-        y = pgas.predicted_observations(pm, x) + noise * jax.random.normal(k_noise, (T, 2))
-        return x, jnp.where(mask, y, jnp.nan)
-
-    xs, ys = jax.jit(jax.vmap(draw))(jax.random.split(jax.random.key(0), 2000))
-    assert 3.0 * params["k3"] * float(jnp.mean(xs[:, :, 0] ** 2)) > params["k"]
+    xs, ys = jax.jit(jax.vmap(lambda key: _joint_draw(pm, tr, mask, *jax.random.split(key))))(
+        jax.random.split(jax.random.key(0), 2000))
+    assert 3.0 * _JOINT_PARAMS["k3"] * float(jnp.mean(xs[:, :, 0] ** 2)) > _JOINT_PARAMS["k"]
     return pm, tr, mask, xs, ys
 
 
@@ -664,18 +668,10 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
     10; the non-centred step's likelihood tempered by 10 %, 27 (the linear grid test above
     cannot see that one). Unbroken: |z| <= 2.1 over the 14 statistics.
     """
-    T, dt = _JOINT_T, _JOINT_DT
-    model = LatentForceModel(Duffing(), Matern(0), [Sensor("displacement", 0, _JOINT_NOISE[0]),
-                                                     Sensor("acceleration", 0, _JOINT_NOISE[1])])
-    params = dict(m=1.0, c=0.5, k=10.0, k3=1000.0, force_variance=1.0, force_lengthscale=0.5)
+    T = _JOINT_T
     free = {"force_variance": (LogNormal(0.0, 0.4), 1.0), "force_lengthscale": (LogNormal(np.log(0.5), 0.3), 0.5)}
-    pm = smc.ParticleModel(model, params, dt, initial=(0.0, 0.05))
-    hyper = pgas.Hyper(params, free)
-    mask = np.ones((T, 2), bool)
-    mask[10:15, 1] = False
-    mask[20:25, 0] = False
-    mask = jnp.asarray(mask)
-    noise = jnp.asarray(_JOINT_NOISE)
+    pm, mask = _joint_model()
+    hyper = pgas.Hyper(_JOINT_PARAMS, free)
     tr_ref = pm.transition(1.0, 0.5)
     basis = pgas.lowfreq_basis(T, 8)
     rm = pgas.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr_ref.Q)[pm.nfx:]))
@@ -689,9 +685,7 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
         k_theta, k_path, k_noise, k_chain = jax.random.split(key, 4)
         x = jnp.array([0.0, np.log(0.5)]) + jnp.array([0.4, 0.3]) * jax.random.normal(k_theta, (2,))
         tr = pm.transition(*hyper.values(x))
-        path = pm.path(pgas.gp_prior_path(k_path, tr, T))
-        y = jnp.where(mask, pgas.predicted_observations(pm, path) + noise * jax.random.normal(k_noise, (T, 2)),
-                      jnp.nan)
+        path, y = _joint_draw(pm, tr, mask, k_path, k_noise)
         od = pgas.observation_density(pm, y, mask)
         eks = pgas.extended_kalman_smoother(pm, tr_ref, y, mask)
         # fixed proposals: the non-centred step moves the whole path, so it takes smaller steps
