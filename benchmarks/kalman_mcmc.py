@@ -200,6 +200,7 @@ def ours_log_posterior(model, y, mask, thetas: np.ndarray):
     import jax
     import jax.numpy as jnp
 
+    from latentforce.compile import jit
     from latentforce.inference.kalman_mcmc import make_log_posterior
     from latentforce.priors import log_prob_unconstrained, softplus_inverse
 
@@ -207,7 +208,7 @@ def ours_log_posterior(model, y, mask, thetas: np.ndarray):
     priors = tuple(free[n][0] for n in FREE_NAMES)
     logpost, _ = make_log_posterior(model, {"m": MASS}, FREE_NAMES, priors, y, mask, DT)
     x = softplus_inverse(jnp.asarray(thetas))
-    batched_logpost = jax.jit(jax.vmap(logpost))
+    batched_logpost = jit(jax.vmap(logpost))
     batched_logpost(x).block_until_ready()  # compile outside the timings
     # The log prior is computed eagerly: no second compiled program just for the check.
     log_prior = sum(np.asarray(log_prob_unconstrained(prior, x[:, i])) for i, prior in enumerate(priors))

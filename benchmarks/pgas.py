@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import latentforce  # noqa: F401
+from latentforce.compile import jit
 from latentforce.inference import pgas, smc
 from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor
@@ -88,7 +89,7 @@ def jax_sweeps(pm, tr, y, ref, N, chains, n_inner):
         r, _ = jax.lax.scan(body, r, jax.random.split(key, n_inner))
         return r
 
-    f = jax.jit(jax.vmap(many))
+    f = jit(jax.vmap(many))
     keys = jax.random.split(jax.random.key(0, impl="rbg"), chains)
     refs = jnp.broadcast_to(jnp.asarray(ref), (chains,) + ref.shape)
     f(keys, refs).block_until_ready()

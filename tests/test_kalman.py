@@ -7,6 +7,7 @@ import pytest
 from scipy import stats
 
 import latentforce  # noqa: F401  (enables float64)
+from latentforce.compile import jit
 from latentforce.inference.kalman import (
     kalman_filter,
     kalman_smoother,
@@ -116,7 +117,7 @@ def test_backward_sampling_matches_smoother_moments():
     sm = kalman_smoother(A, Q, H, R, m0, P0, y)
     n_draws = 4000
     keys = jax.random.split(jax.random.key(0), n_draws)
-    draws = jax.jit(jax.vmap(lambda k: sample_smoothed_trajectory(k, A, Q, filt)))(keys)
+    draws = jit(jax.vmap(lambda k: sample_smoothed_trajectory(k, A, Q, filt)))(keys)
     sd = np.sqrt(np.diagonal(np.asarray(sm.covs), axis1=1, axis2=2))
     z = (np.asarray(draws.mean(0)) - np.asarray(sm.means)) / (sd / np.sqrt(n_draws))
     assert np.abs(z).max() < 5.0  # within 5 Monte-Carlo standard errors everywhere

@@ -7,6 +7,7 @@ import numpy as np
 from scipy import integrate
 
 import latentforce  # noqa: F401
+from latentforce.compile import jit
 from latentforce.inference import mcmc
 from latentforce.inference.kalman_mcmc import linear_gaussian, make_log_posterior, run_kalman_mcmc
 from latentforce.inference.kalman import log_likelihood
@@ -24,9 +25,9 @@ def test_rwm_recovers_correlated_gaussian():
     logdensity = lambda x: -0.5 * (x - mean) @ prec @ (x - mean)
     chains, burn, n = 4, 1500, 4000
     states = jax.vmap(lambda x: mcmc.init(x, logdensity, jnp.ones(2)))(jnp.zeros((chains, 2)) + 3.0)
-    burn_fn = jax.jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, burn, adapt=True,
+    burn_fn = jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, burn, adapt=True,
                                                           adapt_shape_at=(500, 1000), target=0.3)))
-    main_fn = jax.jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, n, adapt=False, target=0.3)))
+    main_fn = jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, n, adapt=False, target=0.3)))
     keys = jax.random.split(jax.random.key(0), 2 * chains)
     states, _, _ = burn_fn(keys[:chains], states)
     _, xs, infos = main_fn(keys[chains:], states)
@@ -65,7 +66,7 @@ def test_kalman_mcmc_matches_grid_posterior_of_one_parameter():
     prior = Normal(12.0, 4.0)
     fixed = dict(truth)
 
-    @jax.jit
+    @jit
     @jax.vmap
     def log_post_k(k):
         params = dict(fixed, k=k)

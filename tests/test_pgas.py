@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import latentforce  # noqa: F401  (enables float64)
+from latentforce.compile import jit
 from latentforce.inference import pgas, smc
 from latentforce.inference.kalman import kalman_smoother
 from latentforce.kernels import Matern
@@ -167,7 +168,7 @@ def _grid_problem():
 def _on_grid(f, X, chunk=4096):
     """``vmap(f)`` over the rows of ``X`` in chunks: one vmapped batch of 1e5 transitions stalled
     XLA's CPU runtime (batches above ~30000, jax 0.10.2); chunks of a few thousand take milliseconds."""
-    fv = jax.jit(jax.vmap(f))
+    fv = jit(jax.vmap(f))
     Xp = jnp.concatenate([X, jnp.zeros((-X.shape[0] % chunk, X.shape[1]))])
     return np.concatenate([np.asarray(fv(Xp[i:i + chunk])) for i in range(0, Xp.shape[0], chunk)])[: X.shape[0]]
 
@@ -213,7 +214,7 @@ def test_hyperparameter_mh_matches_grid_posterior():
     def log_target(x):
         return hyper.log_target(pm, x, xf)
 
-    @jax.jit
+    @jit
     def chain(key):
         k0, k1 = jax.random.split(key)
         # a dispersed start, away from the mode
@@ -310,7 +311,7 @@ def test_noncentred_mh_matches_grid_posterior():
     burn, n = 1000, 6000
     schedule = jnp.asarray(pgas.adaptation_schedule(burn))
 
-    @jax.jit
+    @jit
     def chain(key):
         state = pgas.init_proposal(hyper, log_target, jnp.zeros(2))
 
@@ -343,7 +344,7 @@ def _check_move_against_gaussian(move, record, init, start, burn, n, exact_mean,
     mean-square error within 5 Monte-Carlo standard errors (batch means), and the acceptance
     must be near the adapted target."""
 
-    @jax.jit
+    @jit
     def chain(key):
         def block(carry, inp):
             rwm, path = carry
@@ -394,10 +395,10 @@ def test_lowfreq_move_matches_exact_conditional():
     # exact conditional: the log target is quadratic in w
     lt = lambda w: pgas.lowfreq_log_target(pm, od, frame, eps_perp, w)[0]  # noqa: E731
     w0 = jnp.zeros_like(w_start)
-    prec = -np.asarray(jax.jit(jax.hessian(lt))(w0))
+    prec = -np.asarray(jit(jax.hessian(lt))(w0))
     cov = np.linalg.inv(prec)
-    w_mean = np.asarray(w0) + cov @ np.asarray(jax.jit(jax.grad(lt))(w0))
-    J = np.asarray(jax.jit(jax.jacfwd(functionals))(w0))
+    w_mean = np.asarray(w0) + cov @ np.asarray(jit(jax.grad(lt))(w0))
+    J = np.asarray(jit(jax.jacfwd(functionals))(w0))
     exact_mean = np.asarray(functionals(jnp.asarray(w_mean)))
     exact_sd = np.sqrt(np.diag(J @ cov @ J.T))
 
@@ -455,9 +456,9 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
         return jnp.array([jnp.mean(path[:, pm.nm]), path[0, 0]])
 
     lt = lambda c: pgas.residual_log_target(tr, pm, od, build, c)[0]  # noqa: E731
-    prec = -np.asarray(jax.jit(jax.hessian(lt))(c0))
+    prec = -np.asarray(jit(jax.hessian(lt))(c0))
     cov = np.linalg.inv(prec)
-    c_mean = cov @ np.asarray(jax.jit(jax.grad(lt))(c0))
+    c_mean = cov @ np.asarray(jit(jax.grad(lt))(c0))
 
     # independently: the path's density under the linear-Gaussian state-space model
     # (linear_discrete), which the move's target must equal up to a constant
@@ -469,11 +470,11 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
         r = (jnp.nan_to_num(prob["y"]) - x @ H.T) * mask
         return lp - 0.5 * jnp.sum(r**2 / jnp.diag(pm.R))
 
-    prec_ss = -np.asarray(jax.jit(jax.hessian(state_space_density))(c0))
+    prec_ss = -np.asarray(jit(jax.hessian(state_space_density))(c0))
     np.testing.assert_allclose(prec_ss, prec, rtol=1e-5, atol=1e-6 * np.abs(prec).max())
     np.testing.assert_allclose(np.linalg.solve(prec_ss, np.asarray(jax.grad(state_space_density)(c0))), c_mean,
                                atol=1e-5 * np.sqrt(np.diag(cov)).max())
-    J = np.asarray(jax.jit(jax.jacfwd(lambda c: functionals(build(c)[1])))(c0))
+    J = np.asarray(jit(jax.jacfwd(lambda c: functionals(build(c)[1])))(c0))
     exact_mean = np.asarray(functionals(build(jnp.asarray(c_mean))[1]))
     exact_sd = np.sqrt(np.diag(J @ cov @ J.T))
     # the Gauss-Newton shape, computed at another path, is the exact covariance (linear model)
@@ -537,7 +538,7 @@ def test_dispersed_start_fits_data_and_spreads_the_slow_directions():
     frame = pgas.LowFrequencyFrame(tr, pgas.lowfreq_basis(T, 16))
     rwm_lf = pgas.lowfreq_init(pm, od, frame, eks)
     q = rwm_lf.x.shape[0]
-    starts = jax.jit(jax.vmap(lambda k: pgas.dispersed_start(k, pm, frame, rwm_lf, eks)))(
+    starts = jit(jax.vmap(lambda k: pgas.dispersed_start(k, pm, frame, rwm_lf, eks)))(
         jax.random.split(jax.random.key(5), 64))
     ll = jax.vmap(lambda p: pgas.observation_log_likelihood(pm, od, p))(starts)
     ll_eks = float(pgas.observation_log_likelihood(pm, od, eks))
@@ -580,7 +581,7 @@ def duffing_joint():
     2000 independent draws of (path, data) from its joint prior, some samples of both channels missing."""
     pm, mask = _joint_model()
     tr = pm.transition(1.0, 0.5)
-    xs, ys = jax.jit(jax.vmap(lambda key: _joint_draw(pm, tr, mask, *jax.random.split(key))))(
+    xs, ys = jit(jax.vmap(lambda key: _joint_draw(pm, tr, mask, *jax.random.split(key))))(
         jax.random.split(jax.random.key(0), 2000))
     assert 3.0 * _JOINT_PARAMS["k3"] * float(jnp.mean(xs[:, :, 0] ** 2)) > _JOINT_PARAMS["k"]
     return pm, tr, mask, xs, ys
@@ -641,8 +642,8 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
                                           adapt=False, step0=0, reshape_steps=jnp.asarray((-1,)))
         return x, jnp.mean(acc.astype(float))
 
-    x1, acc = jax.jit(jax.vmap(move))(jax.random.split(jax.random.key(1), xs.shape[0]), xs, ys)
-    stats = jax.jit(jax.vmap(lambda x, y: _joint_statistics(pm, tr, mask, x, y)))
+    x1, acc = jit(jax.vmap(move))(jax.random.split(jax.random.key(1), xs.shape[0]), xs, ys)
+    stats = jit(jax.vmap(lambda x, y: _joint_statistics(pm, tr, mask, x, y)))
     d = np.asarray(stats(x1, ys) - stats(xs, ys))
     # the check has power only if the paths do move (acceptance, or the sweep's switch rate)
     assert np.mean(np.any(np.abs(np.asarray(x1 - xs)) > 0.0, axis=(1, 2))) > 0.9
@@ -699,7 +700,7 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
                                 jnp.zeros((n_draws + 1, T, pm.n_state)))
         return state, pgas.BlockData(y, mask, od, jnp.zeros((T, nq)))
 
-    @jax.jit
+    @jit
     def run(keys):
         states, data = jax.vmap(draw)(keys)
         end, info = jax.lax.scan(lambda s, b: jax.vmap(block, (0, None, 0))(s, b, data), states,

@@ -7,6 +7,7 @@ import pytest
 from scipy import integrate, stats
 
 import latentforce  # noqa: F401  (enables float64)
+from latentforce.compile import jit
 from latentforce.priors import (
     Flat,
     Gamma,
@@ -89,14 +90,14 @@ def test_log_jacobian_is_log_sigmoid():
 
 def test_jit_and_vmap_over_priors_and_points():
     prior = Gamma(2.0, 3.0)
-    f = jax.jit(lambda p, x: log_prob_unconstrained(p, x))
+    f = jit(lambda p, x: log_prob_unconstrained(p, x))
     x = jnp.linspace(-3, 3, 7)
     np.testing.assert_allclose(f(prior, x), jax.vmap(lambda xi: f(prior, xi))(x))
     # A batch of priors (vmap over its leaves), e.g. one per chain.
     batch = Gamma(jnp.array([1.0, 2.0]), jnp.array([1.0, 3.0]))
     lp = jax.vmap(lambda p: p.log_prob(0.5))(batch)
     np.testing.assert_allclose(lp, [stats.gamma(1.0).logpdf(0.5), stats.gamma(2.0, scale=1 / 3).logpdf(0.5)])
-    assert float(jax.jit(lambda x: Flat().log_prob(x))(2.0)) == 0.0
+    assert float(jit(lambda x: Flat().log_prob(x))(2.0)) == 0.0
 
 
 def test_prior_families_never_compare_equal():

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import latentforce  # noqa: F401  (enables float64)
+from latentforce.compile import jit
 from latentforce.inference import smc
 from latentforce.inference.kalman import log_likelihood
 from latentforce.kernels import Matern
@@ -111,7 +112,7 @@ def test_particle_filter_log_likelihood_is_unbiased(proposal, particles, noise):
     runs = 300
     keys = jax.random.split(jax.random.key(7), runs)
     ref = jnp.zeros((prob["y"].shape[0], prob["pm"].n_state))
-    L = np.asarray(jax.jit(jax.vmap(lambda k: sweep(k, sc, ref).info.log_likelihood))(keys))
+    L = np.asarray(jit(jax.vmap(lambda k: sweep(k, sc, ref).info.log_likelihood))(keys))
     assert np.all(np.isfinite(L))
     # the CLT on W needs a modest log-variance; the tests are set up so that it holds
     assert L.std() < 1.25, L.std()
@@ -130,7 +131,7 @@ def test_optimal_proposal_has_lower_variance():
         sweep = smc.make_sweep(prob["pm"], 50, proposal=proposal, conditional=False)
         keys = jax.random.split(jax.random.key(3), 100)
         ref = jnp.zeros((prob["y"].shape[0], prob["pm"].n_state))
-        out[proposal] = np.asarray(jax.jit(jax.vmap(lambda k: sweep(k, sc, ref).info.log_likelihood))(keys)).std()
+        out[proposal] = np.asarray(jit(jax.vmap(lambda k: sweep(k, sc, ref).info.log_likelihood))(keys)).std()
     assert out["optimal"] < out["bootstrap"]
 
 
@@ -144,7 +145,7 @@ def test_conditional_sweep_keeps_reference_and_compiles_once():
         traces.append(1)  # runs only while tracing
         return sweep(key, sc, ref)
 
-    f = jax.jit(f)
+    f = jit(f)
     sc = smc.sweep_constants(pm, prob["tr"], prob["y"], prob["mask"])
     ref = pm.path(jnp.zeros((30, pm.nl)))
     out1 = f(jax.random.key(0), sc, ref)

@@ -147,6 +147,7 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
 def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict,
               progress, t0: float) -> RunResult:
     """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
+    from latentforce.compile import jit
     from latentforce.inference.pgas import run_pgas
 
     model = problem.model
@@ -159,7 +160,8 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
         mean, sd = problem.initial
         initial = (np.asarray(mean)[: model.n_mech], np.asarray(sd)[: model.n_mech])
     else:
-        m0, P0 = model.default_initial(params0)
+        # one compiled program: op by op its small solves compiled some dozens of programs
+        m0, P0 = jit(model.default_initial)(params0)
         initial = (np.asarray(m0)[: model.n_mech], np.sqrt(np.diag(np.asarray(P0))[: model.n_mech]))
     # PGAS needs a conditional resampling scheme; multinomial is the valid one we have.
     out = run_pgas(key, model, params0, free, np.where(mask, y, np.nan), mask, dataset.dt,

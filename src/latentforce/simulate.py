@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from latentforce.compile import jit
 from latentforce.models import LatentForceModel, Sensor
 
 
@@ -95,10 +96,10 @@ def simulate(key, model: LatentForceModel, params: dict, n_samples: int, dt: flo
     if force is None:
         # one compiled program: op by op, the kernel's discretisation alone compiled
         # some hundred tiny programs (about 5 s of a quick demo)
-        u_fine = jax.jit(lambda k: gp_force(k, model, params, n_fine, dt_fine))(key)
+        u_fine = jit(lambda k: gp_force(k, model, params, n_fine, dt_fine))(key)
     else:
         u_fine = jnp.reshape(jnp.asarray(force(t_fine), dtype=float), (n_fine, model.nforce))
-    z, v, a = jax.jit(lambda u: integrate(model, params, u, dt_fine, z0, v0))(u_fine)
+    z, v, a = jit(lambda u: integrate(model, params, u, dt_fine, z0, v0))(u_fine)
     pick = lambda x: np.asarray(x[::substeps])
     return Simulation(np.arange(n_samples) * dt, pick(z), pick(v), pick(a), pick(u_fine))
 

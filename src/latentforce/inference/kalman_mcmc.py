@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from latentforce.compile import jit
 from latentforce.inference import mcmc
 from latentforce.inference.kalman import (
     kalman_filter,
@@ -145,7 +146,7 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     # A 10 % step in the physical value (or 0.1 in x where the value is below one).
     sd0 = 0.1 * np.maximum(1.0, theta0)
 
-    init_fn = jax.jit(jax.vmap(lambda x, s: mcmc.init(x, logpost, s)))
+    init_fn = jit(jax.vmap(lambda x, s: mcmc.init(x, logpost, s)))
     states = init_fn(jnp.asarray(x0), jnp.asarray(sd0))
     shape_at = tuple(sorted({burn_in // 4, burn_in // 2, (3 * burn_in) // 4} - {0}))
 
@@ -154,7 +155,7 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     burn_total = -(-burn_in // n_chunk) * n_chunk
     total = burn_total + -(-iterations // n_chunk) * n_chunk
 
-    @jax.jit
+    @jit
     @functools.partial(jax.vmap, in_axes=(0, 0, None, None))
     def runner(k, s, start, adapt):
         return mcmc.run_chain(k, s, logpost, n_chunk, adapt=adapt, adapt_shape_at=shape_at,
@@ -232,7 +233,7 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
         path = sample_smoothed_trajectory(k, A, Q, filt)
         return sm.means, jnp.diagonal(sm.covs, axis1=-2, axis2=-1), path, filt.log_likelihood
 
-    batched = jax.jit(jax.vmap(one))
+    batched = jit(jax.vmap(one))
     keys = jax.random.split(key, flat.shape[0])
     parts = [batched(keys[start:start + batch], jnp.asarray(flat[start:start + batch]))
              for start in range(0, flat.shape[0], batch)]

@@ -102,6 +102,7 @@ import numpy as np
 from jax.scipy.linalg import cho_solve
 from jaxtyping import Array, Float
 
+from latentforce.compile import jit
 from latentforce.inference import mcmc, smc
 from latentforce.inference.kalman import _update
 from latentforce.linalg import symmetrise
@@ -981,10 +982,10 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     # ---- initialisation (outside the loop; never from the truth), in compiled programs:
     # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
     x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
-    od = jax.jit(lambda y_, m_: observation_density(pm, y_, m_))(y, mask)
+    od = jit(lambda y_, m_: observation_density(pm, y_, m_))(y, mask)
     k_theta, k_chains = jax.random.split(key)
 
-    @jax.jit
+    @jit
     def _start_transitions(k):
         # the chains' dispersed starts theta_0 exp(0.5 eps), and the transitions at theta_0
         # and at those, from one place in the program (each place compiles its own matrix
@@ -1001,7 +1002,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
                        interweave=interweave, lowfreq_steps=lowfreq_steps, residual_steps=residual_steps)
     with_rp = rm.applies and int(residual_steps) > 0
 
-    @jax.jit
+    @jit
     def _setup(k_chains, y, mask, od, tr0, xs0, trs0):
         eks = extended_kalman_smoother(pm, tr0, y, mask)
         # the Gauss-Newton shape is exact for linear models; for nonlinear ones it is
@@ -1033,7 +1034,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     # JAX's persistent cache entry) then serves every record of the same shape
     data = BlockData(y, mask, od, ref_q)
 
-    @jax.jit
+    @jit
     def _run_chunk(states, blocks, data):
         states, info = jax.lax.scan(lambda s, b: jax.vmap(block, (0, None, None))(s, b, data), states, blocks)
         return states, jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), info)  # chains first

@@ -127,6 +127,7 @@ from jax.scipy.linalg import cho_factor, cho_solve, solve_triangular
 from jaxtyping import Array, Bool, Float, Int
 
 from latentforce.kernels import KernelParams, Matern
+from latentforce.compile import jit
 from latentforce.linalg import symmetrise, van_loan
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -255,7 +256,7 @@ class ParticleModel:
         zero_mech, zero_f = jnp.zeros(self.nm), jnp.zeros(self.nfx)
 
         # one compiled program (op by op, each primitive compiled on its own)
-        @jax.jit
+        @jit
         def _jacobians():
             D = jax.jacfwd(lambda xf: self.model.observe(self._gp_dummy(), jnp.concatenate([zero_mech, xf])))(zero_f)
             # Observation Jacobian in the latent (x_f, w) about rest: the proposal's linearisation
@@ -264,7 +265,7 @@ class ParticleModel:
             return D, D_latent, jax.jacfwd(self.phi, argnums=1)(zero_mech, zero_f)
 
         self.D, self.D_latent, self._phi_force = _jacobians()
-        self.mech0_mean, self.mech0_cov = jax.jit(self.initial_mech)(initial)  # None: an empty pytree
+        self.mech0_mean, self.mech0_cov = jit(self.initial_mech)(initial)  # None: an empty pytree
 
     # ----- pieces of the model ---------------------------------------------
     def _hold(self, xf: Float[Array, " nf"], s) -> Float[Array, " nforce"]:
