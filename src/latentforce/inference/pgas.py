@@ -803,6 +803,39 @@ def schedule(burn_in: int, iterations: int, state_every: int = 1, mh_steps: int 
     return Schedule(k_every, n_mh, int(burn_in), total, n_blocks, burn_blocks, thin, n_draws)
 
 
+def path_move_shapes(pm: smc.ParticleModel, rm: ResidualMove, basis, od: ObservationDensity,
+                     tr: smc.Transition, path: Float[Array, "T n"], with_residual: bool
+                     ) -> tuple[mcmc.RWMState, mcmc.RWMState]:
+    """Fresh low-frequency and residual-preserving walks shaped at ``path`` (:func:`lowfreq_init`,
+    :func:`residual_init`); without the residual move its walk is a copy of the other."""
+    lf = lowfreq_init(pm, od, LowFrequencyFrame(tr, basis), path)
+    return lf, (residual_init(rm, pm, od, tr, path) if with_residual else lf)
+
+
+def reshape_chunks(n_blocks: int, burn_blocks: int, chunk_blocks: int, nonlinear: bool
+                   ) -> tuple[int, list[tuple[int, int]], tuple[int, ...]]:
+    """``(scan_len, segments, reshape_at)``: how :func:`run_pgas` runs its blocks.
+
+    ``segments``: the ``(start, end)`` runs of blocks, each one call of one
+    compiled program that scans ``scan_len >= end - start`` blocks and skips
+    those at or past ``end``. ``reshape_at``: the blocks before which the path
+    moves are re-shaped at each chain's path. For a linear model the
+    Gauss-Newton shapes from the smoother are exact and nothing is re-shaped.
+    For a nonlinear one the chain's path moves away from the smoother's, so the
+    shapes are re-computed at fractions ``_RESHAPE_AT`` of the burn-in, by a
+    program of their own shared with the start: inside the block (under a
+    conditional) they added a quarter to its compile time. A scan of fixed
+    length with skipped iterations, not one program per segment length: XLA
+    unrolls short scans, and the block compiled twice as long at length 2.
+    """
+    chunk_blocks = max(1, int(chunk_blocks))
+    scan_len = -(-n_blocks // max(1, -(-n_blocks // chunk_blocks)))
+    at = () if not nonlinear else tuple(sorted(
+        {int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1}))
+    bounds = sorted(set(range(0, n_blocks, scan_len)) | {b for b in at if b < n_blocks} | {n_blocks})
+    return scan_len, list(zip(bounds[:-1], bounds[1:])), at
+
+
 def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: ResidualMove, basis, tpoints, *,
                particles: int = 50, proposal: str = "optimal", resampling: str = "multinomial",
                ancestor_sampling: bool = True, unroll: int = 1, interweave: bool = True,
@@ -815,9 +848,10 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
     post-burn-in running sums and thinned draws; then ``state_every``
     Metropolis-within-Gibbs iterations of ``mh_steps`` centred and (with
     ``interweave``) non-centred steps on :math:`\theta`. Blocks
-    ``b < sched.burn_blocks`` adapt the proposals (and, for nonlinear systems,
-    re-shape the path moves at the chain's path); later blocks are a fixed
-    kernel. ``b`` must be shared by vmapped chains (it drives conditionals);
+    ``b < sched.burn_blocks`` adapt the proposals' scales; later blocks are a
+    fixed kernel. The path moves' shapes are the caller's (for nonlinear
+    systems :func:`run_pgas` re-computes them between burn-in blocks with
+    :func:`path_move_shapes`). ``b`` must be shared by vmapped chains (it drives conditionals);
     ``data`` (:class:`BlockData`) may be shared or batched. ``tpoints``: the
     time indices whose force values are recorded.
 
@@ -842,17 +876,7 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
     n_rp = n_rp if rm.applies else 0
 
     lf_reshape = jnp.asarray((-1,))
-    lf_regauge = () if pm.is_linear else tuple(
-        sorted({int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1}))
     interweave = bool(interweave) and p > 0
-
-    def _regauged(rwm, b, fresh: Callable):
-        """At the regauge blocks, the Gauss-Newton shape of ``fresh()`` with ``rwm``'s adapted scale."""
-        if not lf_regauge:
-            return rwm
-        # b is not batched over chains, so this stays a conditional under vmap
-        return jax.lax.cond(jnp.any(b == jnp.asarray(lf_regauge)),
-                            lambda r: fresh()._replace(log_scale=r.log_scale, count=r.count), lambda r: r, rwm)
 
     def _block(state: ChainState, b, data: BlockData):
         """One Gibbs block of one chain (:func:`make_block`)."""
@@ -864,13 +888,11 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
         rwm_lf, acc_lf = state.rwm_lf, jnp.zeros(())
         if n_lf:
             frame = LowFrequencyFrame(tr, basis)
-            rwm_lf = _regauged(rwm_lf, b, lambda: lowfreq_init(pm, data.od, frame, path))
             rwm_lf, path, accs_lf = lowfreq_move(k_lf, rwm_lf, pm, data.od, frame, path, n_lf, adapt=b < burn_blocks,
                                                  step0=b * n_lf, reshape_steps=lf_reshape)
             acc_lf = jnp.mean(accs_lf.astype(float))
         rwm_rp, acc_rp = state.rwm_rp, jnp.zeros(())
         if n_rp:
-            rwm_rp = _regauged(rwm_rp, b, lambda: residual_init(rm, pm, data.od, tr, path))
             rwm_rp, path, accs_rp = residual_move(k_rp, rwm_rp, rm, pm, data.od, tr, path, n_rp, adapt=b < burn_blocks)
             acc_rp = jnp.mean(accs_rp.astype(float))
         # ---- accumulate post-burn-in state samples
@@ -1003,50 +1025,74 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     with_rp = rm.applies and int(residual_steps) > 0
 
     @jit
-    def _setup(k_chains, y, mask, od, tr0, xs0, trs0):
+    def _smooth(y, mask, tr0):
         eks = extended_kalman_smoother(pm, tr0, y, mask)
-        # the Gauss-Newton shape is exact for linear models; for nonlinear ones it is
-        # recomputed at each chain's own path at the end of the burn-in windows
-        # (adaptation: burn-in only), and the scale adapts throughout the burn-in
-        frame0 = LowFrequencyFrame(tr0, basis)
-        rwm_lf0 = lowfreq_init(pm, od, frame0, eks)
-        rwm_rp0 = residual_init(rm, pm, od, tr0, eks) if with_rp else rwm_lf0
+        # ref_q: centring of the running sums (numerical stability)
+        return eks, _summary_quantities(pm, eks)
 
-        def _init_chain(ck, x, tr):
+    # One program shapes the path moves (Gauss-Newton, a Jacobian through the path
+    # rebuild: a large program) at the smoother's path and, for nonlinear models, at
+    # each chain's path between burn-in chunks; inside the block it compiled again.
+    @jit
+    def _shapes(od, trs, paths):
+        return jax.vmap(lambda tr_, x_: path_move_shapes(pm, rm, basis, od, tr_, x_, with_rp))(trs, paths)
+
+    @jit
+    def _init_chains(k_chains, tr0, eks, xs0, trs0, lfs, rps):
+        frame0 = LowFrequencyFrame(tr0, basis)
+
+        def _init_chain(ck, x, tr, lf, rp):
             k_path, k_run = jax.random.split(ck)
-            ref = dispersed_start(k_path, pm, frame0, rwm_lf0, eks)
+            ref = dispersed_start(k_path, pm, frame0, lf, eks)
             # the log density is set at the first block
             rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
-            return ChainState(k_run, ref, rwm, rwm, rwm_lf0, rwm_rp0, tr, jnp.zeros((), jnp.int32),
+            return ChainState(k_run, ref, rwm, rwm, lf, rp, tr, jnp.zeros((), jnp.int32),
                               jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
                               jnp.zeros((sched.n_draws + 1, T, pm.n_state)))
 
-        # ref_q: centring of the running sums (numerical stability)
-        return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0), _summary_quantities(pm, eks)
+        return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps)
 
-    state0, ref_q = _setup(k_chains, y, mask, od, tr0, xs0, trs0)
+    eks, ref_q = _smooth(y, mask, tr0)
+
+    def per_chain(a):
+        return np.broadcast_to(np.asarray(a), (chains,) + np.shape(a))
+
+    lfs, rps = _shapes(od, jax.tree_util.tree_map(per_chain, tr0), per_chain(eks))
+    states = _init_chains(k_chains, tr0, eks, xs0, trs0, lfs, rps)
 
     n_blocks = sched.n_blocks
-    n_chunks = max(1, -(-n_blocks // int(chunk_blocks)))
-    chunk_len = -(-n_blocks // n_chunks)
+    scan_len, segments, reshape_at = reshape_chunks(n_blocks, sched.burn_blocks, chunk_blocks, not pm.is_linear)
 
     # the data are arguments, not constants of the program: a compiled program (and
     # JAX's persistent cache entry) then serves every record of the same shape
     data = BlockData(y, mask, od, ref_q)
+    # traced once, for the shapes of its output (the skipped blocks') and in the scan
+    vblock = jax.jit(jax.vmap(block, (0, None, None)))
+    info_shapes = jax.eval_shape(vblock, states, jax.ShapeDtypeStruct((), jnp.int32), data)[1]
 
     @jit
-    def _run_chunk(states, blocks, data):
-        states, info = jax.lax.scan(lambda s, b: jax.vmap(block, (0, None, None))(s, b, data), states, blocks)
+    def _run_chunk(states, blocks, end, data):
+        def skip(s):
+            return s, jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), info_shapes)
+
+        def body(s, b):
+            return jax.lax.cond(b < end, lambda s_: vblock(s_, b, data), skip, s)
+
+        states, info = jax.lax.scan(body, states, blocks)
         return states, jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), info)  # chains first
 
     infos = []
-    states = state0
-    for c in range(n_chunks):
-        states, info = _run_chunk(states, jnp.arange(c * chunk_len, (c + 1) * chunk_len, dtype=jnp.int32), data)
-        infos.append(jax.tree_util.tree_map(np.asarray, info))
+    for start, end in segments:
+        if start in reshape_at:  # new shapes, the adapted scales kept
+            lfs, rps = _shapes(od, states.tr, states.reference)
+            states = states._replace(
+                rwm_lf=lfs._replace(log_scale=states.rwm_lf.log_scale, count=states.rwm_lf.count),
+                rwm_rp=rps._replace(log_scale=states.rwm_rp.log_scale, count=states.rwm_rp.count))
+        states, info = _run_chunk(states, np.arange(start, start + scan_len, dtype=np.int32), np.int32(end), data)
+        infos.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, :end - start], info))
         if progress is not None:
-            acc = float(np.mean(info.accept))
-            progress(min((c + 1) * chunk_len, n_blocks) * sched.state_every, n_blocks * sched.state_every, acc)
+            acc = float(np.mean(infos[-1].accept))
+            progress(end * sched.state_every, n_blocks * sched.state_every, acc)
     info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)
     info = jax.tree_util.tree_map(lambda a: a[:, :n_blocks], info)
     return _assemble(pm, hyper, states, info, ref_q, sched.burn_in, sched.total, sched.burn_blocks, sched.n_draws,
