@@ -22,7 +22,7 @@ first innovation) of every column of the latent's whitened innovations (the
 non-centred coordinates, prior :math:`N(0, I)`), the path being rebuilt by
 ``colour`` and :meth:`~smc.ParticleModel.path`; the proposal's shape is a
 Gauss-Newton posterior covariance at the initial path (for nonlinear
-systems recomputed at each chain's path at the end of the burn-in windows)
+systems recomputed at each chain's path at 5, 10, 20, 40, 70 % of the burn-in)
 and its scale adapts in burn-in.
 
 **Residual-preserving trajectory move.** On a stiffening system the slow
