@@ -12,6 +12,14 @@ block, one core):
   pipeline; a further 22 s -> 18 s, run time equal within the noise (the kernels
   are latency-bound, so the deeper loop optimisations buy nothing).
 
+* ``xla_cpu_multi_thread_eigen = False``: Eigen's matrix routines run on the
+  calling thread, not on the intra-op thread pool. With the older emitters our
+  small dots go to Eigen, and a fresh-clone CI run hung once for good inside
+  a Gibbs chunk: every XLA thread parked on a futex, the main thread in
+  ``BlockUntilReady``. Others report the same wedge of XLA CPU's Eigen pool
+  on vmapped graphs, gone with this option. Our matrices are a few states
+  across, so the pool bought nothing.
+
 The options are per program (``jax.jit(compiler_options=...)``), so they apply
 to our programs only and only on the CPU backend. A jaxlib that no longer
 knows an option rejects it with an error, not a crash: :func:`cpu_options`
@@ -26,7 +34,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
-CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
+CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1,
+               "xla_cpu_multi_thread_eigen": False}
 
 
 @functools.lru_cache(maxsize=1)
