@@ -10,15 +10,15 @@ block, one core):
   far less LLVM IR per fused kernel; compile time 27 s -> 22 s, run time equal;
 * ``xla_backend_optimization_level = 1`` (default 2): LLVM's cheaper
   pipeline; a further 22 s -> 18 s, run time equal within the noise (the kernels
-  are latency-bound, so the deeper loop optimisations buy nothing).
-
-* ``xla_cpu_multi_thread_eigen = False``: Eigen's matrix routines run on the
-  calling thread, not on the intra-op thread pool. With the older emitters our
-  small dots go to Eigen, and a fresh-clone CI run hung once for good inside
-  a Gibbs chunk: every XLA thread parked on a futex, the main thread in
-  ``BlockUntilReady``. Others report the same wedge of XLA CPU's Eigen pool
-  on vmapped graphs, gone with this option. Our matrices are a few states
-  across, so the pool bought nothing.
+  are latency-bound, so the deeper loop optimisations buy nothing);
+* ``xla_cpu_multi_thread_eigen = False``: Eigen's routines run on the calling
+  thread, not on XLA's intra-op thread pool. With the two options above, one
+  fresh-clone CI run of the test suite hung for good inside a Gibbs chunk:
+  every XLA thread parked on a futex, the main thread in ``BlockUntilReady``
+  (an earlier run of the same code passed). Others report the same wedge of
+  XLA CPU's Eigen pool on vmapped graphs, gone with this option; whether the
+  older emitters make it likelier here is not known. Our matrices are a few
+  states across, so the pool bought nothing.
 
 The options are per program (``jax.jit(compiler_options=...)``), so they apply
 to our programs only and only on the CPU backend. A jaxlib that no longer
