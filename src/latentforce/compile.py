@@ -3,8 +3,8 @@
 The samplers are a few large programs of many tiny operations on small arrays
 (a particle sweep is ~20 kernels per time step on arrays of 50 numbers), so on
 a CPU their first run is dominated by XLA's compile time, not by arithmetic.
-Two XLA CPU options change that (measured on the quick Duffing demo's Gibbs
-block, one core):
+The first two XLA CPU options below change that (measured on the quick
+Duffing demo's Gibbs block, one core); the third keeps runs from hanging:
 
 * ``xla_cpu_use_fusion_emitters = False``: the older loop emitters generate
   far less LLVM IR per fused kernel; compile time 27 s -> 22 s, run time equal;

@@ -836,6 +836,11 @@ def reshape_chunks(n_blocks: int, burn_blocks: int, chunk_blocks: int, nonlinear
     return scan_len, list(zip(bounds[:-1], bounds[1:])), at
 
 
+def _with_scale_of(fresh: mcmc.RWMState, adapted: mcmc.RWMState) -> mcmc.RWMState:
+    """``fresh``'s shape with ``adapted``'s scale and adaptation count (the re-shaping keeps the scale)."""
+    return fresh._replace(log_scale=adapted.log_scale, count=adapted.count)
+
+
 def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: ResidualMove, basis, tpoints, *,
                particles: int = 50, proposal: str = "optimal", resampling: str = "multinomial",
                ancestor_sampling: bool = True, unroll: int = 1, interweave: bool = True,
@@ -1085,16 +1090,14 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     for start, end in segments:
         if start in reshape_at:  # new shapes, the adapted scales kept
             lfs, rps = _shapes(od, states.tr, states.reference)
-            states = states._replace(
-                rwm_lf=lfs._replace(log_scale=states.rwm_lf.log_scale, count=states.rwm_lf.count),
-                rwm_rp=rps._replace(log_scale=states.rwm_rp.log_scale, count=states.rwm_rp.count))
+            states = states._replace(rwm_lf=_with_scale_of(lfs, states.rwm_lf),
+                                     rwm_rp=_with_scale_of(rps, states.rwm_rp))
         states, info = _run_chunk(states, np.arange(start, start + scan_len, dtype=np.int32), np.int32(end), data)
         infos.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, :end - start], info))
         if progress is not None:
             acc = float(np.mean(infos[-1].accept))
             progress(end * sched.state_every, n_blocks * sched.state_every, acc)
-    info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)
-    info = jax.tree_util.tree_map(lambda a: a[:, :n_blocks], info)
+    info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)  # the segments tile the blocks
     return _assemble(pm, hyper, states, info, ref_q, sched.burn_in, sched.total, sched.burn_blocks, sched.n_draws,
                      tpoints)
 

@@ -126,8 +126,8 @@ import numpy as np
 from jax.scipy.linalg import cho_factor, cho_solve, solve_triangular
 from jaxtyping import Array, Bool, Float, Int
 
-from latentforce.kernels import KernelParams, Matern
 from latentforce.compile import jit
+from latentforce.kernels import KernelParams, Matern
 from latentforce.linalg import symmetrise, van_loan
 
 _LOG_2PI = math.log(2.0 * math.pi)
