@@ -1,5 +1,7 @@
 """``latentforce.compile.jit``: jax.jit with our XLA CPU options, and its fallback."""
 
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -50,3 +52,79 @@ def test_an_unknown_option_falls_back_to_the_defaults(monkeypatch):
     finally:
         monkeypatch.undo()
         lc.cpu_options.cache_clear()
+
+
+# ---------------------------------------------------------------------------
+# XLA CPU's small-loop threshold (set in XLA_FLAGS when the package is imported)
+# ---------------------------------------------------------------------------
+def test_threshold_is_added_to_xla_flags_unless_the_user_set_backend_options(monkeypatch):
+    from jax._src import xla_bridge
+
+    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: False)
+    env = {}
+    assert lc.raise_small_loop_threshold(env)
+    assert env["XLA_FLAGS"] == (f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
+                                f"{lc.SMALL_LOOP_BYTES}")
+    env = {"XLA_FLAGS": "--xla_dump_to=/tmp/x"}
+    assert lc.raise_small_loop_threshold(env)
+    assert env["XLA_FLAGS"].startswith("--xla_dump_to=/tmp/x --xla_backend_extra_options=")
+    mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=5"
+    env = {"XLA_FLAGS": mine}
+    assert not lc.raise_small_loop_threshold(env)  # the user's own backend options are kept
+    assert env["XLA_FLAGS"] == mine
+    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: True)
+    env = {}
+    assert not lc.raise_small_loop_threshold(env)  # too late: the backend read XLA_FLAGS already
+    assert env == {}
+
+
+_HOIST_PROBE = """
+import sys
+import jax
+if sys.argv[1] == "plain":
+    jax.devices()  # the backend starts before latentforce is imported: XLA_FLAGS is left alone
+import jax.numpy as jnp
+import numpy as np
+from latentforce.inference import pgas, smc
+from latentforce.kernels import Matern
+from latentforce.models import LatentForceModel, Sensor
+from latentforce.systems import Duffing
+T = 64
+model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1), Sensor("displacement", 0, 0.01)])
+params = dict(m=1.0, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthscale=0.5)
+pm = smc.ParticleModel(model, params, 0.01, initial=(0.0, 0.01))
+path = pm.path(jnp.zeros((T, pm.nl)))
+y = jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path)
+od = pgas.observation_density(pm, y, jnp.ones(y.shape, bool))
+rm = pgas.ResidualMove(pm, T, 8, np.ones(pm.nm))
+build = rm.builder(pm, od, path)
+text = jax.jit(jax.vmap(lambda c: build(c)[1])).lower(jnp.zeros((2, rm.dim))).compile().as_text()
+print("hoisted" if "xla_cpu_small_call" in text else "stepped")
+"""
+
+
+def test_the_threshold_makes_xla_run_batched_rebuild_loops_as_one_function(tmp_path):
+    """In a fresh process, importing latentforce before JAX starts makes XLA compile the residual
+    move's rebuild, batched over two chains, into one function (frontend attribute
+    ``xla_cpu_small_call``); with the default threshold XLA steps it through its thunks."""
+    import os
+    import subprocess
+    import sys
+
+    if jax.default_backend() != "cpu":
+        pytest.skip("a CPU-backend setting")
+    script = tmp_path / "probe.py"
+    script.write_text(_HOIST_PROBE)
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(lc.__file__).parents[1]), env.get("PYTHONPATH", "")])
+
+    def probe(mode):
+        out = subprocess.run([sys.executable, str(script), mode], capture_output=True, text=True, env=env,
+                             timeout=300)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split()[-1]
+
+    plain, ours = probe("plain"), probe("latentforce")
+    if plain == "hoisted":
+        pytest.skip("this jaxlib already runs the rebuild loop as one function")
+    assert ours == "hoisted"
