@@ -4,22 +4,21 @@ The samplers are a few large programs of many tiny operations on small arrays
 (a particle sweep is ~20 kernels per time step on arrays of 50 numbers), so on
 a CPU their first run is dominated by XLA's compile time, not by arithmetic.
 The first two XLA CPU options below change that (measured on the quick
-Duffing demo's Gibbs block, one core); the third keeps runs from hanging; the
-fourth makes the sweep faster:
+Duffing demo's Gibbs block, one core); the third keeps Eigen off XLA's
+thread pool; the fourth makes the sweep faster:
 
 * ``xla_cpu_use_fusion_emitters = False``: the older loop emitters generate
   far less LLVM IR per fused kernel; compile time 27 s -> 22 s, run time equal;
 * ``xla_backend_optimization_level = 1`` (default 2): LLVM's cheaper
   pipeline; a further 22 s -> 18 s, run time equal within the noise (the kernels
   are latency-bound, so the deeper loop optimisations buy nothing);
-* ``xla_cpu_multi_thread_eigen = False``: Eigen's routines run on the calling
-  thread, not on XLA's intra-op thread pool. With the two options above, one
-  fresh-clone CI run of the test suite hung for good inside a Gibbs chunk:
-  every XLA thread parked on a futex, the main thread in ``BlockUntilReady``
-  (an earlier run of the same code passed). Others report the same wedge of
-  XLA CPU's Eigen pool on vmapped graphs, gone with this option; whether the
-  older emitters make it likelier here is not known. Our matrices are a few
-  states across, so the pool bought nothing.
+* ``xla_cpu_multi_thread_eigen = False``: Eigen's routines are not to use
+  XLA's intra-op thread pool; our matrices are a few states across, so the
+  pool buys nothing. It was added after a test run hung for good inside a
+  Gibbs chunk, as a guess (others report a wedge of that pool), and it did
+  not cure it: native stacks of a later hang showed the real cause, jaxlib's
+  batched LAPACK calls blocking every pool thread, which
+  :mod:`latentforce.linalg` now avoids (no LAPACK in our programs).
 * ``xla_cpu_experimental_ynn_fusion_type = ""`` (no YNNPACK library
   fusions): XLA hands small dots to YNNPACK as "custom fusions", and in the
   particle sweep that is the inverse-CDF draw's cumulative sum (a product of
@@ -50,9 +49,16 @@ quick demo's Gibbs block took twice as long as the acceleration-only one
 is a backend option read once from ``XLA_FLAGS`` when JAX starts its CPU
 backend, so :func:`raise_small_loop_threshold` (run when the package is
 imported) adds it there, unless the backend is already running or the user's
-``XLA_FLAGS`` set backend options of their own. Loops that call LAPACK (the
-Cholesky factors of the Gibbs block) are never merged, so this changes how
-the small inner loops run, not the program's structure.
+``XLA_FLAGS`` set backend options of their own.
+
+The value, 1 MB, is a compile-time trade. A loop holding a library call is
+never merged, and since :mod:`latentforce.linalg` took LAPACK out of our
+programs, large outer loops (the hyperparameter steps, each with its
+transition and matrix exponential) became candidates too. At 10 MB they were
+merged, and LLVM then compiled the quick demo's Gibbs chunk in 28 s instead
+of 13-17 s, for a block about 10 % faster; at 1 MB the chunk compiles in
+13 s, the path moves' loops are still merged, and a block costs what it did
+(quick demo, 2 chains: about 58 ms either case on a busy machine).
 """
 
 from __future__ import annotations
@@ -67,7 +73,7 @@ CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_l
                "xla_cpu_multi_thread_eigen": False, "xla_cpu_experimental_ynn_fusion_type": ""}
 
 
-SMALL_LOOP_BYTES = 10_000_000
+SMALL_LOOP_BYTES = 1_000_000
 _EXTRA_OPTIONS_FLAG = "--xla_backend_extra_options"
 
 

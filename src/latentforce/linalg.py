@@ -2,9 +2,29 @@
 
 Everything here is pure JAX and traceable, so the matrices may depend on
 parameters that are being sampled or differentiated.
+
+**No LAPACK inside our compiled programs.** The factorisations and solves the
+samplers need (:func:`cholesky`, :func:`solve_lower`, :func:`cho_solve`,
+:func:`solve`, :func:`inv`, :func:`psd_sqrt`) are written here as short loops
+of JAX operations instead of ``jnp.linalg``/``jax.scipy.linalg``, whose CPU
+lowering calls LAPACK through jaxlib. In jaxlib 0.10.0 to 0.11.0 a *batched*
+LAPACK call (every factorisation vmapped over chains is one) splits its batch
+over XLA's intra-op thread pool and blocks its thread until the pieces are
+done; when the thunk executor runs such calls on every thread of that pool at
+once, nobody is left to run the pieces and the program never finishes. We
+caught this with native stacks (gdb) of a hung test: both pool threads
+(2 cores) parked in ``BlockingCounter::Wait`` under ``ParallelBatchMap``,
+``lapack_dpotrf_ffi``, the main thread in ``BlockUntilReady``; it hung the
+project's CI twice. Our matrices are a few states across (at most a few
+dozen rows), so these loops cost no more than the library calls, and XLA can
+fuse them into the surrounding loops, which it cannot do with a library call
+(see ``latentforce.compile``). ``tests/test_linalg.py`` checks them against
+NumPy and checks that the samplers' compiled programs hold no LAPACK call.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -36,7 +56,7 @@ def solve_lyapunov(F: Float[Array, "n n"], W: Float[Array, "n n"]) -> Float[Arra
     n = F.shape[0]
     eye = jnp.eye(n, dtype=F.dtype)
     kron_sum = jnp.kron(F, eye) + jnp.kron(eye, F)
-    P = jnp.linalg.solve(kron_sum, -W.reshape(-1)).reshape(n, n)
+    P = solve(kron_sum, -W.reshape(-1)).reshape(n, n)
     return symmetrise(P)
 
 
@@ -69,7 +89,7 @@ def expm(F: Float[Array, "n n"]) -> Float[Array, "n n"]:
     A6 = A4 @ A2
     U = A @ (A6 @ (b[13] * A6 + b[11] * A4 + b[9] * A2) + b[7] * A6 + b[5] * A4 + b[3] * A2 + b[1] * eye)
     V = A6 @ (b[12] * A6 + b[10] * A4 + b[8] * A2) + b[6] * A6 + b[4] * A4 + b[2] * A2 + b[0] * eye
-    R = jnp.linalg.solve(V - U, V + U)
+    R = solve(V - U, V + U)
     # a while loop on s: a fixed-length scan with a conditional squaring (as in jax's
     # expm) compiled 2.5x slower and ran 2x slower
     R = jax.lax.fori_loop(0, s, lambda _, X: X @ X, R)
@@ -131,3 +151,114 @@ def van_loan(
     A = Ab * (d[:, None] / d[None, :])
     Q = Qb * (d[:, None] * d[None, :])
     return A, symmetrise(Q)
+
+
+# ---------------------------------------------------------------------------
+# Factorisations and solves without LAPACK (module doc). Each works on one
+# matrix (and a vector or matrix right-hand side); vmap batches them. They are
+# jitted so that a call outside a compiled program reuses one compiled loop
+# (inside one they are inlined).
+# ---------------------------------------------------------------------------
+@jax.jit
+def cholesky(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    r"""Lower Cholesky factor :math:`L L^T = A` of a symmetric positive-definite matrix.
+
+    Column by column (left-looking): column :math:`j` is
+    :math:`v = A_{:,j} - L_{:,<j} L_{j,<j}^T`, scaled by :math:`\sqrt{v_j}`
+    below the diagonal. Only the lower triangle of ``A`` is read. Like
+    ``jnp.linalg.cholesky``, a matrix that is not positive definite (a pivot
+    :math:`\le 0` or not finite) gives a matrix of NaN, so a sampler rejects it.
+    """
+    L, ok = _cholesky_columns(A, semidefinite=False)
+    return jnp.where(ok, L, jnp.nan)
+
+
+@functools.partial(jax.jit, static_argnames="rtol")
+def psd_sqrt(A: Float[Array, "n n"], rtol: float = 1e-12) -> Float[Array, "n n"]:
+    r"""A square root :math:`S S^T = A` of a symmetric positive *semi*-definite matrix.
+
+    Cholesky without the failure: a pivot at or below ``rtol`` times the
+    largest diagonal entry (a direction of zero variance, up to round-off)
+    gets a zero column. For a semi-definite matrix the rest of such a column is
+    zero too (:math:`|A_{ij}|^2 \le A_{ii} A_{jj}`), so nothing is lost; this is
+    what backward sampling needs, whose covariances are often rank-deficient up
+    to round-off. Any square root gives the same Gaussian draw :math:`m + S z`.
+    """
+    S, _ = _cholesky_columns(A, semidefinite=True, rtol=rtol)
+    return S
+
+
+def _cholesky_columns(A, semidefinite: bool, rtol: float = 0.0):
+    n = A.shape[-1]
+    rows = jnp.arange(n)
+    tol = rtol * jnp.max(jnp.abs(jnp.diagonal(A)))
+
+    def column(j, carry):
+        L, ok = carry
+        v = A[:, j] - L @ L[j, :]  # the columns >= j of L are still zero
+        pivot = v[j]
+        good = pivot > tol
+        d = jnp.sqrt(jnp.where(good, pivot, 1.0))
+        col = jnp.where(rows > j, v / d, 0.0) + jnp.where(rows == j, d, 0.0)
+        if semidefinite:
+            col = jnp.where(good, col, 0.0)
+        return L.at[:, j].set(col), ok & good & jnp.isfinite(pivot)
+
+    return jax.lax.fori_loop(0, n, column, (jnp.zeros_like(A), jnp.array(True)))
+
+
+@functools.partial(jax.jit, static_argnames="transpose")
+def solve_lower(L: Float[Array, "n n"], B: Float[Array, "n ..."], transpose: bool = False) -> Float[Array, "n ..."]:
+    r"""Solve :math:`L X = B` (or :math:`L^T X = B` with ``transpose``) for lower-triangular ``L``.
+
+    Forward (backward) substitution, one row per step; ``B`` a vector or a matrix.
+    """
+    n = L.shape[-1]
+    U = L.T if transpose else L
+
+    def row(k, X):
+        i = n - 1 - k if transpose else k
+        # X's rows not yet solved are zero, so the whole row of U may be used
+        xi = (B[i] - U[i] @ X) / U[i, i]
+        return X.at[i].set(xi)
+
+    return jax.lax.fori_loop(0, n, row, jnp.zeros(B.shape, jnp.result_type(L, B)))
+
+
+@jax.jit
+def cho_solve(L: Float[Array, "n n"], B: Float[Array, "n ..."]) -> Float[Array, "n ..."]:
+    r"""Solve :math:`A X = B` given the Cholesky factor ``L`` of :math:`A = L L^T`."""
+    return solve_lower(L, solve_lower(L, B), transpose=True)
+
+
+@jax.jit
+def solve(A: Float[Array, "n n"], B: Float[Array, "n ..."]) -> Float[Array, "n ..."]:
+    r"""Solve :math:`A X = B` for a general square ``A``: Gauss--Jordan with partial pivoting.
+
+    At step :math:`k` the row with the largest :math:`|a_{ik}|`, :math:`i \ge k`,
+    is swapped up, divided by its pivot and subtracted from every other row, on
+    ``A`` and ``B`` together. A singular matrix gives infinities or NaN, as
+    LAPACK's solve does.
+    """
+    n = A.shape[-1]
+    vector = B.ndim == 1
+    dtype = jnp.result_type(A, B)
+    M = jnp.concatenate([A.astype(dtype), (B[:, None] if vector else B).astype(dtype)], axis=1)
+    rows = jnp.arange(n)
+
+    def eliminate(k, M):
+        p = jnp.argmax(jnp.where(rows >= k, jnp.abs(M[:, k]), -1.0))
+        top, piv_row = M[k], M[p]
+        M = M.at[p].set(top).at[k].set(piv_row)
+        row = piv_row / piv_row[k]
+        factors = jnp.where(rows == k, 0.0, M[:, k])
+        return (M - factors[:, None] * row[None, :]).at[k].set(row)
+
+    X = jax.lax.fori_loop(0, n, eliminate, M)[:, n:]
+    return X[:, 0] if vector else X
+
+
+@jax.jit
+def inv(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    """Inverse of a general square matrix (:func:`solve` with the identity)."""
+    return solve(A, jnp.eye(A.shape[-1], dtype=A.dtype))

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from latentforce.kernels import Kernel, KernelParams
-from latentforce.linalg import solve_lyapunov, symmetrise, van_loan
+from latentforce.linalg import inv, solve_lyapunov, symmetrise, van_loan
 from latentforce.systems import System
 
 QUANTITIES = ("displacement", "velocity", "acceleration")
@@ -119,7 +119,7 @@ class LatentForceModel:
         M, C, K = self.system.linear_part(params)
         Ff, Wf, Hf, _ = self.force_state_space(params)
         n, nd, nm = self.n_state, self.ndof, self.n_mech
-        Minv = jnp.linalg.inv(M)
+        Minv = inv(M)
         B = self.system.input_matrix()
         F = jnp.zeros((n, n))
         F = F.at[:nd, nd:nm].set(jnp.eye(nd))

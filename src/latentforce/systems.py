@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from latentforce.linalg import solve
+
 Params = dict
 
 
@@ -59,7 +61,7 @@ class System:
     def acceleration(self, params: Params, z, v, u):
         r""":math:`\ddot z = M^{-1}(B u - h(z, \dot z))` for one state (no batch dims)."""
         rhs = self.input_matrix() @ u - self.restoring(params, z, v)
-        return jnp.linalg.solve(self.mass(params), rhs)
+        return solve(self.mass(params), rhs)
 
 
 class LinearSystem(System):

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from latentforce.linalg import symmetrise
+from latentforce.linalg import psd_sqrt, solve, symmetrise
 
 _LOG_2PI = jnp.log(2.0 * jnp.pi)
 
@@ -125,7 +125,7 @@ def rts_smoother(A: Float[Array, "n n"], filtered: FilterResult) -> SmootherResu
     def _step(carry, inputs):
         m_next, P_next = carry
         m_f, P_f, m_p, P_p = inputs
-        G = jnp.linalg.solve(P_p, A @ P_f).T
+        G = solve(P_p, A @ P_f).T
         m_s = m_f + G @ (m_next - m_p)
         P_s = symmetrise(P_f + G @ (P_next - P_p) @ G.T)
         return (m_s, P_s), (m_s, P_s)
@@ -156,7 +156,7 @@ def sample_smoothed_trajectory(key, A, Q, filtered: FilterResult) -> Float[Array
 
     def _step(x_next, inputs):
         k, m_f, P_f, m_p, P_p = inputs
-        G = jnp.linalg.solve(P_p, A @ P_f).T
+        G = solve(P_p, A @ P_f).T
         mean = m_f + G @ (x_next - m_p)
         x = _gaussian_draw(k, mean, P_f - G @ P_p @ G.T)
         return x, x
@@ -167,11 +167,10 @@ def sample_smoothed_trajectory(key, A, Q, filtered: FilterResult) -> Float[Array
 
 
 def _gaussian_draw(key, mean, cov):
-    """Draw from N(mean, cov); the eigen square root tolerates covariances that are
+    """Draw from N(mean, cov); the semi-definite square root tolerates covariances that are
     rank-deficient up to roundoff (backward-sampling covariances often are)."""
-    w, V = jnp.linalg.eigh(symmetrise(cov))
     eps = jax.random.normal(key, mean.shape, dtype=mean.dtype)
-    return mean + V @ (jnp.sqrt(jnp.clip(w, 0.0)) * eps)
+    return mean + psd_sqrt(symmetrise(cov)) @ eps
 
 
 def log_likelihood_complete(A, Q, H, R, m0, P0, y, tol: float = 1e-13) -> Float[Array, ""]:

@@ -26,6 +26,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from latentforce.linalg import cholesky
+
 
 class RWMState(NamedTuple):
     """One chain's position and its proposal adaptation statistics."""
@@ -91,7 +93,7 @@ def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
     mean = state.mean + w * diff
     cov = state.cov + w * (jnp.outer(diff, x - mean) - state.cov)
     # Reshape the proposal from the chain's covariance once enough is known.
-    new_chol = jnp.linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * jnp.eye(p) * jnp.trace(cov) / p)
+    new_chol = cholesky(0.5 * (cov + cov.T) + 1e-12 * jnp.eye(p) * jnp.trace(cov) / p)
     use_new = adapt & adapt_shape & jnp.all(jnp.isfinite(new_chol))
     # Switching shape rescales: restart the scale near the optimal 2.38/sqrt(p).
     chol = jnp.where(use_new, new_chol * (2.38 / jnp.sqrt(p)), state.chol)

@@ -99,13 +99,12 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import cho_solve
 from jaxtyping import Array, Float
 
 from latentforce.compile import jit
 from latentforce.inference import mcmc, smc
 from latentforce.inference.kalman import _update
-from latentforce.linalg import symmetrise
+from latentforce.linalg import cho_solve, cholesky, solve, solve_lower, symmetrise
 
 HYPERPARAMETERS = ("force_variance", "force_lengthscale")
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -237,8 +236,8 @@ def whiten(tr: smc.Transition, g: Float[Array, "T nl"]) -> Float[Array, "T nl"]:
 def _whiten(tr: smc.Transition, g, cP, cQ):
     # one small triangular inverse applied as a matrix product: XLA's CPU triangular
     # solve with T right-hand sides cost ~1 ms at T = 1024, the product ~10 us
-    e1 = jax.scipy.linalg.solve_triangular(cP, g[0], lower=True)
-    cQ_inv = jax.scipy.linalg.solve_triangular(cQ, jnp.eye(cQ.shape[0]), lower=True)
+    e1 = solve_lower(cP, g[0])
+    cQ_inv = solve_lower(cQ, jnp.eye(cQ.shape[0]))
     resid = g[1:] - g[:-1] @ tr.A.T
     return jnp.concatenate([e1[None], resid @ cQ_inv.T])
 
@@ -273,8 +272,8 @@ def observation_density(pm: smc.ParticleModel, y, mask) -> ObservationDensity:
     def _one(m):
         # unit variance on the missing channels keeps R_t invertible; they are masked out below
         R_t = pm.R * jnp.outer(m, m) + jnp.diag(1.0 - m)
-        c = jnp.linalg.cholesky(symmetrise(R_t))
-        inv = cho_solve((c, True), jnp.eye(R_t.shape[0])) * jnp.outer(m, m)
+        c = cholesky(symmetrise(R_t))
+        inv = cho_solve(c, jnp.eye(R_t.shape[0])) * jnp.outer(m, m)
         return symmetrise(inv), -jnp.sum(jnp.log(jnp.diag(c))) - 0.5 * jnp.sum(m) * _LOG_2PI
 
     Rinv, const = jax.vmap(_one)(maskf)
@@ -401,8 +400,8 @@ def lowfreq_init(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFreque
 
     J = jnp.reshape(jax.jacfwd(predicted)(w), (od.y.shape[0], od.y.shape[1], q))
     prec = symmetrise(jnp.eye(q) + jnp.einsum("tim,tij,tjn->mn", J, od.Rinv, J))
-    cov = symmetrise(cho_solve((jnp.linalg.cholesky(prec), True), jnp.eye(q)))
-    chol = jnp.linalg.cholesky(cov) * (2.38 / math.sqrt(q))
+    cov = symmetrise(cho_solve(cholesky(prec), jnp.eye(q)))
+    chol = cholesky(cov) * (2.38 / math.sqrt(q))
     return mcmc.RWMState(w, jnp.zeros(()), jnp.zeros(()), chol, w, cov, jnp.zeros(()))
 
 
@@ -583,8 +582,8 @@ def residual_init(rm: ResidualMove, pm: smc.ParticleModel, od: ObservationDensit
 
     Je, Jy = jax.jacfwd(features)(jnp.zeros(q))
     prec = symmetrise(Je.T @ Je + jnp.einsum("tim,tij,tjn->mn", Jy, od.Rinv, Jy))
-    cov = symmetrise(cho_solve((jnp.linalg.cholesky(prec), True), jnp.eye(q)))
-    chol = jnp.linalg.cholesky(cov) * (2.38 / math.sqrt(q))
+    cov = symmetrise(cho_solve(cholesky(prec), jnp.eye(q)))
+    chol = cholesky(cov) * (2.38 / math.sqrt(q))
     return mcmc.RWMState(jnp.zeros(q), jnp.zeros(()), jnp.zeros(()), chol, jnp.zeros(q), cov, jnp.zeros(()))
 
 
@@ -671,7 +670,7 @@ def extended_kalman_smoother(pm: smc.ParticleModel, tr: smc.Transition, y, mask)
     def _smooth(carry, inputs):
         m_next, P_next = carry
         m_f, P_f, m_p, P_p, F = inputs
-        G = jnp.linalg.solve(P_p + 1e-12 * jnp.diag(jnp.diagonal(P_p)), F @ P_f).T
+        G = solve(P_p + 1e-12 * jnp.diag(jnp.diagonal(P_p)), F @ P_f).T
         m_s = m_f + G @ (m_next - m_p)
         P_s = symmetrise(P_f + G @ (P_next - P_p) @ G.T)
         return (m_s, P_s), m_s
@@ -695,7 +694,7 @@ def dispersed_start(key: Array, pm: smc.ParticleModel, frame: LowFrequencyFrame,
     longer than a quick run's burn-in.
     """
     w, eps_perp = lowfreq_coordinates(pm, frame, path)
-    step = spread * jnp.linalg.cholesky(rwm_lf.cov) @ jax.random.normal(key, w.shape)
+    step = spread * cholesky(rwm_lf.cov) @ jax.random.normal(key, w.shape)
     return lowfreq_path(pm, frame, eps_perp, w + step)
 
 

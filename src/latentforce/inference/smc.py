@@ -123,12 +123,11 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import cho_factor, cho_solve, solve_triangular
 from jaxtyping import Array, Bool, Float, Int
 
 from latentforce.compile import jit
 from latentforce.kernels import KernelParams, Matern
-from latentforce.linalg import symmetrise, van_loan
+from latentforce.linalg import cho_solve, cholesky, inv, symmetrise, van_loan
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -251,7 +250,7 @@ class ParticleModel:
         # Matérn: the force held as the Taylor polynomial of its derivative states;
         # composite kernels: zero-order hold of u = H_f x_f
         self._taylor = isinstance(model.kernel, Matern)
-        self._Minv = jnp.linalg.inv(model.system.mass(self.params))
+        self._Minv = inv(model.system.mass(self.params))
         self._B = model.system.input_matrix()
         zero_mech, zero_f = jnp.zeros(self.nm), jnp.zeros(self.nfx)
 
@@ -444,7 +443,7 @@ def _chol(P):
     zero diagonal entries get the mean diagonal's scale)."""
     d = jnp.diagonal(P)
     d = jnp.where(d > 0, d, jnp.mean(jnp.abs(d)))
-    return jnp.linalg.cholesky(symmetrise(P) + JITTER * jnp.diag(d))
+    return cholesky(symmetrise(P) + JITTER * jnp.diag(d))
 
 
 # ---------------------------------------------------------------------------
@@ -487,16 +486,15 @@ def sweep_constants(pm: ParticleModel, tr: Transition, y, mask, proposal: str = 
 
     def _inv_logdet(S, m):
         c = _chol(S)
-        inv = cho_solve((c, True), jnp.eye(S.shape[0]))
-        inv = symmetrise(inv) * jnp.outer(m, m)
-        return inv, 2.0 * jnp.sum(jnp.log(jnp.diag(c)))
+        S_inv = symmetrise(cho_solve(c, jnp.eye(S.shape[0]))) * jnp.outer(m, m)
+        return S_inv, 2.0 * jnp.sum(jnp.log(jnp.diag(c)))
 
     Rinv, logdetR = jax.vmap(_inv_logdet)(R_t, maskf)
     obs_const = -0.5 * (logdetR + n_obs * _LOG_2PI)
     # the ancestor weights' quadratic form in scaled coordinates (Q spans many decades)
     q_scale = jnp.sqrt(jnp.maximum(jnp.diagonal(tr.Q), 1e-300))
     Qc = _chol(tr.Q / jnp.outer(q_scale, q_scale))
-    Q_inv = cho_solve((Qc, True), jnp.eye(pm.nl))
+    Q_inv = cho_solve(Qc, jnp.eye(pm.nl))
     # step 0 uses the initial covariance, every later step Q
     prior_cov = jnp.concatenate([tr.Pinf[None], jnp.broadcast_to(tr.Q, (T - 1,) + tr.Q.shape)])
     if proposal == "optimal":
