@@ -83,6 +83,30 @@ def test_box_muller_normals_are_standard_normal():
     assert abs(np.mean(flat**2) - 1.0) < 5.0 * np.sqrt(2.0 / flat.size)
 
 
+def test_uniform32_is_uniform_on_the_open_interval():
+    from scipy import stats
+
+    u = np.asarray(smc.uniform32(jax.random.key(5), (20000,)))
+    assert u.dtype == np.float64 and np.all((u > 0) & (u < 1))
+    assert stats.kstest(u, "uniform").pvalue > 1e-3
+    # every value is on the 2^-32 grid, offset by half a step (never an endpoint)
+    grid = u * 2.0**32 - 0.5
+    np.testing.assert_array_equal(grid, np.round(grid))
+
+
+def test_box_muller_extremes_are_finite_and_bounded(monkeypatch):
+    # the smallest and largest 32-bit words: the largest radius (the documented
+    # 6.76 sd cut) and a zero radius; both finite
+    words = jnp.array([[0, 2**32 - 1], [0, 2**32 - 1]], dtype=jnp.uint32)
+    monkeypatch.setattr(jax.random, "bits", lambda key, shape, dtype: words)
+    z = np.asarray(smc.box_muller(jax.random.key(0), (4,)))
+    monkeypatch.undo()
+    assert z.dtype == np.float64 and np.all(np.isfinite(z))
+    assert 6.7 < z[0] < 6.77 and abs(z[1]) < 1e-3 and abs(z[2]) < 1e-6
+    z = np.asarray(smc.box_muller(jax.random.key(7), (200000,)))
+    assert np.all(np.abs(z) < 6.77)
+
+
 def test_observation_and_step_match_the_model():
     model = LatentForceModel(Duffing(), Matern(1),
                              [Sensor("displacement", 0, 0.1), Sensor("velocity", 0, 0.1),

@@ -290,7 +290,8 @@ def summary_columns(result: RunResult) -> list[str]:
 # ---------------------------------------------------------------------------
 
 
-_FIGURE_LOCK = threading.Lock()
+# held while drawing figures (here and by the demos' own figures)
+FIGURE_LOCK = threading.Lock()
 
 
 def write_results(
@@ -311,7 +312,7 @@ def write_results(
     if figures:
         # matplotlib's state (pyplot, the mathtext parser) is not thread-safe, and the
         # demos write their cases from two threads
-        with _FIGURE_LOCK:
+        with FIGURE_LOCK:
             _write_figures(out_dir, result)
 
 

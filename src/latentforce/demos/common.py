@@ -81,15 +81,41 @@ def fmt(x: float) -> str:
     return f"{x:.4g}"
 
 
-def run_cases_concurrently(jobs):
+def run_cases_concurrently(jobs, meanwhile=None):
     """Run independent demo cases in two threads and return their results in order.
 
     Each case is mostly small XLA ops and compilation, which use one core; JAX
     releases the GIL while it compiles and executes, so two cases on the
-    2 cores of a laptop take about the time of one.
+    2 cores of a laptop take about the time of one. ``meanwhile()``, if
+    given, runs in the calling thread while the cases run (e.g. a figure of
+    the ground truth, which would otherwise add to the end of the run).
     """
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(max_workers=2) as pool:
         futures = [pool.submit(job) for job in jobs]
+        if meanwhile is not None:
+            meanwhile()
         return [f.result() for f in futures]
+
+
+def preload_modules(names=("arviz", "matplotlib.figure", "matplotlib.backends.backend_agg")) -> None:
+    """Import the result layer's heavier modules in a background thread.
+
+    The samplers import ArviZ (about 3 s) and matplotlib only when a run
+    ends; a demo starts this while it simulates its data (mostly compiled
+    code, which leaves the interpreter free), so that the import is not
+    added to the end of the run. Python's import lock makes the later
+    ``import`` wait for this one if it has not finished.
+    """
+    import importlib
+    import threading
+
+    def _load():
+        for name in names:
+            try:
+                importlib.import_module(name)
+            except ImportError:  # the later import reports it
+                pass
+
+    threading.Thread(target=_load, name="latentforce-preload", daemon=True).start()

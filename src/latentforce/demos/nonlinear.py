@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from latentforce.demos.common import fmt, run_cases_concurrently, table, write_case
-from latentforce.results import check_out_dir, coverage, nmse
+from latentforce.demos.common import fmt, preload_modules, run_cases_concurrently, table, write_case
+from latentforce.results import FIGURE_LOCK, check_out_dir, coverage, nmse
 
 SYSTEM = {"type": "duffing", "m": 1.0, "c": 20.0, "k": 1.0e4, "k3": 1.0e9}
 FS = 2048.0
@@ -92,6 +92,7 @@ def _run(name: str, force: str, out: Path, quick: bool, seed: int, overwrite: bo
     out = Path(out)
     check_out_dir(out, overwrite)
     t0 = time.perf_counter()
+    preload_modules()
     columns, acc_sd, disp_sd, sim = _simulate(seed, force)
     what = "Matérn-1/2 GP force (variance 20, lengthscale 0.1 s)" if force == "gp" else "force 10 sin(100 t)"
     echo(f"{name} demo (Vibration 2020): Duffing m=1, c=20, k=1e4, k3=1e9; {what}; "
@@ -104,8 +105,12 @@ def _run(name: str, force: str, out: Path, quick: bool, seed: int, overwrite: bo
     jobs = [functools.partial(write_case, folder, _config(acc_sd, dsd, quick, seed), columns,
                               overwrite=True, seed=seed, diagnostics=truth) for _, folder, dsd in cases]
     echo("running both cases ...")
-    for (title, folder, _), (_, _, result, _) in zip(cases, run_cases_concurrently(jobs)):
-        _eom_figure(sim, folder / "figures" / "eom_terms.png")
+
+    def eom_figures():  # the ground truth's: drawn while the cases compile
+        for _, folder, _ in cases:
+            _eom_figure(sim, folder / "figures" / "eom_terms.png")
+
+    for (title, folder, _), (_, _, result, _) in zip(cases, run_cases_concurrently(jobs, eom_figures)):
         _report(title, folder, result, force, echo)
     echo(f"done in {time.perf_counter() - t0:.1f} s; results in {out}/ and {out / 'with-displacement'}/")
 
@@ -150,9 +155,10 @@ def _eom_figure(sim, path: Path) -> None:
         ax.set_title(label, fontsize=9, loc="left")
     axes[-1].set_xlabel("time [s]")
     fig.suptitle("Terms of the equation of motion (ground truth)")
-    fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    with FIGURE_LOCK:  # matplotlib's text layout is not thread-safe (results.write_results)
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
 
 
 def run_duffing(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = False, echo=print,

@@ -86,9 +86,11 @@ posterior sd in the low-frequency coordinates (:func:`dispersed_start`,
 different per chain), and from :math:`\theta_0 \exp(0.5\,\varepsilon)` per
 parameter.
 
-Use ``jax.random.key(seed, impl="rbg")`` for the key: the sweep draws its
-random numbers in a few large batches and the RBG generator is markedly
-faster at that on CPU (see ``benchmarks/pgas.py``).
+Any key implementation works. The sweep draws its random numbers in two
+large batches of 32-bit words before its sequential loop
+(:func:`smc.box_muller`, :func:`smc.uniform32`); with jaxlib 0.10 on a
+2-core CPU a sweep timed the same with ``threefry2x32``, ``rbg`` and
+``unsafe_rbg`` keys (about 10 ns a word for each generator).
 """
 
 from __future__ import annotations

@@ -184,19 +184,41 @@ stratified = _resampler("stratified")
 RESAMPLING = {"multinomial": multinomial, "systematic": systematic, "stratified": stratified}
 
 
-def box_muller(key: Array, shape: tuple, dtype=float) -> Float[Array, "..."]:
-    """Standard normals by the Box-Muller transform of uniforms on ``(0, 1)``.
+_TWO_M32 = 2.0**-32
 
-    Exact, and on CPU about half the cost of ``jax.random.normal`` (which
-    inverts the error function): at T = 1024 the proposal normals were a
-    quarter of a sweep's time.
+
+def uniform32(key: Array, shape: tuple, dtype=float) -> Float[Array, "..."]:
+    """Uniforms on ``(0, 1)`` from one 32-bit word each: ``(b + 1/2) 2^-32``.
+
+    Exactly representable in double precision and never 0 or 1. Half the random
+    bits of ``jax.random.uniform`` in double precision (which uses 64 per
+    number); a resampling point needs no finer grid than ``2^-32``.
+    """
+    b = jax.random.bits(key, shape, jnp.uint32)
+    return (b.astype(dtype) + 0.5) * _TWO_M32
+
+
+def box_muller(key: Array, shape: tuple, dtype=float) -> Float[Array, "..."]:
+    """Standard normals by the Box-Muller transform, one 32-bit word per normal.
+
+    The transform runs in single precision and the result is cast to
+    ``dtype``: on CPU the double-precision logarithm and sine/cosine cost
+    several times their single-precision versions, and the random bits
+    themselves (about 10 ns a word here) are half those of double-precision
+    uniforms. Each value is within a few 1e-6 (single-precision rounding)
+    of the exact transform of its words, and the tail beyond 6.76 sd
+    (probability 1.4e-11, where the radius's uniform reaches its smallest
+    value ``2^-33``) is cut: far below any Monte-Carlo error of the sampler.
+    At T = 1024, N = 50 the sweep's random numbers cost about 4.4 ms in
+    double precision (a third of a sweep).
     """
     n = math.prod(shape)
     half = -(-n // 2)
-    u = jax.random.uniform(key, (2, half), dtype, minval=jnp.finfo(dtype).tiny)
-    r = jnp.sqrt(-2.0 * jnp.log(u[0]))
-    angle = (2.0 * math.pi) * u[1]
-    return jnp.concatenate([r * jnp.cos(angle), r * jnp.sin(angle)])[:n].reshape(shape)
+    b = jax.random.bits(key, (2, half), jnp.uint32).astype(jnp.float32)
+    r = jnp.sqrt(-2.0 * jnp.log((b[0] + 0.5) * np.float32(_TWO_M32)))
+    angle = np.float32(2.0 * math.pi * _TWO_M32) * b[1]
+    z = jnp.concatenate([r * jnp.cos(angle), r * jnp.sin(angle)])[:n]
+    return z.astype(dtype).reshape(shape)
 
 
 def effective_sample_size(log_weights: Float[Array, " N"]) -> Float[Array, ""]:
@@ -625,9 +647,9 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
         # N x nl proposal normals), the proposal noise formed outside the sequential loop.
         k1, k2 = jax.random.split(k_step)
         eps = box_muller(k1, (T, N, nl), dtype)
-        u = jax.random.uniform(k2, (T, N, 1), dtype)
+        u = uniform32(k2, (T, N), dtype)
         noise = jnp.einsum("tnf,tgf->tng", eps, sc.L)
-        points = _points(resampling, u[:, :, 0])
+        points = _points(resampling, u)
         u_fin = jax.random.uniform(k_fin, (), dtype)
         # the reference's latent (x_f', w') and its one-step predictions Phi(x'_{t-1}) = mech'_t - w'_t
         g_ref = pm.latent(reference)
