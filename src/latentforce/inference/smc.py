@@ -190,9 +190,10 @@ _TWO_M32 = 2.0**-32
 def uniform32(key: Array, shape: tuple, dtype=float) -> Float[Array, "..."]:
     """Uniforms on ``(0, 1)`` from one 32-bit word each: ``(b + 1/2) 2^-32``.
 
-    Exactly representable in double precision and never 0 or 1. Half the random
+    In double precision exactly representable and never 0 or 1. Half the random
     bits of ``jax.random.uniform`` in double precision (which uses 64 per
-    number); a resampling point needs no finer grid than ``2^-32``.
+    number); a resampling point needs no finer grid than ``2^-32``. In single
+    precision the values are rounded: never 0, but the largest words round to 1.
     """
     b = jax.random.bits(key, shape, jnp.uint32)
     return (b.astype(dtype) + 0.5) * _TWO_M32
@@ -214,9 +215,9 @@ def box_muller(key: Array, shape: tuple, dtype=float) -> Float[Array, "..."]:
     """
     n = math.prod(shape)
     half = -(-n // 2)
-    b = jax.random.bits(key, (2, half), jnp.uint32).astype(jnp.float32)
-    r = jnp.sqrt(-2.0 * jnp.log((b[0] + 0.5) * np.float32(_TWO_M32)))
-    angle = np.float32(2.0 * math.pi * _TWO_M32) * b[1]
+    u = uniform32(key, (2, half), jnp.float32)  # u[0] may round to 1: a zero radius
+    r = jnp.sqrt(-2.0 * jnp.log(u[0]))
+    angle = np.float32(2.0 * math.pi) * u[1]
     z = jnp.concatenate([r * jnp.cos(angle), r * jnp.sin(angle)])[:n]
     return z.astype(dtype).reshape(shape)
 
