@@ -135,3 +135,70 @@ def test_the_threshold_makes_xla_run_batched_rebuild_loops_as_one_function(tmp_p
     if plain == "hoisted":
         pytest.skip("this jaxlib already runs the rebuild loop as one function")
     assert ours == "hoisted"
+
+
+# ---------------------------------------------------------------------------
+# Executables shared by text (shared_jit)
+# ---------------------------------------------------------------------------
+def _closure(constant):
+    # a new function object each call, as a sampler builds its programs per run
+    return lc.shared_jit(lambda x: _program(x * constant))
+
+
+def _only_executable(program):
+    (compiled,) = program._compiled.values()
+    return compiled
+
+
+def test_shared_jit_gives_jits_result_and_shares_executables_by_text():
+    x = jnp.linspace(-1.0, 1.0, 5)
+    c = np.arange(5.0)
+    a, b, other = _closure(c), _closure(c.copy()), _closure(c + 1.0)
+    ref = jax.jit(lambda x: _program(x * c))(x)
+    for prog in (a, b):
+        for got, want in zip(prog(x), ref):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-12, atol=1e-14)
+    other(x)
+    assert _only_executable(a) is _only_executable(b)  # same text: one executable
+    assert _only_executable(other) is not _only_executable(a)  # another constant: another program
+    # inside another trace it is the plain jitted function, inlined
+    outer = jax.jit(lambda x: a(x)[1] * 2.0)(x)
+    np.testing.assert_allclose(np.asarray(outer), 2.0 * np.asarray(ref[1]), rtol=1e-12)
+
+
+def test_shared_jit_compiles_once_for_concurrent_callers():
+    from concurrent.futures import ThreadPoolExecutor
+
+    c = np.linspace(0.5, 1.5, 4) + 1e-3  # a constant no other test uses
+    programs = [_closure(c) for _ in range(4)]
+    with ThreadPoolExecutor(4) as pool:
+        list(pool.map(lambda p: p(jnp.ones(4)), programs))
+    assert len({id(_only_executable(p)) for p in programs}) == 1
+
+
+def test_a_failed_compile_is_not_kept():
+    class Lowered:
+        in_tree, out_tree = "in", "out"
+        calls = 0
+
+        def as_text(self):
+            return "module @a_failing_program_of_this_test"
+
+        def compile(self):
+            Lowered.calls += 1
+            if Lowered.calls == 1:
+                raise RuntimeError("out of memory")
+            return "executable"
+
+    with pytest.raises(RuntimeError, match="out of memory"):
+        lc.compile_shared(Lowered())
+    assert lc.compile_shared(Lowered()) == "executable"  # tried again, not the stored error
+    assert lc.compile_shared(Lowered()) == "executable" and Lowered.calls == 2
+
+
+def test_nothing_is_shared_when_constants_are_not_in_the_text(monkeypatch):
+    monkeypatch.setattr(lc, "constants_are_embedded", lambda: False)
+    c = np.arange(5.0) + 0.125
+    a, b = _closure(c), _closure(c)
+    a(jnp.ones(5)), b(jnp.ones(5))
+    assert _only_executable(a) is not _only_executable(b)

@@ -108,13 +108,15 @@ def test_derivatives_match_jax_linalg():
 # ---------------------------------------------------------------------------
 # The samplers' programs hold no LAPACK call
 # ---------------------------------------------------------------------------
-def _recording(texts):
-    """A stand-in for ``latentforce.compile.jit`` that keeps each program's StableHLO text."""
+def _recording(texts, builder=None):
+    """A stand-in for ``latentforce.compile.jit`` (or ``builder``, e.g. ``shared_jit``) that keeps
+    each program's StableHLO text."""
+    builder = builder or lf_compile.jit
 
     def jit(fn=None, **kwargs):
         if fn is None:
             return functools.partial(jit, **kwargs)
-        compiled = lf_compile.jit(fn, **kwargs)
+        compiled = builder(fn, **kwargs)
 
         def call(*args, **kw):
             texts.append((getattr(fn, "__name__", repr(fn)), compiled.lower(*args, **kw).as_text()))
@@ -136,8 +138,8 @@ def test_particle_gibbs_programs_call_no_lapack(monkeypatch):
     from latentforce.inference import pgas, smc
 
     texts = []
-    monkeypatch.setattr(pgas, "jit", _recording(texts))
-    monkeypatch.setattr(smc, "jit", _recording(texts))
+    monkeypatch.setattr(pgas, "shared_jit", _recording(texts, lf_compile.shared_jit))
+    monkeypatch.setattr(smc, "shared_jit", _recording(texts, lf_compile.shared_jit))
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
     params = dict(m=1.0, c=0.5, k=10.0, k3=1000.0, force_variance=1.0, force_lengthscale=0.5)
     free = {"force_variance": (LogNormal(0.0, 1.0), 1.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 0.5)}

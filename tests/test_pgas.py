@@ -698,7 +698,7 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
                                 jnp.zeros((), jnp.int32),
                                 jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
                                 jnp.zeros((n_draws + 1, T, pm.n_state)))
-        return state, pgas.BlockData(y, mask, od, jnp.zeros((T, nq)))
+        return state, pgas.BlockData(y, mask, pm.R, od, jnp.zeros((T, nq)))
 
     @jit
     def run(keys):
@@ -723,3 +723,67 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
     np.testing.assert_allclose(np.asarray(end.tr.Q[:5]), np.asarray(tr_end.Q), rtol=1e-10, atol=1e-300)
     z = d.mean(0) / (d.std(0, ddof=1) / np.sqrt(d.shape[0]))
     assert np.all(np.abs(z) < 4.5), np.round(z, 1)
+
+
+# ---------------------------------------------------------------------------
+# Channels: runs that differ only in their sensors share their compiled programs
+# ---------------------------------------------------------------------------
+def _two_sensor_records():
+    params = dict(m=1.0, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthscale=0.5)
+    both = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1), Sensor("displacement", 0, 0.01)])
+    pm = smc.ParticleModel(both, params, 0.02, initial=(0.0, 0.01))
+
+    @jax.jit  # one program, not op by op
+    def observed(key):
+        path = pm.path(pgas.gp_prior_path(key, pm.transition(1.0, 0.5), 80))
+        return jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path)
+
+    y = np.asarray(observed(jax.random.key(5))) + np.random.default_rng(0).normal(size=(80, 2)) * np.array([0.1, 0.01])
+    acc_only = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.2)])
+    return params, both, y, acc_only, y[:, :1] * 1.5
+
+
+def test_observe_through_keeps_the_likelihood_and_checks_the_sensors():
+    params, _, _, acc_only, y = _two_sensor_records()
+    mask = np.ones(y.shape, bool)
+    mask[5:9] = False
+    model2, y2, mask2 = pgas.observe_through(acc_only, [("displacement", 0), ("acceleration", 0)], y, mask)
+    assert [(s.quantity, s.noise_std) for s in model2.sensors] == [("displacement", 1.0), ("acceleration", 0.2)]
+    assert np.all(np.isnan(y2[:, 0])) and not mask2[:, 0].any()
+    np.testing.assert_array_equal(y2[:, 1], y[:, 0])
+    np.testing.assert_array_equal(mask2[:, 1], mask[:, 0])
+    pm, pm2 = (smc.ParticleModel(m, params, 0.02, initial=(0.0, 0.01)) for m in (acc_only, model2))
+    path = jax.jit(lambda k: pm.path(pgas.gp_prior_path(k, pm.transition(1.0, 0.5), y.shape[0])))(jax.random.key(3))
+    lls = [float(jax.jit(lambda yy, mm: pgas.observation_log_likelihood(p, pgas.observation_density(p, yy, mm, p.R),
+                                                                        path))(yy, mm))
+           for p, yy, mm in ((pm, y, mask), (pm2, y2, mask2))]
+    assert abs(lls[0] - lls[1]) < 1e-10 * abs(lls[0])
+    with pytest.raises(ValueError, match="no channel of their own"):
+        pgas.observe_through(acc_only, [("displacement", 0)], y, mask)
+    with pytest.raises(ValueError, match="distinct"):
+        pgas.observe_through(acc_only, [("acceleration", 0), ("acceleration", 0)], y, mask)
+
+
+def test_runs_through_the_same_channels_compile_once_and_agree_with_their_own_sensors():
+    """Two records with other sensors, noise and data, run through the same channels: the second
+    run compiles nothing (every program shared by text), and gives what it gives through its own
+    sensors (same draws, round-off apart). Hyperparameters fixed, to keep the programs small."""
+    from latentforce import compile as lc
+
+    params, both, y, acc_only, y_acc = _two_sensor_records()
+    channels = [("acceleration", 0), ("displacement", 0)]
+    settings = dict(particles=16, iterations=12, burn_in=8, state_every=2, chains=2,
+                    initial=(0.0, 0.01), lowfreq_modes=4, residual_modes=4, residual_steps=4)
+
+    def run(model, y_, channels_):
+        return pgas.run_pgas(jax.random.key(2), model, params, {}, y_, np.isfinite(y_), 0.02,
+                             channels=channels_, **settings)
+
+    run(both, y, channels)
+    before = set(lc._SHARED)
+    shared = run(acc_only, y_acc, channels)
+    assert set(lc._SHARED) == before
+    own = run(acc_only, y_acc, None)
+    for name in own.state_mean:
+        np.testing.assert_allclose(shared.state_mean[name], own.state_mean[name], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(shared.trajectories, own.trajectories, rtol=1e-6, atol=1e-12)

@@ -18,6 +18,7 @@ from latentforce.results import (
     read_results,
     redraw,
     summarise_parameters,
+    write_figures,
     write_results,
 )
 
@@ -233,3 +234,21 @@ def test_kalman_result(tmp_path):
     assert figures == {"measured.png", "displacement.png", "velocity.png", "force.png"}
     back = read_results(tmp_path / "kf")
     assert back.param_draws == {} and back.path_draws == {}
+
+
+def test_a_demo_case_draws_its_figures_in_the_helper_process(tmp_path):
+    """``demos.common.figure_process``: the figures a helper process draws are the ones the
+    thread would draw (same files); drawing there leaves this process's matplotlib alone."""
+    from latentforce.demos.common import figure_process
+    from latentforce.plots import FIGURE_NAMES
+
+    result = _result()
+    (tmp_path / "there").mkdir()
+    (tmp_path / "here").mkdir()
+    with figure_process() as pool:
+        assert pool is not None
+        pool.submit(write_figures, tmp_path / "there", result).result()
+    write_figures(tmp_path / "here", result)
+    there = sorted(p.name for p in (tmp_path / "there" / "figures").iterdir())
+    here = sorted(p.name for p in (tmp_path / "here" / "figures").iterdir())
+    assert there == here and set(here) <= set(FIGURE_NAMES) and len(here) >= 6

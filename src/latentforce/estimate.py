@@ -58,8 +58,13 @@ def _check_stable(problem: Problem, params: dict) -> None:
 
 
 def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
-        progress: Callable | None = None) -> tuple[RunResult, dict]:
+        progress: Callable | None = None, channels=None) -> tuple[RunResult, dict]:
     """Run the configured inference; returns the result and method-specific extras.
+
+    ``channels`` (``pgas`` only): ``(quantity, dof)`` pairs through which the
+    sampler observes the system, a superset of the sensors'; runs that differ
+    only in their sensors then share their compiled programs
+    (:func:`latentforce.inference.pgas.observe_through`). The result is the same.
 
     ``extras`` holds what a demo may want beyond the result folder, e.g. the
     smoother at the point estimate for ``kalman-mcmc``.
@@ -139,15 +144,15 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
         return result, extras
 
     if settings.method == "pgas":
-        return _run_pgas(key, problem, dataset, params0, y, mask, common, progress, t0), extras
+        return _run_pgas(key, problem, dataset, params0, y, mask, common, progress, t0, channels), extras
 
     raise LatentForceError(f"Unknown inference method {settings.method!r}.")  # config validates this
 
 
 def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict,
-              progress, t0: float) -> RunResult:
+              progress, t0: float, channels=None) -> RunResult:
     """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
-    from latentforce.compile import jit
+    from latentforce.compile import shared_jit
     from latentforce.inference.pgas import run_pgas
 
     model = problem.model
@@ -161,7 +166,7 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
         initial = (np.asarray(mean)[: model.n_mech], np.asarray(sd)[: model.n_mech])
     else:
         # one compiled program: op by op its small solves compiled some dozens of programs
-        m0, P0 = jit(model.default_initial)(params0)
+        m0, P0 = shared_jit(model.default_initial)(params0)
         initial = (np.asarray(m0)[: model.n_mech], np.sqrt(np.diag(np.asarray(P0))[: model.n_mech]))
     # PGAS needs a conditional resampling scheme; multinomial is the valid one we have.
     out = run_pgas(key, model, params0, free, np.where(mask, y, np.nan), mask, dataset.dt,
@@ -169,7 +174,7 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
                    state_every=settings.state_every, chains=settings.chains, mh_steps=settings.mh_steps,
                    discretisation=settings.discretisation, proposal=settings.proposal,
                    resampling="multinomial", thin_draws=settings.thin_draws, initial=initial,
-                   progress=progress)
+                   progress=progress, channels=channels)
     nd, nm, kd = model.ndof, model.n_mech, model.kernel.dim
     force_idx = nm + kd * np.arange(model.nforce)
     tr = out.trajectories

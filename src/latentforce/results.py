@@ -313,7 +313,7 @@ def write_results(
         # matplotlib's state (pyplot, the mathtext parser) is not thread-safe, and the
         # demos write their cases from two threads
         with FIGURE_LOCK:
-            _write_figures(out_dir, result)
+            write_figures(out_dir, result)
 
 
 def check_out_dir(out_dir: Path, overwrite: bool) -> None:
@@ -348,7 +348,8 @@ def _write_summaries(out_dir: Path, result: RunResult) -> None:
     _replace(out_dir / "summary.json", lambda p: p.write_text(text, encoding="utf-8"))
 
 
-def _write_figures(out_dir: Path, result: RunResult) -> None:
+def write_figures(out_dir: Path, result: RunResult) -> None:
+    """Draw ``result``'s figures into ``out_dir/figures`` (the stale ones removed first)."""
     from latentforce import plots
 
     fig_dir = out_dir / "figures"
@@ -697,4 +698,4 @@ def redraw(out_dir: Path) -> None:
     out_dir = Path(out_dir)
     result = read_results(out_dir)
     _write_summaries(out_dir, result)
-    _write_figures(out_dir, result)
+    write_figures(out_dir, result)

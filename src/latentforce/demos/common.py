@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,7 @@ import numpy as np
 from latentforce import estimate
 from latentforce.io.config import config_from_dict
 from latentforce.io.data import load_data, write_csv
-from latentforce.results import check_out_dir, write_results
+from latentforce.results import check_out_dir, write_figures, write_results
 
 
 def toml_value(v) -> str:
@@ -37,11 +38,13 @@ def to_toml(config: dict) -> str:
 
 
 def write_case(folder: Path, config: dict, columns: dict, *, overwrite: bool, progress=None, seed=0,
-               diagnostics: dict | None = None):
+               diagnostics: dict | None = None, channels=None, figure_pool=None):
     """Write ``data.csv`` and ``config.toml``, run the estimate on them, write the results.
 
     ``diagnostics`` are added to the result's (e.g. the true hyperparameters, which
-    the histograms then mark).
+    the histograms then mark). ``channels``: as :func:`latentforce.estimate.run`
+    (cases run side by side then compile their programs once). ``figure_pool``:
+    a :func:`figure_process` pool to draw the figures in (else this thread).
 
     The estimate reads the data file back through the same loader as
     ``latentforce estimate``, so the demo exercises the user's path.
@@ -58,10 +61,17 @@ def write_case(folder: Path, config: dict, columns: dict, *, overwrite: bool, pr
     settings = problem.data
     dataset = load_data(data_file, problem.columns, time_column=settings.time_column,
                         sample_rate=settings.sample_rate, missing=settings.missing)
-    result, extras = estimate.run(problem, dataset, seed=seed, progress=progress)
+    result, extras = estimate.run(problem, dataset, seed=seed, progress=progress, channels=channels)
     result.diagnostics.update(diagnostics or {})
     # data.csv and config.toml are ours: the folder check above already passed.
-    write_results(folder, result, overwrite=True)
+    write_results(folder, result, overwrite=True, figures=figure_pool is None)
+    if figure_pool is not None:
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            figure_pool.submit(write_figures, folder, result).result()
+        except BrokenProcessPool:  # the helper process died (e.g. out of memory): draw here
+            write_results(folder, result, overwrite=True)
     return problem, dataset, result, extras
 
 
@@ -97,6 +107,36 @@ def run_cases_concurrently(jobs, meanwhile=None):
         if meanwhile is not None:
             meanwhile()
         return [f.result() for f in futures]
+
+
+@contextlib.contextmanager
+def figure_process():
+    """A one-process pool, started now, in which a demo case draws its figures.
+
+    Drawing is pure Python (matplotlib), so two cases that finish together
+    draw one after the other in one process (about 4 s each); in a second
+    process they draw side by side. The process is spawned (JAX's threads
+    make ``fork`` unsafe) and imports the result layer at once, while the
+    demo simulates its data. Yields ``None`` (draw in the thread) if no
+    process can be started.
+    """
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    try:
+        pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_import_figure_modules)
+        pool.submit(int)  # start the process (and its imports) now
+    except (OSError, RuntimeError):
+        yield None
+        return
+    with pool:
+        yield pool
+
+
+def _import_figure_modules() -> None:
+    import latentforce.plots  # noqa: F401
+    import latentforce.results  # noqa: F401
 
 
 def preload_modules(names=("arviz", "matplotlib.figure", "matplotlib.backends.backend_agg")) -> None:

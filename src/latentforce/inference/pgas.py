@@ -103,7 +103,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from latentforce.compile import jit
+from latentforce.compile import shared_jit
 from latentforce.inference import mcmc, smc
 from latentforce.inference.kalman import _update
 from latentforce.linalg import cho_solve, cholesky, solve, solve_lower, symmetrise
@@ -266,14 +266,16 @@ class ObservationDensity(NamedTuple):
     const: Float[Array, " T"]
 
 
-def observation_density(pm: smc.ParticleModel, y, mask) -> ObservationDensity:
-    """Precompute :math:`R_t^{-1}` and normalising constants of the observed channels."""
+def observation_density(pm: smc.ParticleModel, y, mask, R=None) -> ObservationDensity:
+    """Precompute :math:`R_t^{-1}` and normalising constants of the observed channels (``R``
+    default ``pm.R``)."""
+    R = pm.R if R is None else R
     maskf = jnp.asarray(mask, dtype=float)
     yz = jnp.where(jnp.asarray(mask, dtype=bool), jnp.nan_to_num(jnp.asarray(y, dtype=float)), 0.0)
 
     def _one(m):
         # unit variance on the missing channels keeps R_t invertible; they are masked out below
-        R_t = pm.R * jnp.outer(m, m) + jnp.diag(1.0 - m)
+        R_t = R * jnp.outer(m, m) + jnp.diag(1.0 - m)
         c = cholesky(symmetrise(R_t))
         inv = cho_solve(c, jnp.eye(R_t.shape[0])) * jnp.outer(m, m)
         return symmetrise(inv), -jnp.sum(jnp.log(jnp.diag(c))) - 0.5 * jnp.sum(m) * _LOG_2PI
@@ -632,7 +634,7 @@ def _walk(key, rwm: mcmc.RWMState, log_target: Callable, path, n_steps: int, *, 
 # ---------------------------------------------------------------------------
 # Initialisation: extended Kalman smoother
 # ---------------------------------------------------------------------------
-def extended_kalman_smoother(pm: smc.ParticleModel, tr: smc.Transition, y, mask) -> Float[Array, "T n"]:
+def extended_kalman_smoother(pm: smc.ParticleModel, tr: smc.Transition, y, mask, R=None) -> Float[Array, "T n"]:
     r"""Smoothed means of the sampler's state-space model in ``(mech, x_f)``.
 
     The transition is :math:`x_t = (\Phi(\mathrm{mech}_{t-1}, x_{f,t-1}) + E x_{f,t-1},
@@ -641,9 +643,11 @@ def extended_kalman_smoother(pm: smc.ParticleModel, tr: smc.Transition, y, mask)
     (Jacobians by ``jax.jacfwd``) with the Kalman update of
     :mod:`latentforce.inference.kalman` applied to the linearised
     observation, then an RTS pass with the per-step Jacobians (Särkkä 2013,
-    Alg. 9.5). Exact for linear systems.
+    Alg. 9.5). Exact for linear systems. ``R``: the channels' noise covariance
+    (default ``pm.R``).
     """
     nm, nfx, n = pm.nm, pm.nfx, pm.n_state
+    R = pm.R if R is None else R
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool)
     _, Qd, _, m0, P0 = pm.linear_discrete(tr)
@@ -661,7 +665,7 @@ def extended_kalman_smoother(pm: smc.ParticleModel, tr: smc.Transition, y, mask)
         H = jax.jacfwd(h)(m)
         # the linear update with y shifted so that the innovation is y - h(m)
         y_lin = jnp.where(mask_t, y_t, 0.0) - h(m) + H @ m
-        m_f, P_f, _ = _update(m, P, H, pm.R, y_lin, mask_t)
+        m_f, P_f, _ = _update(m, P, H, R, y_lin, mask_t)
         F = jax.jacfwd(f)(m_f)
         m_p = f(m_f)
         P_p = symmetrise(F @ P_f @ F.T + Qd)
@@ -745,6 +749,7 @@ class BlockData(NamedTuple):
 
     y: Float[Array, "T d"]
     mask: Array
+    R: Float[Array, "d d"]  # the channels' noise covariance
     od: ObservationDensity
     ref_q: Float[Array, "T q"]  # centring of the running sums (the smoother's summary quantities)
 
@@ -888,7 +893,7 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
         """One Gibbs block of one chain (:func:`make_block`)."""
         key, k_sweep, k_mh, k_lf, k_rp = jax.random.split(state.key, 5)
         tr = state.tr
-        sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal)
+        sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal, data.R)
         out = sweep(k_sweep, sc, state.reference)
         path = out.trajectory
         rwm_lf, acc_lf = state.rwm_lf, jnp.zeros(())
@@ -965,6 +970,35 @@ def make_block(pm: smc.ParticleModel, hyper: Hyper, sched: Schedule, rm: Residua
     return _block
 
 
+def observe_through(model, channels, y, mask):
+    """``(model, y, mask)`` with the channels ``channels``, ``(quantity, dof)`` pairs, in that order.
+
+    Each sensor moves to the channel of its quantity and DOF, with its noise;
+    a channel no sensor reads gets a sensor of unit noise that is never
+    observed (``y`` NaN, ``mask`` False there), which leaves the likelihood,
+    hence the posterior, unchanged.
+    """
+    from latentforce.models import LatentForceModel, Sensor
+
+    channels = [(str(q), int(d)) for q, d in channels]
+    if len(set(channels)) != len(channels):
+        raise ValueError(f"channels must be distinct, got {channels}")
+    where = {c: i for i, c in enumerate(channels)}
+    sensors = [Sensor(q, d, 1.0, f"unobserved {q} at DOF {d}") for q, d in channels]
+    cols = []
+    for s in model.sensors:
+        i = where.get((s.quantity, s.dof))
+        if i is None or i in cols:
+            raise ValueError(f"channels {channels} have no channel of their own for the sensor {s}")
+        cols.append(i)
+        sensors[i] = s
+    y, mask = np.asarray(y, dtype=float), np.asarray(mask, dtype=bool)
+    y_all = np.full((y.shape[0], len(channels)), np.nan)
+    mask_all = np.zeros(y_all.shape, dtype=bool)
+    y_all[:, cols], mask_all[:, cols] = y, mask
+    return LatentForceModel(model.system, model.kernel, sensors), y_all, mask_all
+
+
 def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
              particles: int = 50, iterations: int = 1000, burn_in: int = 500, state_every: int = 1,
              chains: int = 4, mh_steps: int = 1, discretisation: str = "rk4", proposal: str = "optimal",
@@ -972,7 +1006,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
              progress: Callable | None = None, chunk_blocks: int = 1000, unroll: int = 1,
              time_points: int = 5, ancestor_sampling: bool = True, interweave: bool = True,
              lowfreq_modes: int = 16, lowfreq_steps: int = 5, residual_modes: int = 16,
-             residual_steps: int = 60) -> PGASOutput:
+             residual_steps: int = 60, channels=None) -> PGASOutput:
     r"""Blocked particle Gibbs (Algorithm 5, Vibration 2020) with the PGAS kernel of :mod:`smc`.
 
     ``params``: every model parameter (free hyperparameters too: their values
@@ -995,7 +1029,17 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     the acceleration predictions are kept. ``initial = (mean, sd)`` of the initial
     mechanical state, else ``model.default_initial``. ``progress(done,
     total, accept_rate)`` is called between scan chunks.
+
+    ``channels``: ``(quantity, dof)`` pairs through which the compiled programs
+    observe the system (default: the sensors'; :func:`observe_through`).
+    Channels no sensor reads are never observed, so the posterior is the same;
+    two runs whose models differ only in their sensors then compile the same
+    programs, and run side by side in one process they compile them once
+    (:func:`latentforce.compile.shared_jit`). The programs take the record and
+    the noise covariance as arguments, never as constants.
     """
+    if channels is not None:
+        model, y, mask = observe_through(model, channels, y, mask)
     pm = smc.ParticleModel(model, params, dt, discretisation, initial)
     hyper = Hyper(params, free)
     y = jnp.asarray(y, dtype=float)
@@ -1010,10 +1054,11 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     # ---- initialisation (outside the loop; never from the truth), in compiled programs:
     # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
     x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
-    od = jit(lambda y_, m_: observation_density(pm, y_, m_))(y, mask)
+    R = pm.R
+    od = shared_jit(lambda y_, m_, R_: observation_density(pm, y_, m_, R_))(y, mask, R)
     k_theta, k_chains = jax.random.split(key)
 
-    @jit
+    @shared_jit
     def _start_transitions(k):
         # the chains' dispersed starts theta_0 exp(0.5 eps), and the transitions at theta_0
         # and at those, from one place in the program (each place compiles its own matrix
@@ -1030,20 +1075,20 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
                        interweave=interweave, lowfreq_steps=lowfreq_steps, residual_steps=residual_steps)
     with_rp = rm.applies and int(residual_steps) > 0
 
-    @jit
-    def _smooth(y, mask, tr0):
-        eks = extended_kalman_smoother(pm, tr0, y, mask)
+    @shared_jit
+    def _smooth(y, mask, R, tr0):
+        eks = extended_kalman_smoother(pm, tr0, y, mask, R)
         # ref_q: centring of the running sums (numerical stability)
         return eks, _summary_quantities(pm, eks)
 
     # One program shapes the path moves (Gauss-Newton, a Jacobian through the path
     # rebuild: a large program) at the smoother's path and, for nonlinear models, at
     # each chain's path between burn-in chunks; inside the block it compiled again.
-    @jit
+    @shared_jit
     def _shapes(od, trs, paths):
         return jax.vmap(lambda tr_, x_: path_move_shapes(pm, rm, basis, od, tr_, x_, with_rp))(trs, paths)
 
-    @jit
+    @shared_jit
     def _init_chains(k_chains, tr0, eks, xs0, trs0, lfs, rps):
         frame0 = LowFrequencyFrame(tr0, basis)
 
@@ -1058,7 +1103,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
 
         return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps)
 
-    eks, ref_q = _smooth(y, mask, tr0)
+    eks, ref_q = _smooth(y, mask, R, tr0)
 
     def per_chain(a):
         return np.broadcast_to(np.asarray(a), (chains,) + np.shape(a))
@@ -1071,13 +1116,17 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
 
     # the data are arguments, not constants of the program: a compiled program (and
     # JAX's persistent cache entry) then serves every record of the same shape
-    data = BlockData(y, mask, od, ref_q)
-    # traced once, for the shapes of its output (the skipped blocks') and in the scan
+    data = BlockData(y, mask, R, od, ref_q)
+    # traced once inside the chunk's trace: for the shapes of its output (the skipped
+    # blocks') and in the scan
     vblock = jax.jit(jax.vmap(block, (0, None, None)))
-    info_shapes = jax.eval_shape(vblock, states, jax.ShapeDtypeStruct((), jnp.int32), data)[1]
 
-    @jit
+    @shared_jit
     def _run_chunk(states, blocks, end, data):
+        # here, not before: the whole trace then happens under the one lowering turn
+        # (latentforce.compile.shared_jit)
+        info_shapes = jax.eval_shape(vblock, states, jax.ShapeDtypeStruct((), jnp.int32), data)[1]
+
         def skip(s):
             return s, jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), info_shapes)
 

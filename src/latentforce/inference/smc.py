@@ -125,7 +125,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from latentforce.compile import jit
+from latentforce.compile import shared_jit
 from latentforce.kernels import KernelParams, Matern
 from latentforce.linalg import cho_solve, cholesky, inv, symmetrise, van_loan
 
@@ -278,7 +278,7 @@ class ParticleModel:
         zero_mech, zero_f = jnp.zeros(self.nm), jnp.zeros(self.nfx)
 
         # one compiled program (op by op, each primitive compiled on its own)
-        @jit
+        @shared_jit
         def _jacobians():
             D = jax.jacfwd(lambda xf: self.model.observe(self._gp_dummy(), jnp.concatenate([zero_mech, xf])))(zero_f)
             # Observation Jacobian in the latent (x_f, w) about rest: the proposal's linearisation
@@ -287,7 +287,7 @@ class ParticleModel:
             return D, D_latent, jax.jacfwd(self.phi, argnums=1)(zero_mech, zero_f)
 
         self.D, self.D_latent, self._phi_force = _jacobians()
-        self.mech0_mean, self.mech0_cov = jit(self.initial_mech)(initial)  # None: an empty pytree
+        self.mech0_mean, self.mech0_cov = shared_jit(self.initial_mech)(initial)  # None: an empty pytree
 
     # ----- pieces of the model ---------------------------------------------
     def _hold(self, xf: Float[Array, " nf"], s) -> Float[Array, " nforce"]:
@@ -495,8 +495,13 @@ def _masked_R(R, maskf):
     return R_t
 
 
-def sweep_constants(pm: ParticleModel, tr: Transition, y, mask, proposal: str = "optimal") -> SweepConstants:
-    """Precompute masked observation matrices, ``K, S``, Cholesky factors (once per sweep/theta)."""
+def sweep_constants(pm: ParticleModel, tr: Transition, y, mask, proposal: str = "optimal",
+                    R=None) -> SweepConstants:
+    """Precompute masked observation matrices, ``K, S``, Cholesky factors (once per sweep/theta).
+
+    ``R``: the noise covariance of the channels (default the model's, ``pm.R``);
+    a sampler passes it as data, so that its compiled programs do not hold it.
+    """
     if proposal not in PROPOSALS:
         raise ValueError(f"unknown proposal {proposal!r}; valid: {PROPOSALS}")
     mask = jnp.asarray(mask, dtype=bool)
@@ -504,7 +509,7 @@ def sweep_constants(pm: ParticleModel, tr: Transition, y, mask, proposal: str = 
     T = y.shape[0]
     yz = jnp.where(mask, jnp.nan_to_num(y), 0.0)
     D_t = pm.D_latent[None] * maskf[:, :, None]
-    R_t = jax.vmap(_masked_R, (None, 0))(pm.R, maskf)
+    R_t = jax.vmap(_masked_R, (None, 0))(pm.R if R is None else R, maskf)
     n_obs = jnp.sum(maskf, axis=1)
 
     def _inv_logdet(S, m):
