@@ -174,7 +174,7 @@ class SharedProgram:
         leaves, tree = jax.tree_util.tree_flatten((args, kwargs))
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return self._nested(*args, **kwargs)
-        signature = (tree, tuple(jax.typeof(x) for x in leaves))
+        signature = (tree, tuple(_abstract(x) for x in leaves))
         compiled = self._compiled.get(signature)
         if compiled is None:
             with _LOWERING_LOCK:
@@ -185,6 +185,14 @@ class SharedProgram:
 
     def lower(self, *args, **kwargs):
         return self._jitted.lower(*args, **kwargs)
+
+
+def _abstract(x):
+    """What a compiled program's input is checked against: shape, dtype and weak type."""
+    typeof = getattr(jax, "typeof", None)  # JAX >= 0.4.36
+    if typeof is not None:
+        return typeof(x)
+    return np.shape(x), str(getattr(x, "dtype", type(x))), bool(getattr(x, "weak_type", False))
 
 
 def shared_jit(fn=None, **kwargs):
@@ -205,7 +213,10 @@ def compile_shared(lowered, options=None):
     """
     if not constants_are_embedded():
         return lowered.compile()
-    digest = hashlib.sha256(lowered.as_text().encode()).hexdigest()
+    text = lowered.as_text()
+    if "__elided__" in text:  # a constant left out of the text (MLIR's elision): not a key
+        return lowered.compile()
+    digest = hashlib.sha256(text.encode()).hexdigest()
     key = (digest, str(lowered.in_tree), str(lowered.out_tree), repr(sorted((options or {}).items())))
     with _SHARED_LOCK:
         future = _SHARED.get(key)
