@@ -1032,8 +1032,10 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
 
     ``channels``: ``(quantity, dof)`` pairs through which the compiled programs
     observe the system (default: the sensors'; :func:`observe_through`).
-    Channels no sensor reads are never observed, so the posterior is the same;
-    two runs whose models differ only in their sensors then compile the same
+    Channels no sensor reads are never observed, so the posterior is the same
+    (the draws too, unless an unobserved channel is the one that lets the
+    residual-preserving move apply: an exact move either way, so still the same
+    posterior); two runs whose models differ only in their sensors then compile the same
     programs, and run side by side in one process they compile them once
     (:func:`latentforce.compile.shared_jit`). The programs take the record and
     the noise covariance as arguments, never as constants.
