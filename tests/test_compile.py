@@ -176,9 +176,14 @@ def test_shared_jit_compiles_once_for_concurrent_callers():
     assert len({id(_only_executable(p)) for p in programs}) == 1
 
 
+class _Lowering:
+    compile_args = {"kept_var_idx": {0}, "host_callbacks": []}
+
+
 def test_a_failed_compile_is_not_kept():
     class Lowered:
         in_tree, out_tree = "in", "out"
+        _lowering = _Lowering()
         calls = 0
 
         def as_text(self):
@@ -202,3 +207,49 @@ def test_nothing_is_shared_when_constants_are_not_in_the_text(monkeypatch):
     a, b = _closure(c), _closure(c)
     a(jnp.ones(5)), b(jnp.ones(5))
     assert _only_executable(a) is not _only_executable(b)
+
+
+def test_concurrent_compiles_of_one_text_wait_for_the_first():
+    """Four threads lower the same program at once (a slow compile): one compiles, three wait."""
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    calls = []
+
+    class Lowered:
+        in_tree, out_tree = "in", "out"
+        _lowering = _Lowering()
+
+        def as_text(self):
+            return "module @a_slow_program_of_this_test"
+
+        def compile(self):
+            calls.append(threading.get_ident())
+            time.sleep(0.5)
+            return object()
+
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda _: lc.compile_shared(Lowered()), range(4)))
+    assert len(calls) == 1 and all(g is got[0] for g in got)
+
+
+def test_programs_with_the_same_text_but_other_arguments_or_callbacks_are_not_shared():
+    """JAX drops unused arguments (f(x, y) = 2x and g(x, y) = 2y lower to one text), and a Python
+    callback is not in the text: neither may share an executable."""
+    x, y = jnp.ones(3), jnp.full(3, 5.0)
+    first, second = lc.shared_jit(lambda x, y: x * 2.0), lc.shared_jit(lambda x, y: y * 2.0)
+    np.testing.assert_array_equal(np.asarray(first(x, y)), 2.0)
+    np.testing.assert_array_equal(np.asarray(second(x, y)), 10.0)
+
+    def calling(offset):
+        return lc.shared_jit(lambda v: jax.pure_callback(lambda a: np.asarray(a) + offset,
+                                                         jax.ShapeDtypeStruct((3,), v.dtype), v))
+
+    np.testing.assert_array_equal(np.asarray(calling(1.0)(x)), 2.0)
+    np.testing.assert_array_equal(np.asarray(calling(100.0)(x)), 101.0)
+
+
+def test_a_shared_program_closing_over_an_outer_tracer_is_inlined():
+    out = jax.jit(lambda q: lc.shared_jit(lambda: q * 2.0)())(1.5)
+    assert float(out) == 3.0

@@ -762,6 +762,8 @@ def test_observe_through_keeps_the_likelihood_and_checks_the_sensors():
         pgas.observe_through(acc_only, [("displacement", 0)], y, mask)
     with pytest.raises(ValueError, match="distinct"):
         pgas.observe_through(acc_only, [("acceleration", 0), ("acceleration", 0)], y, mask)
+    with pytest.raises(ValueError, match="one column per sensor"):
+        pgas.observe_through(acc_only, [("acceleration", 0)], np.ones((80, 2)), np.ones((80, 2), bool))
 
 
 def test_runs_through_the_same_channels_compile_once_and_agree_with_their_own_sensors():
@@ -779,8 +781,10 @@ def test_runs_through_the_same_channels_compile_once_and_agree_with_their_own_se
         return pgas.run_pgas(jax.random.key(2), model, params, {}, y_, np.isfinite(y_), 0.02,
                              channels=channels_, **settings)
 
+    assert lc.constants_are_embedded()  # else nothing is shared and the check below says nothing
     run(both, y, channels)
     before = set(lc._SHARED)
+    assert before
     shared = run(acc_only, y_acc, channels)
     assert set(lc._SHARED) == before
     own = run(acc_only, y_acc, None)

@@ -70,7 +70,9 @@ so each case compiled every program anew. :func:`shared_jit` lowers as
 table: a program that lowers to the same text (the same operations, shapes,
 embedded constants and compiler options) gets the executable already
 compiled, or waits for the thread compiling it. Keyed by the text, not by a
-description of the inputs, a program can only be shared with one that
+description of the inputs, and with what the executable holds outside the
+text (the arguments JAX kept, devices, shardings; no sharing for programs
+that call back into Python), a program is only shared with one that
 computes the same thing. One thread at a time traces and lowers (Python
 work, serialised by the interpreter lock anyway), so that one case traces
 its next program while XLA compiles the other's, instead of both tracing
@@ -172,9 +174,11 @@ class SharedProgram:
 
     def __call__(self, *args, **kwargs):
         leaves, tree = jax.tree_util.tree_flatten((args, kwargs))
-        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        if _tracing() or any(isinstance(x, jax.core.Tracer) for x in leaves):
             return self._nested(*args, **kwargs)
-        signature = (tree, tuple(_abstract(x) for x in leaves))
+        # as jax.jit's own cache: the arguments' types and the settings that change a trace
+        # (x64, default matmul precision, default device, ...)
+        signature = (tree, tuple(_abstract(x) for x in leaves), _trace_context())
         compiled = self._compiled.get(signature)
         if compiled is None:
             with _LOWERING_LOCK:
@@ -185,6 +189,27 @@ class SharedProgram:
 
     def lower(self, *args, **kwargs):
         return self._jitted.lower(*args, **kwargs)
+
+
+def _tracing() -> bool:
+    """Whether this thread is inside a JAX trace (a call there must be inlined, even one
+    whose arguments are all concrete: its function may close over a tracer)."""
+    try:
+        from jax._src import core
+
+        return not core.trace_state_clean()
+    except (ImportError, AttributeError):  # a JAX without it: the arguments tell
+        return False
+
+
+def _trace_context() -> tuple:
+    try:
+        from jax._src import config
+
+        return config.trace_context()
+    except (ImportError, AttributeError):
+        return (jax.config.jax_enable_x64, str(jax.config.jax_default_matmul_precision),
+                str(jax.config.jax_default_device))
 
 
 def _abstract(x):
@@ -206,18 +231,28 @@ def compile_shared(lowered, options=None):
     """``lowered.compile()``, or the executable of a program with the same text (module doc).
 
     The key is the lowered module's text (operations, shapes, embedded
-    constants), its argument and result trees and the compiler ``options``.
-    When JAX passes a program's constants as arguments instead of embedding
-    them (``jax_use_simplified_jaxpr_constants``) the text does not hold them,
-    and nothing is shared (:func:`constants_are_embedded`).
+    constants), its argument and result trees, the compiler ``options`` and
+    what the compiled program holds besides its text: which arguments it kept
+    (JAX drops unused ones, so ``f(x, y) = 2x`` and ``g(x, y) = 2y`` lower to
+    the same text), the backend, devices, shardings, layouts and effects.
+    Nothing is shared (a plain compile) when that cannot be seen (a JAX
+    without ``Lowered._lowering.compile_args``), when the program calls back
+    into Python (the callback is not in the text), when JAX passes constants
+    as arguments instead of embedding them (:func:`constants_are_embedded`),
+    or when the text elides a constant.
     """
-    if not constants_are_embedded():
+    compile_args = getattr(getattr(lowered, "_lowering", None), "compile_args", None)
+    if not isinstance(compile_args, dict) or compile_args.get("host_callbacks") or not constants_are_embedded():
         return lowered.compile()
     text = lowered.as_text()
-    if "__elided__" in text:  # a constant left out of the text (MLIR's elision): not a key
+    if "__elided__" in text or "callback" in text:
         return lowered.compile()
-    digest = hashlib.sha256(text.encode()).hexdigest()
-    key = (digest, str(lowered.in_tree), str(lowered.out_tree), repr(sorted((options or {}).items())))
+    backend = compile_args.get("backend")
+    outside = tuple(repr(compile_args.get(k)) for k in (
+        "kept_var_idx", "num_devices", "in_shardings", "out_shardings", "in_layouts", "out_layouts",
+        "ordered_effects", "unordered_effects", "tuple_args"))
+    key = (hashlib.sha256(text.encode()).hexdigest(), str(lowered.in_tree), str(lowered.out_tree),
+           repr(sorted((options or {}).items())), str(getattr(backend, "platform", backend))) + outside
     with _SHARED_LOCK:
         future = _SHARED.get(key)
         owner = future is None
@@ -239,14 +274,18 @@ def compile_shared(lowered, options=None):
     return future.result()
 
 
-@functools.lru_cache(maxsize=1)
 def constants_are_embedded() -> bool:
     """Whether this JAX writes a program's closed-over arrays into its lowered text.
 
-    Found out once, from the text of a small program with two constants of
-    64 numbers (a NumPy and a JAX array): the sharing of
-    :func:`compile_shared` is sound only if it does.
+    Found out once per value of ``jax_use_simplified_jaxpr_constants``, from
+    the text of a small program with two constants of 64 numbers (a NumPy and
+    a JAX array): the sharing of :func:`compile_shared` is sound only if it does.
     """
+    return _constants_are_embedded(getattr(jax.config, "jax_use_simplified_jaxpr_constants", None))
+
+
+@functools.lru_cache(maxsize=4)
+def _constants_are_embedded(_flag) -> bool:
     marker = np.full(64, 1234.5)
     marker[0] = 8765.25
     device_marker = jnp.asarray(-marker)

@@ -64,7 +64,8 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
     ``channels`` (``pgas`` only): ``(quantity, dof)`` pairs through which the
     sampler observes the system, a superset of the sensors'; runs that differ
     only in their sensors then share their compiled programs
-    (:func:`latentforce.inference.pgas.observe_through`). The result is the same.
+    (:func:`latentforce.inference.pgas.observe_through`). The posterior is the
+    same (the draws too, except as that function's caller, ``run_pgas``, says).
 
     ``extras`` holds what a demo may want beyond the result folder, e.g. the
     smoother at the point estimate for ``kalman-mcmc``.

@@ -123,11 +123,14 @@ def figure_process():
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
+    pool = None
     try:
         pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=_import_figure_modules)
         pool.submit(int)  # start the process (and its imports) now
     except (OSError, RuntimeError):
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
         yield None
         return
     with pool:

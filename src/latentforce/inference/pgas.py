@@ -993,6 +993,9 @@ def observe_through(model, channels, y, mask):
         cols.append(i)
         sensors[i] = s
     y, mask = np.asarray(y, dtype=float), np.asarray(mask, dtype=bool)
+    if y.ndim != 2 or y.shape[1] != len(model.sensors) or mask.shape != y.shape:
+        raise ValueError(f"y and mask must both be (T, {len(model.sensors)}), one column per sensor; "
+                         f"got {y.shape} and {mask.shape}")
     y_all = np.full((y.shape[0], len(channels)), np.nan)
     mask_all = np.zeros(y_all.shape, dtype=bool)
     y_all[:, cols], mask_all[:, cols] = y, mask
