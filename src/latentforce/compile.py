@@ -167,7 +167,7 @@ class SharedProgram:
 
     def __init__(self, fn, **kwargs):
         self._options = dict(cpu_options())
-        self._jitted = jax.jit(fn, compiler_options=self._options, **kwargs)
+        self._jitted = jit(fn, **kwargs)
         self._nested = jax.jit(fn, **kwargs)  # JAX takes compiler options only at the top level
         self._compiled: dict = {}
         functools.update_wrapper(self, fn)

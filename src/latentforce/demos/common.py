@@ -10,7 +10,7 @@ import numpy as np
 from latentforce import estimate
 from latentforce.io.config import config_from_dict
 from latentforce.io.data import load_data, write_csv
-from latentforce.results import check_out_dir, write_figures, write_results
+from latentforce.results import FIGURE_LOCK, check_out_dir, write_figures, write_results
 
 
 def toml_value(v) -> str:
@@ -71,7 +71,8 @@ def write_case(folder: Path, config: dict, columns: dict, *, overwrite: bool, pr
         try:
             figure_pool.submit(write_figures, folder, result).result()
         except BrokenProcessPool:  # the helper process died (e.g. out of memory): draw here
-            write_results(folder, result, overwrite=True)
+            with FIGURE_LOCK:
+                write_figures(folder, result)
     return problem, dataset, result, extras
 
 
