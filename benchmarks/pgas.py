@@ -7,7 +7,10 @@ force alone, without the within-step mechanical noise our latent carries,
 so it does a little less work per step than the JAX sweep) and, if it can be
 imported from its own virtual environment, the ``particles`` library's
 conditional SMC (bootstrap, N=50); then ESS per second of the force at a few
-time points and of the hyperparameters from a short Gibbs run.
+time points and of the hyperparameters from a short Gibbs run. The four rows
+are timed in rounds, each row once per round in turn (the peer in a
+persistent worker process), and the peer's ratio to ours is taken within
+each round, so that a change in the machine's load hits both sides of it.
 
     PYTHONPATH=src python benchmarks/pgas.py [--quick] [--particles-python /tmp/pvenv/bin/python]
 
@@ -18,8 +21,18 @@ record length and the size the issue's figures are for.
 
 from __future__ import annotations
 
-import argparse
 import os
+
+# One BLAS thread for the NumPy row and the peer (its worker inherits this). Their
+# matrices are 3x3 to 50x50; idle BLAS threads spin after each call and take a core
+# from the row timed next in the round (measured: our one-chain sweep 12.9 ms right
+# after default-threaded NumPy rows, 10.1 ms with one thread; the peer alone is no
+# faster with more threads, 610 against 564 ms median). Set to override.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse
+import select
 import subprocess
 import sys
 import tempfile
@@ -63,15 +76,6 @@ class ForceOnly(NamedTuple):
     Pinf: np.ndarray
 
 
-def median_time(f, reps: int) -> float:
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        f()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
-
-
 # ---------------------------------------------------------------------------
 # JAX
 # ---------------------------------------------------------------------------
@@ -97,15 +101,29 @@ def jax_sweeps(pm, tr, y, ref, N, chains, n_inner):
     return lambda: f(keys, refs).block_until_ready()
 
 
-def interleaved_ms(calls: dict, reps: int) -> dict:
-    """Median ms per call, the calls interleaved so that they see the same machine load."""
+def timed(f):
+    """``f`` as a call that returns its own wall time in seconds."""
+    def call():
+        t0 = time.perf_counter()
+        f()
+        return time.perf_counter() - t0
+    return call
+
+
+def interleaved_rounds(calls: dict, reps: int) -> dict:
+    """Seconds per call in each of ``reps`` rounds, every round calling each entry once in turn,
+    so that the entries of one round see the same machine load. An entry that returns
+    ``None`` (a peer that stopped) is dropped from the later rounds."""
     times = {k: [] for k in calls}
+    live = dict(calls)
     for _ in range(reps):
-        for k, f in calls.items():
-            t0 = time.perf_counter()
-            f()
-            times[k].append(time.perf_counter() - t0)
-    return {k: 1e3 * float(np.median(v)) for k, v in times.items()}
+        for k, f in list(live.items()):
+            t = f()
+            if t is None:
+                del live[k]
+            else:
+                times[k].append(t)
+    return times
 
 
 # ---------------------------------------------------------------------------
@@ -204,8 +222,8 @@ PARTICLES_SCRIPT = textwrap.dedent("""
     import sys, time, numpy as np
     import particles
     from particles import mcmc, state_space_models as ssms, distributions as dists
-    y = np.load(sys.argv[1]); T = len(y); N = int(sys.argv[2]); reps = int(sys.argv[3])
-    A, Q, Pinf = float(sys.argv[4]), float(sys.argv[5]), float(sys.argv[6])
+    y = np.load(sys.argv[1]); T = len(y); N = int(sys.argv[2])
+    A, Q, Pinf = float(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
     m, c, k, k3, dt = 1.0, 0.2, 10.0, 50.0, %(dt)r
     R = np.diag(np.square(%(noise)r))
     def acc(z, v, u): return (u - c*v - k*z - k3*z**3) / m
@@ -230,34 +248,79 @@ PARTICLES_SCRIPT = textwrap.dedent("""
     pf = particles.SMC(fk=fk, N=N, resampling="multinomial", ESSrmin=1.0, store_history=True)
     pf.run()
     x = pf.hist.extract_one_trajectory()
-    times = []
-    for _ in range(reps):
+    print("ready", flush=True)
+    for line in sys.stdin:  # one conditional SMC sweep per request, its time in ms
         t0 = time.perf_counter()
         cpf = mcmc.CSMC(fk=fk, N=N, ESSrmin=1.0, xstar=x)
         cpf.run()
         x = cpf.hist.extract_one_trajectory()
-        times.append(time.perf_counter() - t0)
-    print(1e3 * float(np.median(times)))
+        print(1e3 * (time.perf_counter() - t0), flush=True)
 """)
 
 
-def particles_sweep_ms(python, y, ft, N, reps):
-    if not python or not os.path.exists(python):
-        return None, f"no interpreter at {python!r}"
-    with tempfile.TemporaryDirectory() as d:
+class ParticlesPeer:
+    """The ``particles`` library's conditional SMC in its own interpreter, one sweep per request.
+
+    A persistent worker, so that its sweeps can be timed in the same rounds as ours
+    (:func:`interleaved_rounds`): the ratio then compares runs under the same load.
+    ``sweep()`` returns the worker's own timing of one sweep in seconds, or ``None``
+    (with ``why`` set) once the worker has failed.
+    """
+
+    TIMEOUT = 600.0
+
+    def __init__(self, python, y, ft, N):
+        self.proc, self.why = None, ""
+        if not python or not os.path.exists(python):
+            self.why = f"no interpreter at {python!r}"
+            return
+        self._dir = tempfile.TemporaryDirectory()
+        d = self._dir.name
         script = os.path.join(d, "p.py")
         with open(script, "w") as fh:
             fh.write(PARTICLES_SCRIPT % {"dt": DT, "noise": NOISE})
         np.save(os.path.join(d, "y.npy"), y)
-        cmd = [python, script, os.path.join(d, "y.npy"), str(N), str(reps),
+        cmd = [python, script, os.path.join(d, "y.npy"), str(N),
                repr(float(ft.A[0, 0])), repr(float(ft.Q[0, 0])), repr(float(ft.Pinf[0, 0]))]
+        self._err = open(os.path.join(d, "stderr.txt"), "w+")
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._err,
+                                     text=True, bufsize=1)
+        if self._read() != "ready":
+            self._fail()
+
+    def _read(self):
+        ready, _, _ = select.select([self.proc.stdout], [], [], self.TIMEOUT)
+        return self.proc.stdout.readline().strip() if ready else None
+
+    def _fail(self, why=None):
+        if self.proc is not None:
+            self.proc.kill()
+            self.proc.wait()
+            self._err.seek(0)
+            lines = self._err.read().strip().splitlines()
+            self.why = why or (lines[-1] if lines else f"exit {self.proc.returncode}")
+            self.proc = None
+
+    def sweep(self):
+        if self.proc is None:
+            return None
         try:
-            res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-        except Exception as exc:  # noqa: BLE001 - reported, not raised
-            return None, str(exc)
-        if res.returncode != 0:
-            return None, res.stderr.strip().splitlines()[-1] if res.stderr else f"exit {res.returncode}"
-        return float(res.stdout.strip().splitlines()[-1]), "bootstrap CSMC, no AS"
+            self.proc.stdin.write("sweep\n")
+            self.proc.stdin.flush()
+            line = self._read()
+            return float(line) / 1e3
+        except (OSError, TypeError, ValueError):
+            self._fail(None if self.proc.poll() is not None else "no answer in 600 s")
+            return None
+
+    def close(self):
+        if self.proc is not None:
+            self.proc.stdin.close()
+            self.proc.wait(timeout=60)
+            self.proc = None
+        if hasattr(self, "_dir"):
+            self._err.close()
+            self._dir.cleanup()
 
 
 def main(argv=None):
@@ -270,26 +333,32 @@ def main(argv=None):
     args = ap.parse_args(argv)
     T = args.T or 1024
     N = 50
-    reps = 3 if args.quick else 5
+    reps = 3 if args.quick else 9
     n_inner = 10 if args.quick else 50
     model, pm, tr, y, truth = problem(T)
     ref = np.asarray(pm.path(jnp.zeros((T, pm.nl))))
     ft = ForceOnly(*pm.force_transition(PARAMS["force_variance"], PARAMS["force_lengthscale"]))
     print(f"Duffing, Matern-1/2, T={T}, N={N}, backend={jax.default_backend()}, cpus={os.cpu_count()}")
 
-    rows = []
     one = jax_sweeps(pm, tr, y, ref, N, 1, n_inner)
     four = jax_sweeps(pm, tr, y, ref, N, 4, n_inner)
-    ms = interleaved_ms({"one": one, "four": four}, reps)
-    ms1, ms4 = ms["one"] / n_inner, ms["four"] / (4 * n_inner)
-    rows.append(("JAX PGAS, 1 chain", ms1, ""))
-    rows.append(("JAX PGAS, 4 vmapped chains (per chain-sweep)", ms4, ""))
     nps = NumpySweep(ft, y, N, np.random.default_rng(0))
     nps(ref)
-    msn = 1e3 * median_time(lambda: nps(ref), max(1, reps - 2))
-    rows.append(("NumPy PGAS (same sweep)", msn, ""))
-    msp, why = particles_sweep_ms(args.particles_python, y, ft, N, 1 if args.quick else 3)
-    rows.append(("particles CSMC", msp, why))
+    peer = ParticlesPeer(args.particles_python, y, ft, N)
+    try:
+        peer.sweep()  # its first sweep warms up, as ours did
+        # seconds per sweep (per chain-sweep for four chains), each entry once per round
+        calls = {"one": lambda: timed(one)() / n_inner, "four": lambda: timed(four)() / (4 * n_inner),
+                 "numpy": timed(lambda: nps(ref)), "peer": peer.sweep}
+        sec = interleaved_rounds(calls, reps)
+    finally:
+        peer.close()
+    ms = {k: 1e3 * float(np.median(v)) if v else None for k, v in sec.items()}
+    ms1, ms4 = ms["one"], ms["four"]
+    rows = [("JAX PGAS, 1 chain", ms1, ""),
+            ("JAX PGAS, 4 vmapped chains (per chain-sweep)", ms4, ""),
+            ("NumPy PGAS (same sweep)", ms["numpy"], ""),
+            ("particles CSMC", ms["peer"], "bootstrap CSMC, no AS" if ms["peer"] is not None else peer.why)]
     table = [f"| implementation | ms/sweep | × JAX 1 chain | note |", "|---|---:|---:|---|"]
     print(f"{'implementation':48s} {'ms/sweep':>10s} {'x JAX-1':>8s}  note")
     for name, t, note in rows:
@@ -301,9 +370,18 @@ def main(argv=None):
             table.append(f"| {name} | {t:.2f} | {t / ms1:.2f} | {note} |")
     budget = 2e4 * ms4 / 1e3
     print(f"-> 2e4 sweeps at this cost (4 chains vmapped, per chain): {budget:.0f} s")
-    peer = (f"particles CSMC / JAX: {msp / ms1:.1f}x one chain, {msp / ms4:.1f}x a chain-sweep of 4 vmapped "
-            "chains (aim: 50x)") if msp is not None else "particles CSMC: unavailable"
-    print(f"-> {peer}")
+    n_peer = len(sec["peer"])
+    if n_peer:
+        # the ratio within each round (same load), then its median and range over the rounds
+        r1 = np.array(sec["peer"]) / np.array(sec["one"][:n_peer])
+        r4 = np.array(sec["peer"]) / np.array(sec["four"][:n_peer])
+        peer_line = (f"particles CSMC / JAX, per round of {n_peer}: one chain median {np.median(r1):.1f}x "
+                     f"(range {r1.min():.1f}-{r1.max():.1f}), a chain-sweep of 4 vmapped chains median "
+                     f"{np.median(r4):.1f}x (range {r4.min():.1f}-{r4.max():.1f}); aim: 50x, "
+                     f"{'met' if np.median(r1) >= 50 else 'not met'} one chain")
+    else:
+        peer_line = f"particles CSMC: unavailable ({peer.why})"
+    print(f"-> {peer_line}")
     if not args.quick or args.out:
         out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "pgas.md")
         load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
@@ -311,10 +389,12 @@ def main(argv=None):
             fh.write(f"# PGAS sweep benchmark\n\nDuffing, Matérn-1/2 force, displacement + acceleration sensors; "
                      f"T = {T}, N = {N} particles, optimal proposal, ancestor sampling.\n"
                      f"{time.strftime('%Y-%m-%dT%H:%M:%S')}; {os.cpu_count()} cores, load average {load}; "
-                     f"JAX {jax.__version__} on {jax.default_backend()}; NumPy {np.__version__}. JAX rows: median of "
-                     f"{reps} interleaved runs of {n_inner} sweeps (sweep constants included, as in the Gibbs loop).\n\n")
+                     f"JAX {jax.__version__} on {jax.default_backend()}; NumPy {np.__version__}. Medians of "
+                     f"{reps} rounds; a round times each row once in turn (JAX rows: {n_inner} sweeps, sweep "
+                     "constants included, as in the Gibbs loop; the peer: one sweep, timed in its own "
+                     "interpreter).\n\n")
             fh.write("\n".join(table) + "\n\n")
-            fh.write(f"2e4 sweeps at the 4-chain per-chain cost: {budget:.0f} s.\n\n{peer}.\n")
+            fh.write(f"2e4 sweeps at the 4-chain per-chain cost: {budget:.0f} s.\n\n{peer_line}.\n")
         print(f"wrote {out}")
 
     # ---- ESS/s from a short Gibbs run

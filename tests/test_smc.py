@@ -83,6 +83,17 @@ def test_box_muller_normals_are_standard_normal():
     assert abs(np.mean(flat**2) - 1.0) < 5.0 * np.sqrt(2.0 / flat.size)
 
 
+def test_unit_circle_is_the_cosine_and_sine_of_the_words_angle():
+    rng = np.random.default_rng(11)
+    edges = [0, 1, 2**30 - 1, 2**30, 2**31 - 1, 2**31, 3 * 2**30 - 1, 3 * 2**30, 2**32 - 1]
+    w = np.concatenate([np.array(edges, dtype=np.uint64), rng.integers(0, 2**32, 200000, dtype=np.uint64)])
+    cos, sin = smc.unit_circle(jnp.asarray(w.astype(np.uint32)))
+    assert cos.dtype == jnp.float32
+    phi = 2.0 * np.pi * w / 2.0**32  # the angle the word encodes, in double precision
+    np.testing.assert_allclose(np.asarray(cos, float), np.cos(phi), rtol=0, atol=3e-7)
+    np.testing.assert_allclose(np.asarray(sin, float), np.sin(phi), rtol=0, atol=3e-7)
+
+
 def test_uniform32_is_uniform_on_the_open_interval():
     from scipy import stats
 

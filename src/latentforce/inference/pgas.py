@@ -90,7 +90,10 @@ Any key implementation works. The sweep draws its random numbers in two
 large batches of 32-bit words before its sequential loop
 (:func:`smc.box_muller`, :func:`smc.uniform32`); with jaxlib 0.10 on a
 2-core CPU a sweep timed the same with ``threefry2x32``, ``rbg`` and
-``unsafe_rbg`` keys (about 10 ns a word for each generator).
+``unsafe_rbg`` keys (about 10 ns a word for each generator). Under ``vmap``
+JAX draws the bits of ``rbg`` keys from the first key of the batch only
+(each chain gets its own slice of that one stream, so the chains stay
+independent, but a chain's draws then depend on the first chain's key).
 """
 
 from __future__ import annotations
