@@ -195,8 +195,12 @@ def uniform32(key: Array, shape: tuple, dtype=float) -> Float[Array, "..."]:
     number); a resampling point needs no finer grid than ``2^-32``. In single
     precision the values are rounded: never 0, but the largest words round to 1.
     """
-    b = jax.random.bits(key, shape, jnp.uint32)
-    return (b.astype(dtype) + 0.5) * _TWO_M32
+    return _unit_interval(jax.random.bits(key, shape, jnp.uint32), dtype)
+
+
+def _unit_interval(words: Array, dtype) -> Array:
+    """``(b + 1/2) 2^-32`` of 32-bit words ``b``: :func:`uniform32`'s map to ``(0, 1)``."""
+    return (words.astype(dtype) + 0.5) * _TWO_M32
 
 
 # Taylor coefficients of sin (x, x^3, ..., x^11) and cos (1, x^2, ..., x^12): on [0, pi/2]
@@ -249,7 +253,7 @@ def box_muller(key: Array, shape: tuple, dtype=float) -> Float[Array, "..."]:
     n = math.prod(shape)
     half = -(-n // 2)
     words = jax.random.bits(key, (2, half), jnp.uint32)
-    u = (words[0].astype(jnp.float32) + np.float32(0.5)) * np.float32(_TWO_M32)  # may round to 1: a zero radius
+    u = _unit_interval(words[0], jnp.float32)  # may round to 1: a zero radius
     r = jnp.sqrt(-2.0 * jnp.log(u))
     cos, sin = unit_circle(words[1])
     z = jnp.concatenate([r * cos, r * sin])[:n]
