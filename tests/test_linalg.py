@@ -153,12 +153,13 @@ def test_particle_gibbs_programs_call_no_lapack(monkeypatch):
 
 
 def test_kalman_programs_call_no_lapack(monkeypatch):
-    """The linear path: Kalman MCMC over chains and the mixture of smoothers (vmapped over
-    parameter draws, with backward sampling)."""
-    from latentforce.inference import kalman_mcmc
+    """The linear path: the optimiser's gradient, Kalman MCMC and NUTS over chains, and the
+    mixture of smoothers (vmapped over parameter draws, with backward sampling)."""
+    from latentforce.inference import kalman_mcmc, kalman_nuts, laplace, mixture
 
     texts = []
-    monkeypatch.setattr(kalman_mcmc, "jit", _recording(texts))
+    for module in (kalman_mcmc, kalman_nuts, laplace, mixture):
+        monkeypatch.setattr(module, "jit", _recording(texts))
     M, K = np.diag([1.0, 0.5]), np.array([[30.0, -10.0], [-10.0, 10.0]])
     model = LatentForceModel(LinearSystem(ndof=2, force_dofs=(0,)), Matern(1),
                              [Sensor("acceleration", 0, 0.05), Sensor("acceleration", 1, 0.05)])
@@ -168,6 +169,8 @@ def test_kalman_programs_call_no_lapack(monkeypatch):
     mask = np.ones(y.shape, bool)
     out = kalman_mcmc.run_kalman_mcmc(jax.random.key(0), model, fixed, free, y, mask, 0.05,
                                       iterations=8, burn_in=4, chains=2)
-    kalman_mcmc.mixture_posterior(jax.random.key(1), model, fixed, out.draws, y, mask, 0.05, n_mix=4, batch=4)
-    assert len(texts) >= 3, [name for name, _ in texts]
+    kalman_nuts.run_kalman_nuts(jax.random.key(2), model, fixed, free, y, mask, 0.05,
+                                iterations=4, burn_in=4, chains=2)
+    mixture.mixture_posterior(jax.random.key(1), model, fixed, out.draws, y, mask, 0.05, thin_draws=2)
+    assert len(texts) >= 6, [name for name, _ in texts]
     assert _lapack_calls(texts) == [], _lapack_calls(texts)

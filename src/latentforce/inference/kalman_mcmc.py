@@ -7,23 +7,25 @@ the exact posterior of the states and force, and the exact log-likelihood.
 subset of the physical and GP parameters, in the softplus space of Eq. (27),
 with the Kalman filter's exact log-likelihood (the energy function, Eq.
 24-26) plus the log prior and the log-Jacobian of the transform. Chains are
-vmapped and the iterations scanned: one compiled program.
+vmapped and the iterations scanned in chunks of one compiled program.
+
+What makes it converge on long records (where the posterior is narrow and
+its parameters differ in scale by orders of magnitude): the chains start
+over-dispersed around the posterior's modes, found by L-BFGS, with each
+mode's Laplace covariance as the proposal shape (:func:`start_chains`,
+:mod:`latentforce.inference.laplace`); the proposal is adapted during the
+warm-up only (:mod:`latentforce.inference.mcmc`); and ``iterations =
+"auto"`` samples until R-hat and ESS say converged
+(:func:`sample_in_chunks`, :mod:`latentforce.inference.convergence`).
 
 Trajectories: the paper plots the smoother at one point estimate (the CDF
-median), which ignores the parameter uncertainty. We also report the honest
-posterior of each state, mixed over a few hundred posterior draws
-:math:`\theta_j`: by the law of total variance,
-
-.. math:: E[x_t] = \overline{m_t(\theta_j)}, \qquad
-          \operatorname{Var}[x_t] = \overline{P_t(\theta_j)} + \operatorname{Var}_j[m_t(\theta_j)],
-
-and one backward-sampled trajectory per draw for ``posterior.nc``.
+median), which ignores the parameter uncertainty. We report the honest
+posterior of each state, mixed over posterior draws in bounded memory
+(:mod:`latentforce.inference.mixture`).
 """
 
 from __future__ import annotations
 
-import functools
-import math
 import time as _time
 from typing import Callable, NamedTuple
 
@@ -38,8 +40,8 @@ from latentforce.inference.kalman import (
     log_likelihood,
     log_likelihood_complete,
     rts_smoother,
-    sample_smoothed_trajectory,
 )
+from latentforce.linalg import cholesky
 from latentforce.models import LatentForceModel
 from latentforce.priors import Prior, log_prob_unconstrained, softplus, softplus_inverse
 
@@ -83,24 +85,35 @@ def state_moments(model: LatentForceModel, means, covs):
     return out
 
 
+#: optimiser starts besides ``init`` (:func:`start_chains`)
+N_DISPERSED_STARTS = 3
+
+
 class MCMCOutput(NamedTuple):
-    """Raw output of :func:`run_kalman_mcmc` (numpy arrays)."""
+    """Raw output of :func:`run_kalman_mcmc` and :func:`~latentforce.inference.kalman_nuts.run_kalman_nuts`."""
 
     names: tuple[str, ...]
     draws: dict                   # name -> (chains, iterations) physical values
-    accepted: np.ndarray          # (chains, iterations)
+    accepted: np.ndarray          # (chains, iterations); NUTS: mean acceptance statistic
     log_likelihood: np.ndarray    # (chains, iterations)
-    acceptance: np.ndarray        # (chains,) post-burn-in acceptance rate
-    proposal_scale: np.ndarray    # (chains,) adapted global scale
+    acceptance: np.ndarray        # (chains,) post-warm-up acceptance rate
+    proposal_scale: np.ndarray    # (chains,) adapted global scale (NUTS: step size)
     wall_time_s: float
+    convergence: dict = {}        # latentforce.inference.convergence.diagnose record
+    start: dict = {}              # how the chains were started: modes, optimiser record, seconds
+    warmup: int = 0               # warm-up iterations per chain
+    sampler_info: dict = {}       # method-specific extras (e.g. NUTS tree depth)
 
 
-def make_log_posterior(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
-                       y, mask, dt: float, initial: Initial | None = None) -> tuple[Callable, Callable]:
-    """Log posterior of the unconstrained parameter vector, and its log-likelihood part."""
-    complete = bool(np.all(mask))
-    y = jnp.asarray(np.where(mask, y, 0.0))
-    mask = jnp.asarray(mask)
+def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
+                     dt: float, initial: Initial | None = None, complete: bool = True) -> Callable:
+    """``logpost(x, y, mask)`` of the unconstrained parameter vector ``x`` (data as arguments).
+
+    The record is an argument, not a constant of the program, so records of
+    one shape share one compiled sampler. ``complete`` (every sample of
+    every channel observed) selects the exact steady-state shortcut of
+    :func:`~latentforce.inference.kalman.log_likelihood_complete`.
+    """
 
     def params_of(x):
         params = dict(fixed)
@@ -108,145 +121,196 @@ def make_log_posterior(model: LatentForceModel, fixed: dict, names: tuple[str, .
             params[name] = softplus(x[i])
         return params
 
-    def loglik(x):
+    def logpost(x, y, mask):
         lg = linear_gaussian(model, params_of(x), dt, initial)
-        # A complete record is time invariant: the exact steady-state shortcut applies.
-        return log_likelihood_complete(*lg, y) if complete else log_likelihood(*lg, y, mask)
-
-    def logpost(x):
+        ll = log_likelihood_complete(*lg, y) if complete else log_likelihood(*lg, y, mask)
         lp = sum(log_prob_unconstrained(prior, x[i]) for i, prior in enumerate(priors))
-        # Evaluate the filter only where the prior allows (an impossible prior value is -inf anyway).
-        return lp + loglik(x)
+        return lp + ll
 
-    return logpost, loglik
+    return logpost
+
+
+def make_log_posterior(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
+                       y, mask, dt: float, initial: Initial | None = None) -> tuple[Callable, Callable]:
+    """Log posterior of the unconstrained parameter vector, and its log-likelihood part (data fixed)."""
+    complete = bool(np.all(mask))
+    y = jnp.asarray(np.where(mask, y, 0.0))
+    mask = jnp.asarray(mask)
+    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete)
+
+    def loglik(x):
+        return logpost(x, y, mask) - sum(log_prob_unconstrained(p, x[i]) for i, p in enumerate(priors))
+
+    return (lambda x: logpost(x, y, mask)), loglik
+
+
+def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains: int, *,
+                 use_modes: bool = True) -> tuple[np.ndarray, list[np.ndarray], dict]:
+    r"""Chain starts ``(chains, p)``, each chain's proposal covariance, and a record.
+
+    With ``use_modes`` (the default): the posterior's modes from L-BFGS
+    started at ``init`` and at :data:`N_DISPERSED_STARTS` points dispersed around it
+    (:func:`latentforce.inference.laplace.find_modes`); the chains start
+    over-dispersed (twice the Laplace sd) around the modes that carry
+    mass, each with its mode's Laplace covariance as its proposal shape.
+    Without (or where the optimiser finds nothing finite), the paper's start:
+    ``init`` times ``exp(0.3 z)`` and a 10 % diagonal step.
+    """
+    from latentforce.inference import laplace
+
+    p = inits.size
+    key_opt, key_start, key_old = jax.random.split(key, 3)
+    x_init = np.asarray(softplus_inverse(jnp.asarray(inits)))
+    record: dict = {"method": "init"}
+    if use_modes:
+        t0 = _time.perf_counter()
+        z = np.asarray(jax.random.normal(key_opt, (N_DISPERSED_STARTS, p)))
+        # Dispersed in the physical value by a factor exp(0.5 z): at least an order of
+        # magnitude over the starts, so a second mode of the likelihood can show itself.
+        starts = np.concatenate([x_init[None], np.asarray(softplus_inverse(jnp.asarray(inits * np.exp(0.5 * z))))])
+        modes, opt = laplace.find_modes(logpost, starts, args=data)
+        if modes:
+            x0, which = laplace.chain_starts(key_start, modes, chains)
+            record = {"method": "laplace", "optimiser": opt, "seconds": _time.perf_counter() - t0,
+                      "modes": [{"x": m.x.tolist(), "log_posterior": m.log_posterior, "log_mass": m.log_mass,
+                                 "laplace_ok": m.laplace_ok, "sd": np.sqrt(np.diag(m.cov)).tolist()}
+                                for m in modes],
+                      "chain_mode": which.tolist()}
+            return x0, [modes[w].cov for w in which], record
+        record = {"method": "init", "optimiser": opt, "note": "the optimiser found no finite optimum"}
+    z = np.asarray(jax.random.normal(key_old, (chains, p)))
+    theta0 = inits[None, :] * np.exp(0.3 * z) if chains > 1 else inits[None, :]
+    x0 = np.asarray(softplus_inverse(jnp.asarray(theta0)))
+    # A 10 % step in the physical value (or 0.1 in x where the value is below one).
+    sd0 = 0.1 * np.maximum(1.0, theta0)
+    return x0, [np.diag(s**2) for s in sd0], record
 
 
 def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
-                    iterations: int, burn_in: int, chains: int, initial: Initial | None = None,
-                    progress: Callable | None = None, chunk: int = 1000) -> MCMCOutput:
+                    iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
+                    progress: Callable | None = None, chunk: int = 250, target_ess: float = 400,
+                    max_time: float = 600.0, use_modes: bool = True) -> MCMCOutput:
     """Random-walk Metropolis over the ``free`` parameters (Algorithm 1, ISMA 2018).
 
     ``free`` maps a parameter name to ``(prior, init)``; ``fixed`` holds the
-    known values. Chains start dispersed around ``init`` (a factor
-    ``exp(0.3 z)``, ``z ~ N(0, 1)``), never at the truth. ``progress(done,
-    total, acceptance)`` is called between chunks of ``chunk`` iterations.
+    known values. Chains start as :func:`start_chains` says; the proposal is
+    each chain's Laplace covariance scaled by :math:`2.38/\\sqrt p`, its
+    scale adapted towards the optimal acceptance and its shape re-estimated
+    from the chain (:mod:`latentforce.inference.mcmc`) during the
+    ``burn_in`` warm-up only, then frozen. ``iterations``: a number of
+    draws per chain, or ``None`` for "auto": chunks of ``chunk`` draws until
+    :func:`latentforce.inference.convergence.diagnose` says converged
+    (``target_ess``) or ``max_time`` seconds have passed since the start.
+    ``progress(done, total, acceptance)`` is called between chunks.
     """
     t0 = _time.perf_counter()
     names = tuple(free)
     priors = tuple(free[n][0] for n in names)
     inits = np.array([float(free[n][1]) for n in names])
-    logpost, loglik = make_log_posterior(model, fixed, names, priors, y, mask, dt, initial)
+    complete = bool(np.all(mask))
+    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete)
+    data = (jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask))
     p = len(names)
     target = mcmc.target_acceptance(p)
 
-    key_init, key_run = jax.random.split(key)
-    z = np.asarray(jax.random.normal(key_init, (chains, p)))
-    theta0 = inits[None, :] * np.exp(0.3 * z) if chains > 1 else inits[None, :]
-    x0 = np.asarray(softplus_inverse(jnp.asarray(theta0)))
-    # A 10 % step in the physical value (or 0.1 in x where the value is below one).
-    sd0 = 0.1 * np.maximum(1.0, theta0)
-
-    init_fn = jit(jax.vmap(lambda x, s: mcmc.init(x, logpost, s)))
-    states = init_fn(jnp.asarray(x0), jnp.asarray(sd0))
-    shape_at = tuple(sorted({burn_in // 4, burn_in // 2, (3 * burn_in) // 4} - {0}))
-
-    n_chunk = _chunk_size(burn_in, iterations, chunk)
-    # Whole chunks: the burn-in may be rounded up (never down); extra draws are dropped.
-    burn_total = -(-burn_in // n_chunk) * n_chunk
-    total = burn_total + -(-iterations // n_chunk) * n_chunk
+    key_start, key_run = jax.random.split(key)
+    x0, covs, start = start_chains(key_start, logpost, data, inits, chains, use_modes=use_modes)
 
     @jit
-    @functools.partial(jax.vmap, in_axes=(0, 0, None, None))
-    def runner(k, s, start, adapt):
-        return mcmc.run_chain(k, s, logpost, n_chunk, adapt=adapt, adapt_shape_at=shape_at,
-                              target=target, start=start)
+    def init_fn(x, cov, y_, mask_):
+        def one(xi, ci):
+            chol = cholesky(ci) * (2.38 / np.sqrt(p))
+            return mcmc.RWMState(xi, logpost(xi, y_, mask_), jnp.zeros(()), chol, xi, ci, jnp.zeros(()))
+        return jax.vmap(one)(x, cov)
 
+    states = init_fn(jnp.asarray(x0), jnp.asarray(np.stack(covs)), *data)
+
+    n_chunk = max(1, min(chunk, burn_in or chunk, iterations or chunk))
+    burn_total = -(-burn_in // n_chunk) * n_chunk  # rounded up to whole chunks, never down
+    # With a Laplace start the proposal already fits: re-shape it from the chain half-way
+    # and at three quarters of the warm-up (from the paper's start, at each quarter).
+    fractions = (2, 3) if start["method"] == "laplace" else (1, 2, 3)
+    shape_at = tuple(sorted({f * burn_total // 4 for f in fractions} - {0}))
+
+    @jit
+    def runner(k, s, start_step, adapt, y_, mask_):
+        def chain(kc, sc):
+            return mcmc.run_chain(kc, sc, lambda x: logpost(x, y_, mask_), n_chunk, adapt=adapt,
+                                  adapt_shape_at=shape_at, target=target, start=start_step)
+        return jax.vmap(chain)(k, s)
+
+    def run_chunk(keys, s, start_step, adapt):
+        s, xs, infos = runner(keys, s, start_step, adapt, *data)
+        return s, xs, {"accepted": infos.accepted, "logdensity": infos.logdensity}
+
+    states, xs, stats = sample_in_chunks(key_run, states, run_chunk, names, chains=chains, n_chunk=n_chunk,
+                                         burn_total=burn_total, iterations=iterations, target_ess=target_ess,
+                                         max_time=max_time, t0=t0, progress=progress)
+    accepted, lp = stats["accepted"], stats["logdensity"]
+    draws, loglik, record = finish(xs, lp, names, priors, target_ess)
+    return MCMCOutput(names, draws, accepted, loglik, accepted.mean(axis=1),
+                      np.exp(np.asarray(states.log_scale)), _time.perf_counter() - t0, record, start,
+                      burn_total)
+
+
+def sample_in_chunks(key, states, run_chunk: Callable, names: tuple[str, ...], *, chains: int, n_chunk: int,
+                     burn_total: int, iterations: int | None, target_ess: float, max_time: float, t0: float,
+                     progress: Callable | None = None):
+    """Warm-up then sampling, in chunks of ``n_chunk`` iterations of one compiled program.
+
+    ``run_chunk(keys, states, start_step, adapt) -> (states, xs (chains, n_chunk, p),
+    stats {name: (chains, n_chunk)})``, with ``stats["accepted"]`` (for the
+    progress line) and ``stats["logdensity"]`` (monitored beside the
+    parameters). Fixed ``iterations`` are run (rounded up to whole chunks, the
+    surplus dropped); ``None`` runs until converged or ``max_time``.
+    Returns the final states, the post-warm-up draws and their stats.
+    """
+    from latentforce.inference import convergence
+
+    fixed_total = None if iterations is None else burn_total + -(-iterations // n_chunk) * n_chunk
     done = 0
-    xs_all, acc_all, ld_all = [], [], []
-    run_keys = jax.random.split(key_run, chains)
-    while done < total:
+    xs_all: list = []
+    stats_all: dict[str, list] = {}
+    run_keys = jax.random.split(key, chains)
+    while True:
         adapt = done < burn_total
         keys = jax.vmap(lambda k: jax.random.fold_in(k, done))(run_keys)
-        states, xs, infos = runner(keys, states, done, adapt)
+        states, xs, stats = run_chunk(keys, states, done, adapt)
         if not adapt:
             xs_all.append(np.asarray(xs))
-            acc_all.append(np.asarray(infos.accepted))
-            ld_all.append(np.asarray(infos.logdensity))
+            for k, v in stats.items():
+                stats_all.setdefault(k, []).append(np.asarray(v))
         done += n_chunk
+        total = fixed_total if fixed_total is not None else max(done + n_chunk, burn_total + n_chunk)
         if progress is not None:
-            progress(done, total, float(np.mean(np.asarray(infos.accepted))))
+            progress(done, total, float(np.mean(np.asarray(stats["accepted"]))))
+        if adapt:
+            continue
+        if fixed_total is not None:
+            if done >= fixed_total:
+                break
+            continue
+        draws_x = np.concatenate(xs_all, axis=1)
+        quantities = {n: draws_x[..., i] for i, n in enumerate(names)}
+        quantities["log_posterior"] = np.concatenate(stats_all["logdensity"], axis=1)
+        if convergence.diagnose(quantities, target_ess=target_ess)["converged"]:
+            break
+        if _time.perf_counter() - t0 >= max_time:
+            break
+    n_kept = iterations if iterations is not None else done - burn_total
+    xs = np.concatenate(xs_all, axis=1)[:, :n_kept]
+    return states, xs, {k: np.concatenate(v, axis=1)[:, :n_kept] for k, v in stats_all.items()}
 
-    xs = np.concatenate(xs_all, axis=1)[:, :iterations]
-    accepted = np.concatenate(acc_all, axis=1)[:, :iterations]
-    lp = np.concatenate(ld_all, axis=1)[:, :iterations]
+
+def finish(xs: np.ndarray, logpost: np.ndarray, names: tuple[str, ...], priors: tuple[Prior, ...],
+           target_ess: float) -> tuple[dict, np.ndarray, dict]:
+    """Physical draws, the log-likelihood of each draw, and the convergence record."""
+    from latentforce.inference import convergence
+
     # The log-likelihood part of each draw: log posterior minus log prior (cheap, exact).
     log_prior = sum(np.asarray(log_prob_unconstrained(prior, jnp.asarray(xs[..., i])))
                     for i, prior in enumerate(priors))
     draws = {n: np.asarray(softplus(jnp.asarray(xs[..., i]))) for i, n in enumerate(names)}
-    return MCMCOutput(names, draws, accepted, lp - log_prior, accepted.mean(axis=1),
-                      np.exp(np.asarray(states.log_scale)), _time.perf_counter() - t0)
-
-
-def _chunk_size(burn_in: int, iterations: int, limit: int) -> int:
-    """The largest chunk <= ``limit`` that divides both phases, so one compiled
-    program runs every chunk; if they share no divisor of useful size, a plain
-    ``limit``-sized chunk (the caller rounds the phases up to whole chunks)."""
-    g = math.gcd(burn_in, iterations) if burn_in else iterations
-    best = max((d for d in range(1, min(limit, g) + 1) if g % d == 0), default=1)
-    return best if best >= min(100, limit) else min(limit, max(burn_in, iterations))
-
-
-def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y, mask, dt: float, *,
-                      n_mix: int = 200, initial: Initial | None = None, batch: int = 25,
-                      point: dict | None = None):
-    """Posterior state moments mixed over ``n_mix`` parameter draws, and sampled paths.
-
-    Returns ``(moments, paths, point_result)``: ``moments[name] = (mean, sd)``
-    with shapes ``(T, width)``; ``paths[name]`` with shape
-    ``(chains, d, T, width)`` where ``d = n_mix // chains`` evenly thinned
-    draws per chain, one backward-sampled trajectory per parameter draw;
-    ``point_result`` is ``(moments, log_likelihood)`` of the smoother at the
-    parameter values ``point`` (e.g. the CDF median), or ``None``. One compiled batch program
-    does all of it (the last batch is padded).
-    """
-    names = tuple(draws)
-    chains, n_iter = next(iter(draws.values())).shape
-    per_chain = max(1, n_mix // chains)
-    idx = np.linspace(0, n_iter - 1, per_chain).round().astype(int)
-    thetas = np.stack([draws[n][:, idx] for n in names], axis=-1)  # (chains, d, p)
-    flat = thetas.reshape(-1, len(names))
-    count = flat.shape[0]
-    if point is not None:
-        flat = np.concatenate([flat, np.array([[point[n] for n in names]])])
-    batch = min(batch, flat.shape[0])
-    n_pad = -flat.shape[0] % batch
-    flat = np.concatenate([flat, np.repeat(flat[-1:], n_pad, axis=0)])
-    y, mask = jnp.asarray(y), jnp.asarray(mask)
-
-    def one(k, theta):
-        params = dict(fixed)
-        for i, n in enumerate(names):
-            params[n] = theta[i]
-        A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
-        filt = kalman_filter(A, Q, H, R, m0, P0, y, mask)
-        sm = rts_smoother(A, filt)
-        path = sample_smoothed_trajectory(k, A, Q, filt)
-        return sm.means, jnp.diagonal(sm.covs, axis1=-2, axis2=-1), path, filt.log_likelihood
-
-    batched = jit(jax.vmap(one))
-    keys = jax.random.split(key, flat.shape[0])
-    parts = [batched(keys[start:start + batch], jnp.asarray(flat[start:start + batch]))
-             for start in range(0, flat.shape[0], batch)]
-    m_all, v_all, p_all, ll_all = (np.concatenate([np.asarray(part[i]) for part in parts]) for i in range(4))
-    mean = m_all[:count].mean(0)
-    var = v_all[:count].mean(0) + m_all[:count].var(0)
-    paths = p_all[:count].reshape(chains, per_chain, *p_all.shape[1:])
-    index = (("displacement", model.displacement_index()), ("velocity", model.velocity_index()),
-             ("force", model.force_index()))
-    moments = {name: (mean[:, ix], np.sqrt(var[:, ix])) for name, ix in index}
-    sampled = {name: paths[..., ix] for name, ix in index}
-    point_result = None
-    if point is not None:
-        point_result = ({name: (m_all[count][:, ix], np.sqrt(v_all[count][:, ix])) for name, ix in index},
-                        float(ll_all[count]))
-    return moments, sampled, point_result
+    quantities = dict(draws)
+    quantities["log_posterior"] = logpost
+    return draws, logpost - log_prior, convergence.diagnose(quantities, target_ess=target_ess)

@@ -58,6 +58,9 @@ PLANNED_SYSTEM_TYPES = ("bouc-wen",)
 # Parameters PGAS may infer in this version (Algorithm 4, Vibration 2020,
 # with Metropolis-within-Gibbs on the force hyperparameters only).
 PGAS_FREE_OK = ("force_variance", "force_lengthscale")
+#: warm-up iterations per chain when [inference].burn_in is not given: the Kalman
+#: samplers start at the posterior's modes (Laplace), so a short warm-up adapts them
+DEFAULT_BURN_IN = {"kalman": 0, "kalman-mcmc": 500, "kalman-nuts": 300, "pgas": 1000}
 
 
 # ----- the result ------------------------------------------------------------
@@ -73,7 +76,7 @@ class InferenceSettings(NamedTuple):
 
     method: str
     particles: int
-    iterations: int
+    iterations: int | None  # None: "auto" (run until converged or max_time)
     burn_in: int
     state_every: int
     chains: int
@@ -82,6 +85,8 @@ class InferenceSettings(NamedTuple):
     discretisation: str
     proposal: str
     thin_draws: int
+    target_ess: float = 400.0
+    max_time: float = 600.0
 
 
 class DataSettings(NamedTuple):
@@ -174,10 +179,12 @@ class _InitialSection(_Strict):
 
 
 class _InferenceSection(_Strict):
-    method: Literal["kalman", "kalman-mcmc", "pgas"] | None = None
+    method: Literal["kalman", "kalman-mcmc", "kalman-nuts", "pgas"] | None = None
     particles: int = Field(default=50, ge=2)
-    iterations: int = Field(default=10000, ge=1)
-    burn_in: int = Field(default=1000, ge=0)
+    iterations: Annotated[int, Field(ge=1)] | Literal["auto"] = "auto"
+    burn_in: int | None = Field(default=None, ge=0)
+    target_ess: float = Field(default=400.0, gt=0)
+    max_time: float = Field(default=600.0, gt=0)
     state_every: int = Field(default=5, ge=1)
     chains: int = Field(default=4, ge=1)
     seed: int = 0
@@ -483,7 +490,7 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
 
     inf = cfg.inference
     method = inf.method or _default_method(system.is_linear, free)
-    if method in ("kalman", "kalman-mcmc") and not system.is_linear:
+    if method in ("kalman", "kalman-mcmc", "kalman-nuts") and not system.is_linear:
         raise fail("[inference].method", f"method {method!r} needs a linear system but [system].type is "
                                          f"{cfg.system.type!r}; use method = \"pgas\".")
     if method == "kalman" and free:
@@ -491,8 +498,8 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
         raise fail("[inference].method", f"method \"kalman\" needs every parameter fixed, but {names} "
                                          f"has a prior; use method = \"kalman-mcmc\" to infer it, or give "
                                          f"a number.")
-    if method == "kalman-mcmc" and not free:
-        raise fail("[inference].method", "method \"kalman-mcmc\" needs at least one inferred parameter "
+    if method in ("kalman-mcmc", "kalman-nuts") and not free:
+        raise fail("[inference].method", f"method \"{method}\" needs at least one inferred parameter "
                                          "(a prior table), but every parameter is fixed; use "
                                          "method = \"kalman\".")
     if method == "pgas":
@@ -502,10 +509,12 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
                                             f"lengthscale in this version; give {name} as a number, or "
                                             f"use method = \"kalman-mcmc\" for a linear system.")
     settings = InferenceSettings(
-        method=method, particles=inf.particles, iterations=inf.iterations, burn_in=inf.burn_in,
+        method=method, particles=inf.particles,
+        iterations=None if inf.iterations == "auto" else inf.iterations,
+        burn_in=DEFAULT_BURN_IN[method] if inf.burn_in is None else inf.burn_in,
         state_every=inf.state_every, chains=inf.chains, seed=inf.seed, mh_steps=inf.mh_steps,
         discretisation=inf.discretisation, proposal=inf.proposal,
-        thin_draws=inf.thin_draws)
+        thin_draws=inf.thin_draws, target_ess=inf.target_ess, max_time=inf.max_time)
 
     dat = cfg.data
     if dat.time_column is not None and dat.sample_rate is not None:

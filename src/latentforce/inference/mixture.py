@@ -1,0 +1,153 @@
+r"""The states' posterior mixed over parameter draws, in memory independent of the draws.
+
+Given parameter draws :math:`\theta_j` (``kalman-mcmc``, ``kalman-nuts``),
+the states' posterior is the mixture of the exact smoothers
+:math:`N(m_t(\theta_j), P_t(\theta_j))`. By the law of total variance
+
+.. math:: E[x_t] = \overline{m_t(\theta_j)}, \qquad
+          \operatorname{Var}[x_t] = \overline{P_t(\theta_j)} + \operatorname{Var}_j[m_t(\theta_j)].
+
+The sums are accumulated batch by batch (Chan et al.'s pairwise update of
+mean and sum of squared deviations, stable in float64), so memory is a
+batch of smoothers plus three ``(T, n)`` accumulators, whatever the number
+of draws; backward-sampled trajectories (Carter & Kohn) are kept for a
+bounded number of draws only, within :data:`PATH_BUDGET_BYTES`.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from latentforce.compile import jit
+from latentforce.inference.kalman import kalman_filter, rts_smoother, sample_smoothed_trajectory
+from latentforce.models import LatentForceModel
+
+#: bytes of stored trajectories (``posterior.nc``'s paths) at most
+PATH_BUDGET_BYTES = 256 * 2**20
+#: bytes of one batch's filter and smoother arrays at most
+BATCH_BUDGET_BYTES = 128 * 2**20
+STATES = ("displacement", "velocity", "force")
+
+
+class Mixture(NamedTuple):
+    """What :func:`mixture_posterior` returns (NumPy arrays)."""
+
+    moments: dict           # state -> (mean (T, width), sd (T, width))
+    paths: dict             # state -> (chains, paths_per_chain, T, width)
+    path_index: np.ndarray  # (paths_per_chain,) draw index of each chain's stored paths
+    n_mix: int              # parameter draws mixed
+    point: tuple | None     # (moments, log-likelihood) of the smoother at ``point``
+
+
+def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int) -> tuple[int, int]:
+    """``(draws mixed per chain, paths stored per chain)`` for a record of ``T`` samples.
+
+    Up to 100 draws per chain mixed, fewer on long records (each costs a
+    smoother over ``T``; at least 16 per chain: the between-draw variance is
+    a small part of the total where the posterior is narrow); paths at most
+    ``thin_draws`` per chain and :data:`PATH_BUDGET_BYTES` in all.
+    """
+    per_chain = int(np.clip(5e6 // max(T, 1) // max(chains, 1), 16, 100))
+    per_chain = min(per_chain, n_draws)
+    paths = int(min(thin_draws, max(1, PATH_BUDGET_BYTES // (chains * T * width * 8)), per_chain))
+    return per_chain, max(paths, 1)
+
+
+def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, with_path: bool,
+         key, theta, y, mask):
+    from latentforce.inference.kalman_mcmc import linear_gaussian
+
+    params = dict(fixed)
+    for i, n in enumerate(names):
+        params[n] = theta[i]
+    A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
+    filt = kalman_filter(A, Q, H, R, m0, P0, y, mask)
+    sm = rts_smoother(A, filt)
+    var = jnp.diagonal(sm.covs, axis1=-2, axis2=-1)
+    path = sample_smoothed_trajectory(key, A, Q, filt) if with_path else jnp.zeros(())
+    return sm.means, var, path, filt.log_likelihood
+
+
+def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y, mask, dt: float, *,
+                      thin_draws: int = 200, initial=None, point: dict | None = None) -> Mixture:
+    """The mixed state posterior over thinned ``draws`` ``{name: (chains, n)}``; see the module doc."""
+    names = tuple(draws)
+    chains, n_iter = next(iter(draws.values())).shape
+    T, n = np.shape(y)[0], model.n_state
+    index = {"displacement": model.displacement_index(), "velocity": model.velocity_index(),
+             "force": model.force_index()}
+    width = sum(len(ix) for ix in index.values())
+    per_chain, n_paths = mixture_size(T, chains, n_iter, thin_draws, width)
+    idx = np.linspace(0, n_iter - 1, per_chain).round().astype(int)
+    path_slots = np.linspace(0, per_chain - 1, n_paths).round().astype(int)
+    thetas = np.stack([draws[nm][:, idx] for nm in names], axis=-1)  # (chains, per_chain, p)
+    is_path = np.zeros((chains, per_chain), bool)
+    is_path[:, path_slots] = True
+
+    batch = int(max(1, min(16, BATCH_BUDGET_BYTES // (T * (4 * n * n + 4 * n) * 8))))
+    y = jnp.asarray(np.where(mask, y, 0.0))
+    mask = jnp.asarray(mask)
+    static = (model, fixed, names, dt, initial)
+    with_path = jit(jax.vmap(functools.partial(_one, *static, True), in_axes=(0, 0, None, None)))
+    no_path = jit(jax.vmap(functools.partial(_one, *static, False), in_axes=(0, 0, None, None)))
+
+    acc = _Accumulator(T, n)
+    kept = np.concatenate([index[s] for s in STATES])  # the state components a path stores
+    paths = np.zeros((chains, n_paths, T, kept.size))
+    keys = np.asarray(jax.random.key_data(jax.random.split(key, chains * per_chain)))
+    keys = keys.reshape(chains, per_chain, *keys.shape[1:])
+    for program, select in ((with_path, is_path), (no_path, ~is_path)):
+        where = np.argwhere(select)  # (count, 2): (chain, slot)
+        for start in range(0, len(where), batch):
+            part = where[start:start + batch]
+            pad = np.concatenate([part, np.repeat(part[-1:], batch - len(part), axis=0)])
+            th = jnp.asarray(thetas[pad[:, 0], pad[:, 1]])
+            ks = jax.random.wrap_key_data(jnp.asarray(keys[pad[:, 0], pad[:, 1]]))
+            means, var, path, _ = program(ks, th, y, mask)
+            k = len(part)
+            acc.add(np.asarray(means)[:k], np.asarray(var)[:k])
+            if program is with_path:
+                slot = np.searchsorted(path_slots, part[:, 1])
+                paths[part[:, 0], slot] = np.asarray(path)[:k][..., kept]
+    mean, var = acc.result()
+    moments = {s: (mean[:, ix], np.sqrt(np.clip(var[:, ix], 0.0, None))) for s, ix in index.items()}
+    offsets = np.cumsum([0] + [len(index[s]) for s in STATES])
+    sampled = {s: paths[..., offsets[i]:offsets[i + 1]] for i, s in enumerate(STATES)}
+    point_result = None
+    if point is not None:
+        th = jnp.repeat(jnp.asarray([[float(point[nm]) for nm in names]]), batch, axis=0)
+        m_p, v_p, _, ll = no_path(jax.random.split(key, batch), th, y, mask)
+        m_p, v_p = np.asarray(m_p)[0], np.asarray(v_p)[0]
+        point_result = ({s: (m_p[:, ix], np.sqrt(np.clip(v_p[:, ix], 0.0, None))) for s, ix in index.items()},
+                        float(np.asarray(ll)[0]))
+    return Mixture(moments, sampled, idx[path_slots], chains * per_chain, point_result)
+
+
+class _Accumulator:
+    """Running mean of the means, their sum of squared deviations, and mean of the variances."""
+
+    def __init__(self, T: int, n: int):
+        self.count = 0
+        self.mean = np.zeros((T, n))
+        self.m2 = np.zeros((T, n))
+        self.var = np.zeros((T, n))
+
+    def add(self, means: np.ndarray, variances: np.ndarray) -> None:
+        k = means.shape[0]
+        b_mean = means.mean(0)
+        b_m2 = ((means - b_mean) ** 2).sum(0)
+        total = self.count + k
+        delta = b_mean - self.mean
+        self.mean += delta * (k / total)
+        self.m2 += b_m2 + delta**2 * (self.count * k / total)
+        self.var += (variances.sum(0) - k * self.var) / total
+        self.count = total
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mixture mean and variance (law of total variance, population variance of the means)."""
+        return self.mean, self.var + self.m2 / self.count

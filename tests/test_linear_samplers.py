@@ -1,0 +1,186 @@
+"""The linear samplers' start, adaptation, stopping rule and bounded-memory mixture.
+
+Against exact answers: the Laplace step against Gaussians whose mode and
+covariance are known; the streamed mixture against the mixture computed from
+every stored smoother; the adaptation by its acceptance on a narrow posterior.
+"""
+
+import copy
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import latentforce  # noqa: F401
+from latentforce.inference import laplace, mixture
+from latentforce.inference.kalman import kalman_filter, rts_smoother
+from latentforce.inference.kalman_mcmc import linear_gaussian, run_kalman_mcmc
+from latentforce.io.config import DEFAULT_BURN_IN, config_from_dict
+
+TRUE = dict(m=1.0, c=0.5, k=158.0, force_variance=1.0, force_lengthscale=0.5)
+SDOF = {
+    "system": {"type": "linear", "m": 1.0,
+               "c": {"prior": "lognormal", "mu": float(np.log(0.5)), "sigma": 1.0, "init": 0.8},
+               "k": {"prior": "lognormal", "mu": float(np.log(150.0)), "sigma": 0.5, "init": 120.0}},
+    "force": {"kernel": "matern32", "variance": {"prior": "lognormal", "mu": 0.0, "sigma": 2.0, "init": 2.0},
+              "lengthscale": {"prior": "lognormal", "mu": 0.0, "sigma": 1.0, "init": 0.3}},
+    "sensors": [{"column": "acc", "quantity": "acceleration", "dof": 0, "noise_std": 0.05}],
+    "inference": {"method": "kalman-mcmc"},
+}
+
+
+def _record(problem, T, dt=0.02, seed=0):
+    """An exact draw from the discrete linear-Gaussian model at the true parameters."""
+    A, Q, H, R, m0, P0 = (np.asarray(a) for a in linear_gaussian(problem.model, TRUE, dt))
+    rng = np.random.default_rng(seed)
+    w, V = np.linalg.eigh(Q)
+    root = V * np.sqrt(np.clip(w, 0.0, None))
+    w0, V0 = np.linalg.eigh(P0)
+    x = V0 * np.sqrt(np.clip(w0, 0.0, None)) @ rng.standard_normal(len(m0))
+    xs = np.empty((T, len(m0)))
+    for t in range(T):
+        xs[t] = x
+        x = A @ x + root @ rng.standard_normal(len(m0))
+    y = xs @ H.T + rng.standard_normal((T, H.shape[0])) * np.sqrt(np.diag(R))
+    return y, np.ones(y.shape, bool), xs
+
+
+def _free(problem):
+    return {n: (s.prior, s.init) for n, s in problem.free.items()}
+
+
+# ----- the optimiser start ------------------------------------------------------
+def test_laplace_finds_the_mode_and_covariance_of_a_gaussian():
+    mean = np.array([1.0, -2.0, 0.5])
+    cov = np.array([[1.0, 0.3, 0.0], [0.3, 0.5, -0.005], [0.0, -0.005, 2e-4]])  # scales 70x apart
+    prec = jnp.asarray(np.linalg.inv(cov))
+    logdensity = lambda x: -0.5 * (x - mean) @ prec @ (x - mean)
+    modes, record = laplace.find_modes(logdensity, np.array([[0.0, 0.0, 0.0], [3.0, 1.0, -1.0]]))
+    assert len(modes) == 1, record
+    np.testing.assert_allclose(modes[0].x, mean, atol=1e-5)
+    np.testing.assert_allclose(modes[0].cov, cov, rtol=1e-4, atol=1e-9)
+    assert modes[0].laplace_ok
+
+
+def test_laplace_reports_two_modes_and_starts_chains_in_each():
+    a, b = jnp.array([-3.0, 0.0]), jnp.array([3.0, 1.0])
+
+    def logdensity(x):
+        return jnp.logaddexp(-0.5 * jnp.sum((x - a) ** 2), -0.5 * jnp.sum((x - b) ** 2 / 0.25))
+
+    modes, _ = laplace.find_modes(logdensity, np.array([[-2.0, 0.5], [2.0, 0.5], [-4.0, -1.0]]))
+    assert len(modes) == 2
+    found = sorted(m.x[0] for m in modes)
+    np.testing.assert_allclose(found, [-3.0, 3.0], atol=1e-3)
+    # The broad mode has 4x the Laplace mass of the narrow one (sd 1 vs 0.5 in 2-D).
+    assert modes[0].x[0] < 0 and np.isclose(modes[0].log_mass - modes[1].log_mass, np.log(4.0), atol=1e-3)
+    starts, which = laplace.chain_starts(jax.random.key(0), modes, 4)
+    assert sorted(which.tolist()) == [0, 0, 1, 1]
+    for s, w in zip(starts, which):
+        assert np.sign(s[0]) == np.sign(modes[w].x[0])  # within 2 Laplace sd of its own mode
+
+
+def test_chains_start_dispersed_around_the_mode_of_a_long_record():
+    """On a long record the posterior is narrow: the optimiser's mode is where the
+    chains start, within a few Laplace sd, never at ``init`` (which is far off)."""
+    problem = config_from_dict(SDOF)
+    y, mask, _ = _record(problem, 5000)
+    out = run_kalman_mcmc(jax.random.key(1), problem.model, dict(problem.fixed), _free(problem), y, mask, 0.02,
+                          iterations=None, burn_in=500, chains=4, max_time=120)
+    start = out.start
+    assert start["method"] == "laplace" and len(start["modes"]) == 1
+    mode = np.asarray(start["modes"][0]["x"])
+    sd = np.asarray(start["modes"][0]["sd"])
+    # The mode is far from init in posterior sd (the chains did not start at init) ...
+    x_init = np.log(np.expm1(np.array([0.8, 120.0, 2.0, 0.3])))
+    assert np.max(np.abs(x_init - mode) / sd) > 20
+    # ... and the posterior means sit within a few Laplace sd of the mode.
+    for i, name in enumerate(out.names):
+        x = np.log(np.expm1(out.draws[name]))
+        assert abs(x.mean() - mode[i]) < 3 * sd[i]
+        assert 0.7 < x.std() / sd[i] < 1.4  # Laplace is close on a long record
+    # ---- the adaptation: acceptance near the optimal rate on this narrow posterior
+    assert np.all((out.acceptance > 0.17) & (out.acceptance < 0.40)), out.acceptance
+    # ---- "auto" stopped because the run converged
+    assert out.convergence["converged"], out.convergence
+    assert out.convergence["max_r_hat"] <= 1.01 and out.convergence["min_ess_bulk"] >= 400
+
+
+def test_fixed_iterations_and_an_unconverged_auto_run_say_so():
+    problem = config_from_dict(SDOF)
+    y, mask, _ = _record(problem, 300, seed=4)
+    out = run_kalman_mcmc(jax.random.key(2), problem.model, dict(problem.fixed), _free(problem), y, mask, 0.02,
+                          iterations=30, burn_in=20, chains=2)
+    assert out.draws["k"].shape == (2, 30)
+    assert not out.convergence["converged"]  # 30 draws cannot show an ESS of 400
+    # "auto" with no time left stops after one chunk, not converged, and says why not.
+    out = run_kalman_mcmc(jax.random.key(2), problem.model, dict(problem.fixed), _free(problem), y, mask, 0.02,
+                          iterations=None, burn_in=20, chains=2, max_time=0.0, chunk=20)
+    assert out.draws["k"].shape == (2, 20)
+    assert not out.convergence["converged"] and out.convergence["worst"]
+
+
+# ----- the bounded-memory mixture ----------------------------------------------------
+def test_streamed_mixture_equals_the_mixture_of_every_stored_smoother():
+    problem = config_from_dict(SDOF)
+    y, mask, _ = _record(problem, 120, seed=5)
+    mask[10:14, 0] = False
+    rng = np.random.default_rng(0)
+    chains, n = 2, 40
+    draws = {"c": 0.5 * np.exp(0.2 * rng.standard_normal((chains, n))),
+             "k": 158.0 * np.exp(0.02 * rng.standard_normal((chains, n))),
+             "force_variance": np.exp(0.3 * rng.standard_normal((chains, n))),
+             "force_lengthscale": 0.5 * np.exp(0.1 * rng.standard_normal((chains, n)))}
+    mix = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask, 0.02,
+                                    thin_draws=5)
+    per_chain, n_paths = mixture.mixture_size(120, chains, n, 5, 3)
+    assert mix.n_mix == chains * per_chain and mix.paths["force"].shape == (chains, n_paths, 120, 1)
+    # Every mixed draw's smoother, stored, then mixed by the law of total variance.
+    idx = np.linspace(0, n - 1, per_chain).round().astype(int)
+
+    @jax.jit
+    def smoother(theta):
+        A, Q, H, R, m0, P0 = linear_gaussian(problem.model, dict(problem.fixed, **theta), 0.02)
+        sm = rts_smoother(A, kalman_filter(A, Q, H, R, m0, P0, jnp.asarray(np.where(mask, y, 0.0)),
+                                           jnp.asarray(mask)))
+        return sm.means, jnp.diagonal(sm.covs, axis1=-2, axis2=-1)
+
+    means, variances = [], []
+    for c in range(chains):
+        for j in idx:
+            m, v = smoother({k: draws[k][c, j] for k in draws})
+            means.append(np.asarray(m))
+            variances.append(np.asarray(v))
+    means, variances = np.stack(means), np.stack(variances)
+    mean = means.mean(0)
+    sd = np.sqrt(variances.mean(0) + means.var(0))
+    for name, ix in (("displacement", 0), ("velocity", 1), ("force", 2)):
+        np.testing.assert_allclose(mix.moments[name][0][:, 0], mean[:, ix], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(mix.moments[name][1][:, 0], sd[:, ix], rtol=1e-9)
+
+
+def test_stored_paths_stay_within_their_memory_budget(monkeypatch):
+    monkeypatch.setattr(mixture, "PATH_BUDGET_BYTES", 2 * 3 * 500 * 8 * 3)  # three paths per chain
+    per_chain, n_paths = mixture.mixture_size(500, 2, 1000, 200, 3)
+    assert n_paths == 3 and per_chain >= 16
+    # the draws mixed do not depend on the number of draws sampled once there are enough
+    assert mixture.mixture_size(500, 2, 10**6, 200, 3)[0] == mixture.mixture_size(500, 2, 10**3, 200, 3)[0]
+    # fewer mixed draws on long records, never fewer than 16 per chain
+    assert mixture.mixture_size(200_000, 4, 10**4, 200, 3)[0] == 16
+
+
+# ----- the configuration --------------------------------------------------------
+def test_inference_defaults_are_auto_and_kalman_nuts_is_a_method():
+    p = config_from_dict(SDOF)
+    assert p.inference.iterations is None  # "auto"
+    assert p.inference.target_ess == 400 and p.inference.max_time == 600
+    assert p.inference.burn_in == DEFAULT_BURN_IN["kalman-mcmc"]
+    d = copy.deepcopy(SDOF)
+    d["inference"] = {"method": "kalman-nuts", "iterations": 300, "target_ess": 100, "max_time": 5}
+    p = config_from_dict(d)
+    assert (p.inference.method, p.inference.iterations, p.inference.target_ess, p.inference.max_time) == \
+        ("kalman-nuts", 300, 100, 5)
+    d["inference"] = {"iterations": "forever"}
+    with pytest.raises(latentforce.LatentForceError, match="iterations"):
+        config_from_dict(d, source="c.toml")
