@@ -184,3 +184,65 @@ def test_inference_defaults_are_auto_and_kalman_nuts_is_a_method():
     d["inference"] = {"iterations": "forever"}
     with pytest.raises(latentforce.LatentForceError, match="iterations"):
         config_from_dict(d, source="c.toml")
+
+
+# ----- the steady-state smoother of long complete records --------------------------
+def _two_dof():
+    d = {"system": {"type": "linear", "M": [[1.0, 0.0], [0.0, 2.0]], "C": [[0.3, -0.1], [-0.1, 0.2]],
+                    "K": [[200.0, -100.0], [-100.0, 100.0]], "force_dofs": [1]},
+         "force": {"kernel": "matern52", "variance": 1.0, "lengthscale": 0.5},
+         "sensors": [{"column": "a0", "quantity": "acceleration", "dof": 0, "noise_std": 0.1},
+                     {"column": "d1", "quantity": "displacement", "dof": 1, "noise_std": 1e-3}]}
+    return config_from_dict(d)
+
+
+@pytest.mark.parametrize("which", ["sdof", "two-dof"])
+def test_steady_smoother_equals_the_full_smoother(which):
+    from latentforce.inference import steady
+    from latentforce.inference.kalman import sample_smoothed_trajectory
+
+    problem = config_from_dict(SDOF) if which == "sdof" else _two_dof()
+    params = dict(problem.fixed, **({} if which == "two-dof" else
+                                    {n: TRUE[n] for n in problem.free}))
+    A, Q, H, R, m0, P0 = linear_gaussian(problem.model, params, 0.02)
+    y = np.random.default_rng(1).normal(size=(3000, H.shape[0]))
+    sm = jax.jit(lambda y_: steady.steady_smoother(A, Q, H, R, m0, P0, y_, jax.random.key(0), K=1024))(y)
+    filt = kalman_filter(A, Q, H, R, m0, P0, jnp.asarray(y))
+    full = rts_smoother(A, filt)
+    var = np.asarray(jnp.diagonal(full.covs, axis1=-2, axis2=-1))
+    assert bool(sm.converged)
+    np.testing.assert_allclose(sm.means, full.means, rtol=0, atol=1e-10 * float(np.abs(full.means).max()))
+    np.testing.assert_allclose(sm.variances, var, rtol=1e-9)
+    np.testing.assert_allclose(float(sm.log_likelihood), float(full.log_likelihood), rtol=1e-12)
+    # The sampled path: standardised residuals of unit variance on average over draws,
+    # as for forward filtering, backward sampling with every covariance.
+    draw = jax.jit(lambda k: steady.steady_smoother(A, Q, H, R, m0, P0, jnp.asarray(y), k, K=1024).path)
+    z2 = np.mean([np.mean((np.asarray(draw(jax.random.key(i))) - full.means) ** 2 / var) for i in range(8)])
+    ffbs = jax.jit(lambda k: sample_smoothed_trajectory(k, A, Q, filt))
+    ref = np.mean([np.mean((np.asarray(ffbs(jax.random.key(50 + i))) - full.means) ** 2 / var) for i in range(8)])
+    assert abs(z2 - 1.0) < 0.15 and abs(ref - 1.0) < 0.15
+    # Too short a transient is reported, not silently used.
+    assert not bool(steady.steady_smoother(A, Q, H, R, m0, P0, jnp.asarray(y), K=3).converged)
+
+
+def test_streamed_mixture_on_a_long_record_uses_the_steady_smoother_exactly(monkeypatch):
+    from latentforce.inference import steady
+
+    monkeypatch.setattr(steady, "TRANSIENT", 200)
+    problem = config_from_dict(SDOF)
+    y, mask, _ = _record(problem, 800, seed=6)
+    assert steady.applies(800, True)
+    rng = np.random.default_rng(2)
+    draws = {"c": 0.5 * np.exp(0.2 * rng.standard_normal((2, 16))),
+             "k": 158.0 * np.exp(0.02 * rng.standard_normal((2, 16))),
+             "force_variance": np.exp(0.3 * rng.standard_normal((2, 16))),
+             "force_lengthscale": 0.5 * np.exp(0.1 * rng.standard_normal((2, 16)))}
+    fast = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask,
+                                     0.02, thin_draws=2, point={k: 1.0 * v[0, 0] for k, v in draws.items()})
+    monkeypatch.setattr(steady, "TRANSIENT", 10**6)  # never applies: the full smoother
+    full = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask,
+                                     0.02, thin_draws=2, point={k: 1.0 * v[0, 0] for k, v in draws.items()})
+    for name in ("displacement", "velocity", "force"):
+        np.testing.assert_allclose(fast.moments[name][0], full.moments[name][0], rtol=1e-8, atol=1e-12)
+        np.testing.assert_allclose(fast.moments[name][1], full.moments[name][1], rtol=1e-8)
+    assert np.isclose(fast.point[1], full.point[1], rtol=1e-12)

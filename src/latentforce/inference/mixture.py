@@ -10,7 +10,8 @@ the states' posterior is the mixture of the exact smoothers
 The sums are accumulated batch by batch (Chan et al.'s pairwise update of
 mean and sum of squared deviations, stable in float64), so memory is a
 batch of smoothers plus three ``(T, n)`` accumulators, whatever the number
-of draws; backward-sampled trajectories (Carter & Kohn) are kept for a
+of draws (and on a long complete record each smoother keeps its
+covariances in steady state, :mod:`latentforce.inference.steady`); backward-sampled trajectories (Carter & Kohn) are kept for a
 bounded number of draws only, within :data:`PATH_BUDGET_BYTES`.
 """
 
@@ -24,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from latentforce.compile import jit
+from latentforce.inference import steady
 from latentforce.inference.kalman import kalman_filter, rts_smoother, sample_smoothed_trajectory
 from latentforce.models import LatentForceModel
 
@@ -59,18 +61,22 @@ def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int)
 
 
 def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, with_path: bool,
-         key, theta, y, mask):
+         use_steady: bool, key, theta, y, mask):
+    """One draw's smoothed means, variances, (path) and log-likelihood; a flag that it is exact."""
     from latentforce.inference.kalman_mcmc import linear_gaussian
 
     params = dict(fixed)
     for i, n in enumerate(names):
         params[n] = theta[i]
     A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
+    if use_steady:
+        sm = steady.steady_smoother(A, Q, H, R, m0, P0, y, key if with_path else None)
+        return sm.means, sm.variances, sm.path if with_path else jnp.zeros(()), sm.log_likelihood, sm.converged
     filt = kalman_filter(A, Q, H, R, m0, P0, y, mask)
     sm = rts_smoother(A, filt)
     var = jnp.diagonal(sm.covs, axis1=-2, axis2=-1)
     path = sample_smoothed_trajectory(key, A, Q, filt) if with_path else jnp.zeros(())
-    return sm.means, var, path, filt.log_likelihood
+    return sm.means, var, path, filt.log_likelihood, jnp.ones((), bool)
 
 
 def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y, mask, dt: float, *,
@@ -89,31 +95,43 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     is_path = np.zeros((chains, per_chain), bool)
     is_path[:, path_slots] = True
 
-    batch = int(max(1, min(16, BATCH_BUDGET_BYTES // (T * (4 * n * n + 4 * n) * 8))))
+    # A complete long record: covariances in steady state (O(T n) memory per draw), else the full smoother.
+    use_steady = steady.applies(T, bool(np.all(mask)))
+    per_draw = T * (4 * n + 2) * 8 if use_steady else T * (4 * n * n + 4 * n) * 8
+    batch = int(max(1, min(16, BATCH_BUDGET_BYTES // per_draw)))
     y = jnp.asarray(np.where(mask, y, 0.0))
     mask = jnp.asarray(mask)
     static = (model, fixed, names, dt, initial)
-    with_path = jit(jax.vmap(functools.partial(_one, *static, True), in_axes=(0, 0, None, None)))
-    no_path = jit(jax.vmap(functools.partial(_one, *static, False), in_axes=(0, 0, None, None)))
+    programs = {(wp, st): jit(jax.vmap(functools.partial(_one, *static, wp, st), in_axes=(0, 0, None, None)))
+                for wp in (True, False) for st in {use_steady, False}}
+
+    def smoothers(with_path, ks, th):
+        """The batch's smoothers; a draw whose covariances did not settle is redone in full."""
+        means, var, path, ll, exact = (np.array(a) for a in programs[with_path, use_steady](ks, th, y, mask))
+        if not exact.all():
+            full = [np.asarray(a) for a in programs[with_path, False](ks, th, y, mask)]
+            for target, source in zip((means, var, path, ll), full):
+                target[~exact] = source[~exact]
+        return means, var, path, ll
 
     acc = _Accumulator(T, n)
     kept = np.concatenate([index[s] for s in STATES])  # the state components a path stores
     paths = np.zeros((chains, n_paths, T, kept.size))
     keys = np.asarray(jax.random.key_data(jax.random.split(key, chains * per_chain)))
     keys = keys.reshape(chains, per_chain, *keys.shape[1:])
-    for program, select in ((with_path, is_path), (no_path, ~is_path)):
+    for with_path, select in ((True, is_path), (False, ~is_path)):
         where = np.argwhere(select)  # (count, 2): (chain, slot)
         for start in range(0, len(where), batch):
             part = where[start:start + batch]
             pad = np.concatenate([part, np.repeat(part[-1:], batch - len(part), axis=0)])
             th = jnp.asarray(thetas[pad[:, 0], pad[:, 1]])
             ks = jax.random.wrap_key_data(jnp.asarray(keys[pad[:, 0], pad[:, 1]]))
-            means, var, path, _ = program(ks, th, y, mask)
+            means, var, path, _ = smoothers(with_path, ks, th)
             k = len(part)
-            acc.add(np.asarray(means)[:k], np.asarray(var)[:k])
-            if program is with_path:
+            acc.add(means[:k], var[:k])
+            if with_path:
                 slot = np.searchsorted(path_slots, part[:, 1])
-                paths[part[:, 0], slot] = np.asarray(path)[:k][..., kept]
+                paths[part[:, 0], slot] = path[:k][..., kept]
     mean, var = acc.result()
     moments = {s: (mean[:, ix], np.sqrt(np.clip(var[:, ix], 0.0, None))) for s, ix in index.items()}
     offsets = np.cumsum([0] + [len(index[s]) for s in STATES])
@@ -121,10 +139,10 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     point_result = None
     if point is not None:
         th = jnp.repeat(jnp.asarray([[float(point[nm]) for nm in names]]), batch, axis=0)
-        m_p, v_p, _, ll = no_path(jax.random.split(key, batch), th, y, mask)
-        m_p, v_p = np.asarray(m_p)[0], np.asarray(v_p)[0]
+        m_p, v_p, _, ll = smoothers(False, jax.random.split(key, batch), th)
+        m_p, v_p = m_p[0], v_p[0]
         point_result = ({s: (m_p[:, ix], np.sqrt(np.clip(v_p[:, ix], 0.0, None))) for s, ix in index.items()},
-                        float(np.asarray(ll)[0]))
+                        float(ll[0]))
     return Mixture(moments, sampled, idx[path_slots], chains * per_chain, point_result)
 
 

@@ -1,0 +1,167 @@
+r"""The RTS smoother of a long, fully observed record, with its covariances in steady state.
+
+For a time-invariant model observed at every step the covariance recursions
+do not depend on the data. The filter's predicted covariance converges
+geometrically to the Riccati equation's fixed point, and, read backwards
+from the end of the record, so does the smoother's. Away from both ends of
+a long record every covariance and gain is therefore constant:
+
+.. math::
+    P^f_t = P^f_\infty,\; G_t = G_\infty \;(t \ge K-1), \qquad
+    P^s_t = P^s_\infty \;(K \le t \le T-1-K),
+
+and only the means need a pass over all ``T`` samples (a few vector
+operations per step). Here the covariance recursions run over the first
+``K`` steps (forward, the filter's transient), the last ``K`` (backward
+from :math:`P^f_\infty`, the smoother's transient) and the first ``K`` again
+(backward, time-varying): memory :math:`O(Tn + Kn^2)` instead of
+:math:`O(Tn^2)`, and the same numbers as the full smoother to rounding
+whenever both transients have died out within ``K`` steps, which
+``converged`` reports (the caller falls back to the full smoother where
+not). Same model and conventions as :mod:`latentforce.inference.kalman`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from latentforce.inference.kalman import _LOG_2PI
+from latentforce.linalg import psd_sqrt, solve, symmetrise
+
+#: transient steps kept with full covariances at each end of the record
+TRANSIENT = 2048
+#: relative change (to sqrt(P_ii P_jj)) under which a covariance counts as converged
+TOL = 1e-12
+
+
+class SteadySmoother(NamedTuple):
+    means: Float[Array, "T n"]
+    variances: Float[Array, "T n"]   # diagonals of the smoothed covariances
+    log_likelihood: Float[Array, ""]
+    path: Float[Array, "T n"]        # a backward-sampled trajectory (zeros unless asked for)
+    converged: Bool[Array, ""]       # both transients died out within K steps
+
+
+def applies(T: int, complete: bool, K: int | None = None) -> bool:
+    """Whether the steady-state smoother serves a record: fully observed and longer than 2K+1."""
+    return complete and T >= 2 * (TRANSIENT if K is None else K) + 2
+
+
+def _scalar_updates(P, H, r):
+    """Sequential scalar updates of ``P`` (one per channel): gains, innovation variances, P_f."""
+    ks, ss = [], []
+    for i in range(H.shape[0]):
+        Ph = P @ H[i]
+        s = H[i] @ Ph + r[i]
+        k = Ph / s
+        P = symmetrise(P - s * jnp.outer(k, k))
+        ks.append(k)
+        ss.append(s)
+    return jnp.stack(ks), jnp.stack(ss), P
+
+
+def _close(a, b, tol=TOL):
+    d = jnp.sqrt(jnp.abs(jnp.outer(jnp.diagonal(a), jnp.diagonal(a))))
+    return jnp.all(jnp.abs(a - b) <= tol * d)
+
+
+def steady_smoother(A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int | None = None) -> SteadySmoother:
+    """Smoothed means, variances and log-likelihood of a complete record (module doc).
+
+    With ``key``, also one trajectory drawn from the smoothing distribution
+    (forward filtering, backward sampling; Carter & Kohn 1994).
+    """
+    T, n = y.shape[0], m0.shape[0]
+    K = TRANSIENT if K is None else K
+    if T < 2 * K + 2:
+        raise ValueError(f"steady_smoother needs T >= 2K + 2 = {2 * K + 2} samples, got {T}")
+    r = jnp.diagonal(R)
+
+    # Forward covariance transient: predicted P_p(t), gains and filtered P_f(t), t < K.
+    def fwd(P_p, _):
+        ks, ss, P_f = _scalar_updates(P_p, H, r)
+        return symmetrise(A @ P_f @ A.T + Q), (P_p, ks, ss, P_f)
+
+    P_next, (Pp, Ks, Ss, Pf) = jax.lax.scan(fwd, P0, None, length=K)
+    forward_converged = _close(P_next, Pp[-1])
+    Pf_inf, Pp_inf = Pf[-1], P_next
+
+    # Means over the whole record, gains frozen after K steps.
+    def mean_step(carry, inputs):
+        m_p, ll = carry
+        t, y_t = inputs
+        j = jnp.minimum(t, K - 1)
+        k, s = Ks[j], Ss[j]
+        m = m_p
+        for i in range(H.shape[0]):
+            v = y_t[i] - H[i] @ m
+            m = m + k[i] * v
+            ll = ll - 0.5 * (v * v / s[i] + jnp.log(s[i]) + _LOG_2PI)
+        return (A @ m, ll), m
+
+    (_, ll), m_f = jax.lax.scan(mean_step, (m0, jnp.zeros((), m0.dtype)), (jnp.arange(T), y))
+    m_p_next = m_f @ A.T  # m_p(t+1) = A m_f(t)
+
+    # Smoother gains: G_t = P_f(t) A^T P_p(t+1)^{-1}; constant from t = K-1 on.
+    Pp_shift = jnp.concatenate([Pp[1:], P_next[None]])  # P_p(t+1), t < K
+    G_head = jax.vmap(lambda pf, pp: solve(pp, A @ pf).T)(Pf, Pp_shift)
+    G_inf = solve(Pp_inf, A @ Pf_inf).T
+
+    # Backward covariance transient at the end (steady P_f, G), then the head (time-varying).
+    def back_tail(P_s, _):
+        P = symmetrise(Pf_inf + G_inf @ (P_s - Pp_inf) @ G_inf.T)
+        return P, P
+
+    P_mid, tail = jax.lax.scan(back_tail, Pf_inf, None, length=K)
+    backward_converged = _close(P_mid, tail[-2])
+
+    def back_head(P_s, inputs):
+        pf, pp, g = inputs
+        P = symmetrise(pf + g @ (P_s - pp) @ g.T)
+        return P, P
+
+    _, head = jax.lax.scan(back_head, P_mid, (Pf, Pp_shift, G_head), reverse=True)
+    diag = lambda P: jnp.diagonal(P, axis1=-2, axis2=-1)
+    # tail[j] is P_s at t = T-2-j; the last step P_s(T-1) = P_f(T-1) = P_f_inf.
+    variances = jnp.concatenate([
+        diag(head),
+        jnp.broadcast_to(jnp.diagonal(P_mid), (T - 2 * K - 1, n)),
+        diag(tail[::-1]),
+        jnp.diagonal(Pf_inf)[None],
+    ])
+
+    def smooth_step(m_s_next, inputs):
+        t, mf, mp1 = inputs
+        G = jnp.where(t >= K - 1, G_inf, G_head[jnp.minimum(t, K - 1)])
+        m = mf + G @ (m_s_next - mp1)
+        return m, m
+
+    ts = jnp.arange(T - 1)
+    _, m_s = jax.lax.scan(smooth_step, m_f[-1], (ts, m_f[:-1], m_p_next[:-1]), reverse=True)
+    means = jnp.concatenate([m_s, m_f[-1:]])
+
+    path = jnp.zeros_like(means)
+    if key is not None:
+        # x_t | x_{t+1} ~ N(m_f + G (x_{t+1} - m_p(t+1)), P_f - G P_p(t+1) G^T).
+        root_head = jax.vmap(lambda pf, pp, g: psd_sqrt(symmetrise(pf - g @ pp @ g.T)))(Pf, Pp_shift, G_head)
+        root_inf = psd_sqrt(symmetrise(Pf_inf - G_inf @ Pp_inf @ G_inf.T))
+        keys = jax.random.split(key, T)
+        eps = jax.vmap(lambda k: jax.random.normal(k, (n,), dtype=m0.dtype))(keys)
+        x_last = m_f[-1] + psd_sqrt(Pf_inf) @ eps[-1]
+
+        def sample_step(x_next, inputs):
+            t, mf, mp1, e = inputs
+            j = jnp.minimum(t, K - 1)
+            late = t >= K - 1
+            G = jnp.where(late, G_inf, G_head[j])
+            root = jnp.where(late, root_inf, root_head[j])
+            x = mf + G @ (x_next - mp1) + root @ e
+            return x, x
+
+        _, xs = jax.lax.scan(sample_step, x_last, (ts, m_f[:-1], m_p_next[:-1], eps[:-1]), reverse=True)
+        path = jnp.concatenate([xs, x_last[None]])
+    return SteadySmoother(means, variances, ll, path, forward_converged & backward_converged)
