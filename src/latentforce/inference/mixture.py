@@ -139,7 +139,8 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     point_result = None
     if point is not None:
         th = jnp.repeat(jnp.asarray([[float(point[nm]) for nm in names]]), batch, axis=0)
-        m_p, v_p, _, ll = smoothers(False, jax.random.split(key, batch), th)
+        # through the program the paths used (compiled already); the path is not kept
+        m_p, v_p, _, ll = smoothers(True, jax.random.split(key, batch), th)
         m_p, v_p = m_p[0], v_p[0]
         point_result = ({s: (m_p[:, ix], np.sqrt(np.clip(v_p[:, ix], 0.0, None))) for s, ix in index.items()},
                         float(ll[0]))

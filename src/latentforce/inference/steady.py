@@ -90,20 +90,27 @@ def steady_smoother(A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int
     forward_converged = _close(P_next, Pp[-1])
     Pf_inf, Pp_inf = Pf[-1], P_next
 
-    # Means over the whole record, gains frozen after K steps.
-    def mean_step(carry, inputs):
-        m_p, ll = carry
-        t, y_t = inputs
-        j = jnp.minimum(t, K - 1)
-        k, s = Ks[j], Ss[j]
+    # Means over the whole record: the first K steps with their own gains (scanned in),
+    # then the frozen gains (constants of the loop body: no indexing per step).
+    def mean_update(m_p, ll, y_t, k, s):
         m = m_p
         for i in range(H.shape[0]):
             v = y_t[i] - H[i] @ m
             m = m + k[i] * v
             ll = ll - 0.5 * (v * v / s[i] + jnp.log(s[i]) + _LOG_2PI)
+        return m, ll
+
+    def head_step(carry, inputs):
+        m, ll = mean_update(*carry, *inputs)
         return (A @ m, ll), m
 
-    (_, ll), m_f = jax.lax.scan(mean_step, (m0, jnp.zeros((), m0.dtype)), (jnp.arange(T), y))
+    def steady_step(carry, y_t):
+        m, ll = mean_update(*carry, y_t, Ks[-1], Ss[-1])
+        return (A @ m, ll), m
+
+    carry, m_f_head = jax.lax.scan(head_step, (m0, jnp.zeros((), m0.dtype)), (y[:K], Ks, Ss))
+    (_, ll), m_f_tail = jax.lax.scan(steady_step, carry, y[K:])
+    m_f = jnp.concatenate([m_f_head, m_f_tail])
     m_p_next = m_f @ A.T  # m_p(t+1) = A m_f(t)
 
     # Smoother gains: G_t = P_f(t) A^T P_p(t+1)^{-1}; constant from t = K-1 on.
@@ -134,34 +141,28 @@ def steady_smoother(A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int
         jnp.diagonal(Pf_inf)[None],
     ])
 
-    def smooth_step(m_s_next, inputs):
-        t, mf, mp1 = inputs
-        G = jnp.where(t >= K - 1, G_inf, G_head[jnp.minimum(t, K - 1)])
-        m = mf + G @ (m_s_next - mp1)
-        return m, m
+    def backward(x_last, G_step, late_inputs, head_inputs):
+        """A backward recursion x_t = f(x_{t+1}): steady for t >= K-1, the head's own gains before."""
+        x_mid, late = jax.lax.scan(lambda x, inp: (G_step(x, G_inf, *inp),) * 2, x_last, late_inputs,
+                                   reverse=True)
+        _, head = jax.lax.scan(lambda x, inp: (G_step(x, *inp),) * 2, x_mid, head_inputs, reverse=True)
+        return jnp.concatenate([head, late, x_last[None]])
 
-    ts = jnp.arange(T - 1)
-    _, m_s = jax.lax.scan(smooth_step, m_f[-1], (ts, m_f[:-1], m_p_next[:-1]), reverse=True)
-    means = jnp.concatenate([m_s, m_f[-1:]])
+    # t = K-1 .. T-2 with G_inf; t = 0 .. K-2 with G_head[t].
+    late = (m_f[K - 1:T - 1], m_p_next[K - 1:T - 1])
+    head = (G_head[:K - 1], m_f[:K - 1], m_p_next[:K - 1])
+    means = backward(m_f[-1], lambda x, G, mf, mp1: mf + G @ (x - mp1), late, head)
 
     path = jnp.zeros_like(means)
     if key is not None:
         # x_t | x_{t+1} ~ N(m_f + G (x_{t+1} - m_p(t+1)), P_f - G P_p(t+1) G^T).
         root_head = jax.vmap(lambda pf, pp, g: psd_sqrt(symmetrise(pf - g @ pp @ g.T)))(Pf, Pp_shift, G_head)
         root_inf = psd_sqrt(symmetrise(Pf_inf - G_inf @ Pp_inf @ G_inf.T))
-        keys = jax.random.split(key, T)
-        eps = jax.vmap(lambda k: jax.random.normal(k, (n,), dtype=m0.dtype))(keys)
+        eps = jax.random.normal(key, (T, n), dtype=m0.dtype)
         x_last = m_f[-1] + psd_sqrt(Pf_inf) @ eps[-1]
 
-        def sample_step(x_next, inputs):
-            t, mf, mp1, e = inputs
-            j = jnp.minimum(t, K - 1)
-            late = t >= K - 1
-            G = jnp.where(late, G_inf, G_head[j])
-            root = jnp.where(late, root_inf, root_head[j])
-            x = mf + G @ (x_next - mp1) + root @ e
-            return x, x
+        def draw(x, G, mf, mp1, e, root=root_inf):
+            return mf + G @ (x - mp1) + root @ e
 
-        _, xs = jax.lax.scan(sample_step, x_last, (ts, m_f[:-1], m_p_next[:-1], eps[:-1]), reverse=True)
-        path = jnp.concatenate([xs, x_last[None]])
+        path = backward(x_last, draw, late + (eps[K - 1:T - 1],), head + (eps[:K - 1], root_head[:K - 1]))
     return SteadySmoother(means, variances, ll, path, forward_converged & backward_converged)
