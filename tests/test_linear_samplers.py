@@ -81,6 +81,20 @@ def test_laplace_reports_two_modes_and_starts_chains_in_each():
         assert np.sign(s[0]) == np.sign(modes[w].x[0])  # within 2 Laplace sd of its own mode
 
 
+def test_a_point_where_the_optimiser_stopped_short_is_no_mode():
+    """A saddle (a start on a ridge's symmetry axis stays there) is rejected and listed."""
+    def logdensity(x):  # two modes at x0 = +-4 (4 tanh 16, to 1e-13), a saddle at x0 = 0
+        return jnp.logaddexp(-0.5 * jnp.sum((x - jnp.array([4.0, 0.0])) ** 2),
+                             -0.5 * jnp.sum((x + jnp.array([4.0, 0.0])) ** 2))
+
+    # Alone, the saddle is still the best start known, and it says it is no mode.
+    modes, record = laplace.find_modes(logdensity, np.array([[0.0, 0.5]]))
+    assert len(modes) == 1 and not modes[0].laplace_ok and len(record["rejected"]) == 1
+    modes, record = laplace.find_modes(logdensity, np.array([[0.0, 0.5], [1.0, 0.3]]))
+    assert len(modes) == 1 and np.isclose(modes[0].x[0], 4.0, atol=1e-5) and modes[0].laplace_ok
+    assert len(record["rejected"]) == 1 and not record["rejected"][0]["hessian_definite"]
+
+
 def test_chains_start_dispersed_around_the_mode_of_a_long_record():
     """On a long record the posterior is narrow: the optimiser's mode is where the
     chains start, within a few Laplace sd, never at ``init`` (which is far off)."""

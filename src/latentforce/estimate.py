@@ -16,18 +16,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from latentforce.errors import LatentForceError
-from latentforce.inference.kalman_mcmc import (
-    Initial,
-    mixture_posterior,
-    run_kalman_mcmc,
-    smooth,
-    state_moments,
-)
+from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth, state_moments
 from latentforce.io.config import Problem
 from latentforce.io.data import Dataset
 from latentforce.results import RunResult, summarise_parameters
 
 STATES = ("displacement", "velocity", "force")
+#: iterations of a pgas run whose config says "auto" (the default), for now
+PGAS_AUTO_ITERATIONS = 10000
 
 
 def _truth(model, dataset: Dataset) -> dict[str, np.ndarray]:
@@ -102,46 +98,8 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
             wall_time_s=_time.perf_counter() - t0, **common)
         return result, extras
 
-    if settings.method == "kalman-mcmc":
-        key_mcmc, key_mix = jax.random.split(key)
-        free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
-        out = run_kalman_mcmc(key_mcmc, model, dict(problem.fixed), free, y, mask, dataset.dt,
-                              iterations=settings.iterations, burn_in=settings.burn_in,
-                              chains=settings.chains, initial=initial, progress=progress)
-        pooled = {n: d.reshape(-1) for n, d in out.draws.items()}
-        point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
-        point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
-        # The paper's estimate: the smoother at the CDF median of each parameter.
-        median = dict(problem.fixed)
-        median.update({n: float(np.median(v)) for n, v in pooled.items()})
-        n_mix = max(settings.chains, min(settings.thin_draws * settings.chains, 400))
-        moments, paths, (mom_median, ll_median) = mixture_posterior(
-            key_mix, model, dict(problem.fixed), out.draws, y, mask, dataset.dt, n_mix=n_mix,
-            initial=initial, point={n: median[n] for n in out.draws})
-        extras["median_smoother"] = mom_median
-        # Parameters at the same iterations as the trajectories, so both share (chain, draw).
-        n_iter = next(iter(out.draws.values())).shape[1]
-        per_chain = next(iter(paths.values())).shape[1]
-        idx = np.linspace(0, n_iter - 1, per_chain).round().astype(int)
-        diagnostics = {"proposal_scale": out.proposal_scale.tolist(), "mcmc_wall_time_s": out.wall_time_s,
-                       "iterations": settings.iterations, "burn_in": settings.burn_in,
-                       "chains": settings.chains, "mixture_draws": int(per_chain * settings.chains)}
-        if truth:
-            from latentforce.results import coverage, nmse
-            diagnostics["nmse_median_smoother"] = {
-                k: nmse(truth[k][:, 0], mom_median[k][0][:, 0]) for k in truth}
-            diagnostics["coverage_3sd"] = {
-                k: coverage(truth[k][:, 0], moments[k][0][:, 0], moments[k][1][:, 0]) for k in truth}
-        result = RunResult(
-            method="kalman-mcmc",
-            state_mean={k: m for k, (m, _) in moments.items()},
-            state_sd={k: s for k, (_, s) in moments.items()},
-            param_draws={n: d[:, idx] for n, d in out.draws.items()},
-            path_draws=paths,
-            sample_stats={"accepted": out.accepted.astype(float), "log_likelihood": out.log_likelihood},
-            acceptance=out.acceptance.tolist(), log_likelihood=ll_median,
-            point_estimate=point, diagnostics=diagnostics, param_summary=summarise_parameters(out.draws),
-            wall_time_s=_time.perf_counter() - t0, **common)
+    if settings.method in ("kalman-mcmc", "kalman-nuts"):
+        result = _run_kalman_sampler(key, problem, dataset, y, mask, initial, common, progress, t0, extras)
         return result, extras
 
     if settings.method == "pgas":
@@ -150,14 +108,88 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
     raise LatentForceError(f"Unknown inference method {settings.method!r}.")  # config validates this
 
 
+def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initial, common: dict, progress,
+                        t0: float, extras: dict) -> RunResult:
+    """``kalman-mcmc`` or ``kalman-nuts``: parameter draws, then the states mixed over them."""
+    from latentforce.inference import convergence
+    from latentforce.inference.kalman_nuts import run_kalman_nuts
+    from latentforce.inference.mixture import mixture_posterior
+
+    model = problem.model
+    settings = problem.inference
+    key_mcmc, key_mix = jax.random.split(key)
+    free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
+    runner = run_kalman_mcmc if settings.method == "kalman-mcmc" else run_kalman_nuts
+    out = runner(key_mcmc, model, dict(problem.fixed), free, y, mask, dataset.dt,
+                 iterations=settings.iterations, burn_in=settings.burn_in, chains=settings.chains,
+                 initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time)
+    pooled = {n: d.reshape(-1) for n, d in out.draws.items()}
+    point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
+    point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
+    # The paper's estimate: the smoother at the CDF median of each parameter.
+    median = {n: float(np.median(v)) for n, v in pooled.items()}
+    mix = mixture_posterior(key_mix, model, dict(problem.fixed), out.draws, y, mask, dataset.dt,
+                            thin_draws=settings.thin_draws, initial=initial, point=median)
+    mom_median, ll_median = mix.point
+    extras["median_smoother"] = mom_median
+    n_draws = next(iter(out.draws.values())).shape[1]
+    diagnostics = {"proposal_scale": out.proposal_scale.tolist(), "sampler_wall_time_s": out.wall_time_s,
+                   "iterations": "auto" if settings.iterations is None else settings.iterations,
+                   "draws_per_chain": int(n_draws), "burn_in": settings.burn_in, "warmup": out.warmup,
+                   "chains": settings.chains, "mixture_draws": mix.n_mix, "start": out.start,
+                   **out.sampler_info}
+    modes = out.start.get("modes", [])
+    record = dict(out.convergence)
+    # The states are exact given the parameters: their stored paths' R-hat is information only.
+    states = convergence.state_quantities(mix.paths, convergence.monitored_times(len(dataset.time)),
+                                          np.asarray(dataset.time))
+    if mix.paths["force"].shape[1] >= 4 and settings.chains >= 2:
+        record["states"] = convergence.diagnose({}, states, states_decide=False)["states"]
+    warnings_ = []
+    strong = [m for m in modes if m["log_mass"] >= modes[0]["log_mass"] - 10.0] if modes else []
+    if len(strong) > 1:
+        warnings_.append(
+            f"the posterior has {len(strong)} modes of comparable mass (found by the optimiser from "
+            "dispersed starts; see diagnostics.start.modes): the chains were started in each, and the "
+            "parameter and force estimates are a mixture over them (as in §6 of the ISMA 2018 paper).")
+    message = convergence.warning_message(record, settings.method)
+    if message:
+        warnings_.append(message)
+    if warnings_:
+        diagnostics["warnings"] = warnings_
+    truth = common["truth"]
+    if truth:
+        from latentforce.results import coverage, nmse
+        diagnostics["nmse_median_smoother"] = {k: nmse(truth[k][:, 0], mom_median[k][0][:, 0]) for k in truth}
+        diagnostics["coverage_3sd"] = {
+            k: coverage(truth[k][:, 0], mix.moments[k][0][:, 0], mix.moments[k][1][:, 0]) for k in truth}
+    # Parameters at the same iterations as the trajectories, so both share (chain, draw).
+    return RunResult(
+        method=settings.method,
+        state_mean={k: m for k, (m, _) in mix.moments.items()},
+        state_sd={k: s for k, (_, s) in mix.moments.items()},
+        param_draws={n: d[:, mix.path_index] for n, d in out.draws.items()},
+        path_draws=mix.paths,
+        sample_stats={"accepted": out.accepted.astype(float), "log_likelihood": out.log_likelihood},
+        acceptance=out.acceptance.tolist(), log_likelihood=ll_median,
+        point_estimate=point, diagnostics=diagnostics, param_summary=summarise_parameters(out.draws),
+        convergence=record, wall_time_s=_time.perf_counter() - t0, **common)
+
+
 def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict,
               progress, t0: float, channels=None) -> RunResult:
     """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
     from latentforce.compile import shared_jit
     from latentforce.inference.pgas import run_pgas
 
+    from latentforce.inference import convergence
+
     model = problem.model
     settings = problem.inference
+    if settings.iterations is None:
+        # "auto" for pgas is not yet a run-until-converged loop (the nonlinear-sampler
+        # issue): a fixed count, with the convergence verdict reported as for any run.
+        settings = settings._replace(iterations=PGAS_AUTO_ITERATIONS)
     free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
     # The mechanical initial state: the user's [initial] or the model default at
     # the initial hyperparameters (fixed during the run; the force states start
@@ -210,6 +242,14 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
             "Matérn-(p+1/2)), so with a flat "
             "prior the posterior can be improper along that ridge and the slow part of the force "
             "wanders. Use proper priors (e.g. lognormal) on the force hyperparameters; see docs/config.md.")
+    # Monitored: the hyperparameters (all draws) and every state at spread times (stored paths).
+    states = convergence.state_quantities(paths, convergence.monitored_times(tr.shape[2]),
+                                          np.asarray(dataset.time))
+    record = convergence.diagnose(dict(out.theta), states if tr.shape[1] >= 4 else None,
+                                  target_ess=settings.target_ess)
+    message = convergence.warning_message(record, "pgas")
+    if message:
+        diagnostics.setdefault("warnings", []).append(message)
     truth = common["truth"]
     if truth:
         from latentforce.results import coverage
@@ -226,6 +266,6 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
         acceptance=[float(a) for a in out.acceptance],
         log_likelihood=float(np.mean(ll[:, -max(1, ll.shape[1] // 10):])) if ll.size else float("nan"),
         point_estimate=point, diagnostics=diagnostics,  # made JSON-safe by the writer
-        param_summary=summarise_parameters(out.theta) if out.theta else None,
+        param_summary=summarise_parameters(out.theta) if out.theta else None, convergence=record,
         wall_time_s=_time.perf_counter() - t0, **common)
 

@@ -127,6 +127,9 @@ class RunResult:
     #: Parameter summaries computed from the full chains, when ``param_draws``
     #: holds only the draws aligned with ``path_draws`` (see ``posterior.nc``).
     param_summary: dict | None = None
+    #: The convergence record (:func:`latentforce.inference.convergence.diagnose`);
+    #: None for ``kalman``, which has no sampling error.
+    convergence: dict | None = None
 
 
 # ---------------------------------------------------------------------------

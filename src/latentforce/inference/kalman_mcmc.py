@@ -204,7 +204,7 @@ def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains:
 
 def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
-                    progress: Callable | None = None, chunk: int = 250, target_ess: float = 400,
+                    progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
                     max_time: float = 600.0, use_modes: bool = True) -> MCMCOutput:
     """Random-walk Metropolis over the ``free`` parameters (Algorithm 1, ISMA 2018).
 

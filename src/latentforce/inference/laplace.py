@@ -45,10 +45,14 @@ def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), ma
                same_mode_sd: float = 3.0) -> tuple[list[Mode], dict]:
     r"""Maximise ``logdensity(x, *args)`` from each row of ``starts`` ``(n, p)``; distinct optima.
 
-    Two optima are one mode when they lie within ``same_mode_sd`` Laplace
-    standard deviations of each other (in the better one's metric). Modes
-    are returned best first (by Laplace mass). The second value is a record
-    for the run's diagnostics (evaluations, optimiser message).
+    An optimum within ``same_mode_sd`` Laplace standard deviations of a
+    better one is that mode again. A point where the optimiser stopped short
+    (Newton decrement over 1) or where the Hessian is not negative definite
+    is not reported as a mode (it is listed in the record), unless no start
+    found a mode: then the best point is returned, so the chains still start
+    at the best place known. Modes are returned best first (by Laplace mass).
+    The second value is a record for the run's diagnostics (evaluations,
+    optimiser messages, rejected points).
     """
     starts = np.atleast_2d(np.asarray(starts, dtype=float))
     n, p = starts.shape
@@ -69,28 +73,43 @@ def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), ma
         return -float(val), -grad
 
     xs, fs, messages = np.empty_like(starts), np.full(n, -np.inf), []
+    options = {"maxiter": max_iter, "maxcor": 20, "ftol": 1e-13, "gtol": 1e-7}
     for i in range(n):
-        res = scipy.optimize.minimize(objective, starts[i], jac=True, method="L-BFGS-B",
-                                      options={"maxiter": max_iter, "maxcor": 20, "ftol": 1e-13, "gtol": 1e-7})
+        res = scipy.optimize.minimize(objective, starts[i], jac=True, method="L-BFGS-B", options=options)
+        if not res.success and res.fun < 1e299:
+            # A failed line search (L-BFGS-B's "ABNORMAL") often stops short of the optimum: once more.
+            res = scipy.optimize.minimize(objective, res.x, jac=True, method="L-BFGS-B", options=options)
         xs[i], fs[i] = res.x, (-res.fun if res.fun < 1e299 else -np.inf)
         messages.append(str(res.message))
-    # The Hessian by central differences of the (forward-mode) gradient: one compiled
-    # program serves both, where forward-over-forward took seconds more to compile.
-    H = np.stack([_hessian(value_and_grad, xs[i], args) if np.isfinite(fs[i]) else np.full((p, p), np.nan)
-                  for i in range(n)])
     modes: list[Mode] = []
+    rejected = []
     for i in np.argsort(-fs):
         if not np.isfinite(fs[i]):
             continue
-        cov, ok = _laplace_cov(H[i], xs, i)
-        sign, logdet = np.linalg.slogdet(cov)
-        log_mass = float(fs[i] + 0.5 * logdet + 0.5 * p * np.log(2 * np.pi)) if ok else float(fs[i])
-        mode = Mode(xs[i].copy(), float(fs[i]), cov, ok, log_mass)
-        if any(_same(mode, m, same_mode_sd) for m in modes):
+        if any(_within(xs[i], m, same_mode_sd) for m in modes):
+            continue  # the same mode again: no Hessian needed
+        # The Hessian by central differences of the (forward-mode) gradient: one compiled
+        # program serves both, where forward-over-forward took seconds more to compile.
+        cov, ok = _laplace_cov(_hessian(value_and_grad, xs[i], args))
+        grad = np.asarray(value_and_grad(jnp.asarray(xs[i]), *args)[1])
+        # Squared Newton decrement: about twice the log density a Newton step would still
+        # gain. Above 1 the optimiser stopped short, and the point is no mode.
+        decrement = float(grad @ cov @ grad)
+        if not (ok and decrement < 1.0):
+            rejected.append({"x": xs[i].tolist(), "log_posterior": float(fs[i]), "newton_decrement": decrement,
+                             "hessian_definite": ok})
             continue
-        modes.append(mode)
+        _, logdet = np.linalg.slogdet(cov)
+        log_mass = float(fs[i] + 0.5 * logdet + 0.5 * p * np.log(2 * np.pi))
+        modes.append(Mode(xs[i].copy(), float(fs[i]), cov, ok, log_mass))
+    if not modes:
+        # No definite optimum: the best point, with what curvature it has, is still the best start.
+        i = int(np.argmax(fs))
+        if np.isfinite(fs[i]):
+            cov, ok = _laplace_cov(_hessian(value_and_grad, xs[i], args))
+            modes.append(Mode(xs[i].copy(), float(fs[i]), cov, ok, float(fs[i])))
     modes.sort(key=lambda m: -m.log_mass)
-    record = {"evaluations": evals, "messages": messages, "starts": n}
+    record = {"evaluations": evals, "messages": messages, "starts": n, "rejected": rejected}
     return modes, record
 
 
@@ -107,8 +126,8 @@ def _hessian(value_and_grad: Callable, x: np.ndarray, args: tuple) -> np.ndarray
     return np.stack(cols, axis=1)
 
 
-def _laplace_cov(H: np.ndarray, xs: np.ndarray, i: int) -> tuple[np.ndarray, bool]:
-    """Inverse of the negative Hessian, or a diagonal from the starts' spread if not definite."""
+def _laplace_cov(H: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Inverse of the negative Hessian; where it is not definite, unit variance in the flat directions."""
     H = 0.5 * (H + H.T)
     if np.all(np.isfinite(H)):
         w, V = np.linalg.eigh(-H)
@@ -120,15 +139,13 @@ def _laplace_cov(H: np.ndarray, xs: np.ndarray, i: int) -> tuple[np.ndarray, boo
     return np.eye(H.shape[0]), False
 
 
-def _same(a: Mode, b: Mode, k: float) -> bool:
-    d = a.x - b.x
-    for m in (a, b):
-        try:
-            if float(d @ np.linalg.solve(m.cov, d)) <= k * k:
-                return True
-        except np.linalg.LinAlgError:
-            pass
-    return False
+def _within(x: np.ndarray, mode: Mode, k: float) -> bool:
+    """``x`` lies within ``k`` Laplace standard deviations of ``mode`` (in its metric)."""
+    d = x - mode.x
+    try:
+        return float(d @ np.linalg.solve(mode.cov, d)) <= k * k
+    except np.linalg.LinAlgError:
+        return False
 
 
 def chain_starts(key, modes: list[Mode], chains: int, *, spread: float = 2.0,

@@ -49,12 +49,12 @@ class Mixture(NamedTuple):
 def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int) -> tuple[int, int]:
     """``(draws mixed per chain, paths stored per chain)`` for a record of ``T`` samples.
 
-    Up to 100 draws per chain mixed, fewer on long records (each costs a
+    Up to 50 draws per chain mixed, fewer on long records (each costs a
     smoother over ``T``; at least 16 per chain: the between-draw variance is
     a small part of the total where the posterior is narrow); paths at most
     ``thin_draws`` per chain and :data:`PATH_BUDGET_BYTES` in all.
     """
-    per_chain = int(np.clip(5e6 // max(T, 1) // max(chains, 1), 16, 100))
+    per_chain = int(np.clip(2.5e6 // max(T, 1) // max(chains, 1), 16, 50))
     per_chain = min(per_chain, n_draws)
     paths = int(min(thin_draws, max(1, PATH_BUDGET_BYTES // (chains * T * width * 8)), per_chain))
     return per_chain, max(paths, 1)
