@@ -239,3 +239,32 @@ def test_broken_toml_gives_line(tmp_path):
 def test_missing_config_file(tmp_path):
     with pytest.raises(LatentForceError, match="not found"):
         load_config(tmp_path / "nope.toml")
+
+
+FRAME = {
+    "system": {"type": "linear", "masses": [1.0, 1.0, 1.0],
+               "dampings": [0.5, {"prior": "lognormal", "mu": -0.7, "sigma": 1.0}, 0.5],
+               "stiffnesses": [{"prior": "lognormal", "mu": 6.0, "sigma": 0.5, "init": 400.0}, 400.0, 400.0],
+               "force_dofs": [2]},
+    "force": {"kernel": "matern32", "variance": 1.0, "lengthscale": 0.5},
+    "sensors": [{"column": "a0", "quantity": "acceleration", "dof": 0, "noise_std": 0.05}],
+}
+
+
+def test_shear_frame_lists_give_named_storey_parameters():
+    from latentforce.systems import ShearFrame
+
+    p = config_from_dict(FRAME)
+    assert isinstance(p.model.system, ShearFrame) and p.model.ndof == 3
+    assert set(p.free) == {"c_1", "k_0"} and p.inference.method == "kalman-mcmc"
+    params = dict(p.fixed, c_1=0.25, k_0=500.0)
+    M, C, K = (np.asarray(a) for a in p.model.system.matrices(params))
+    np.testing.assert_array_equal(M, np.eye(3))
+    np.testing.assert_array_equal(K, [[900.0, -400.0, 0.0], [-400.0, 800.0, -400.0], [0.0, -400.0, 400.0]])
+    np.testing.assert_array_equal(C, [[0.75, -0.25, 0.0], [-0.25, 0.75, -0.5], [0.0, -0.5, 0.5]])
+    _bad(_edit(FRAME, ["system", "dampings"], [0.5, 0.5]), "[system].dampings", "2 entries", "3")
+    _bad(_edit(FRAME, ["system", "stiffnesses", 1], -1.0), "[system].stiffnesses[1]", "positive")
+    _bad(_edit(FRAME, ["system", "K"], [[1.0]]), "[system].K", "lists")
+    _bad(_edit(FRAME, ["system", "force_dofs"], [3]), "[system].force_dofs", "outside")
+    d = _edit(FRAME, ["inference"], {"method": "kalman"})
+    _bad(d, "[inference].method", "[system].dampings[1]")

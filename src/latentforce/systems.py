@@ -100,6 +100,40 @@ class LinearSystem(System):
         return self.matrices(params)
 
 
+class ShearFrame(LinearSystem):
+    r"""A shear frame (chain of storeys) with a scalar parameter per floor and storey.
+
+    Floor :math:`i` has mass ``m_i``; storey :math:`i` joins floor
+    :math:`i` to floor :math:`i-1` (storey 0 to the ground) with stiffness
+    ``k_i`` and damping ``c_i``, so
+
+    .. math:: M = \operatorname{diag}(m_i), \qquad
+              K_{ii} = k_i + k_{i+1}, \; K_{i,i+1} = K_{i+1,i} = -k_{i+1}
+
+    (and :math:`C` from the ``c_i`` likewise). Every entry is a scalar
+    parameter, so each may be fixed or inferred by name, as ``m, c, k`` of
+    a single-DOF system (the form of the storey models engineers identify
+    from floor accelerations).
+    """
+
+    type_name = "linear"
+
+    def __init__(self, ndof: int, force_dofs=(0,)):
+        super().__init__(ndof, force_dofs)
+        self.param_names = tuple(f"{kind}_{i}" for kind in ("m", "c", "k") for i in range(self.ndof))
+
+    def __repr__(self) -> str:
+        return f"ShearFrame(ndof={self.ndof}, force_dofs={self.force_dofs})"
+
+    def matrices(self, params: Params):
+        n = self.ndof
+        get = lambda kind: jnp.stack([jnp.asarray(params[f"{kind}_{i}"], dtype=float) for i in range(n)])
+        M = jnp.diag(get("m"))
+        # Storey i acts between floor i and floor i-1: the chain's incidence matrix.
+        D = jnp.asarray(np.eye(n) - np.eye(n, k=-1))
+        return M, D.T @ jnp.diag(get("c")) @ D, D.T @ jnp.diag(get("k")) @ D
+
+
 class Duffing(System):
     r"""Duffing oscillator :math:`m\ddot z + c\dot z + k z + k_3 z^3 = u` (Eq. 26, Vibration 2020)."""
 

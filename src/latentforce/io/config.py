@@ -39,7 +39,7 @@ from latentforce.errors import LatentForceError
 from latentforce.kernels import KERNELS, kernel_from_name
 from latentforce.models import LatentForceModel, Sensor
 from latentforce.priors import PRIOR_PARAMS, Prior, prior_from_spec
-from latentforce.systems import SYSTEM_TYPES, Duffing, LinearSystem
+from latentforce.systems import SYSTEM_TYPES, Duffing, LinearSystem, ShearFrame
 
 __all__ = [
     "DataSettings",
@@ -157,6 +157,9 @@ class _SystemSection(_Strict):
     M: list[list[float]] | None = None
     C: list[list[float]] | None = None
     K: list[list[float]] | None = None
+    masses: list[_Param] | None = None
+    dampings: list[_Param] | None = None
+    stiffnesses: list[_Param] | None = None
     force_dofs: list[int] | None = None
 
 
@@ -363,7 +366,8 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
         raise fail("[system].type", f"unknown system type {s.type!r}"
                                     f"{_did_you_mean(s.type, SYSTEM_TYPES + PLANNED_SYSTEM_TYPES, '{!r}')} "
                                     f"Available system types: {', '.join(SYSTEM_TYPES)}.")
-    given = {n for n in ("m", "c", "k", "k3", "M", "C", "K", "force_dofs") if getattr(s, n) is not None}
+    given = {n for n in ("m", "c", "k", "k3", "M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs")
+             if getattr(s, n) is not None}
 
     def require(names):
         for n in names:
@@ -381,12 +385,16 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
             _split(fail, f"[system].{n}", n, getattr(s, n), rules[n], fixed, free)
 
     if s.type == "duffing":
-        refuse(("M", "C", "K", "force_dofs"), "a duffing system is single-DOF: give m, c, k and k3.")
+        refuse(("M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs"),
+               "a duffing system is single-DOF: give m, c, k and k3.")
         require(("m", "c", "k", "k3"))
         scalars(("m", "c", "k", "k3"))
         return Duffing()
 
     refuse(("k3",), "k3 (cubic stiffness) belongs to a duffing system; use type = \"duffing\".")
+    frame = given & {"masses", "dampings", "stiffnesses"}
+    if frame:
+        return _shear_frame(fail, s, given, fixed, free, refuse, require)
     matrices = given & {"M", "C", "K"}
     if not matrices:  # linear SDOF
         require(("m", "c", "k"))
@@ -408,7 +416,17 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
     _check_psd(fail, "[system].K", K, "stiffness", definite=False)
     # Damping need not be symmetric, but it must dissipate energy.
     _check_psd(fail, "[system].C", 0.5 * (C + C.T), "damping (symmetric part of the)", definite=False)
-    force_dofs = s.force_dofs if s.force_dofs is not None else [0]
+    _check_force_dofs(fail, s.force_dofs, n)
+    if n == 1:
+        # One DOF in matrix form: the model reads scalars m, c, k.
+        fixed.update(m=float(M[0, 0]), c=float(C[0, 0]), k=float(K[0, 0]))
+    else:
+        fixed.update(M=M, C=C, K=K)
+    return LinearSystem(ndof=n, force_dofs=tuple(s.force_dofs if s.force_dofs is not None else [0]))
+
+
+def _check_force_dofs(fail: _Fail, force_dofs: list[int] | None, n: int) -> None:
+    force_dofs = force_dofs if force_dofs is not None else [0]
     if not force_dofs:
         raise fail("[system].force_dofs", "must list at least one DOF.")
     for d in force_dofs:
@@ -416,12 +434,29 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
             raise fail("[system].force_dofs", f"DOF {d} is outside the system's DOFs 0..{n - 1}.")
     if len(set(force_dofs)) != len(force_dofs):
         raise fail("[system].force_dofs", f"lists a DOF more than once: {force_dofs}.")
-    if n == 1:
-        # One DOF in matrix form: the model reads scalars m, c, k.
-        fixed.update(m=float(M[0, 0]), c=float(C[0, 0]), k=float(K[0, 0]))
-    else:
-        fixed.update(M=M, C=C, K=K)
-    return LinearSystem(ndof=n, force_dofs=tuple(force_dofs))
+
+
+def _shear_frame(fail: _Fail, s: _SystemSection, given: set, fixed: dict, free: dict, refuse, require):
+    """A shear frame: one mass per floor and one damper and spring per storey, each a number
+    or a prior table (parameters ``m_i``, ``c_i``, ``k_i``)."""
+    refuse(("m", "c", "k", "M", "C", "K"), "give a shear frame's floors and storeys as lists (masses, "
+                                           "dampings, stiffnesses), or matrices M, C, K, not both.")
+    require(("masses", "dampings", "stiffnesses"))
+    n = len(s.masses)
+    for key in ("dampings", "stiffnesses"):
+        if len(getattr(s, key)) != n:
+            raise fail(f"[system].{key}", f"has {len(getattr(s, key))} entries but masses has {n}: "
+                                          "a shear frame has one mass per floor and one damper and "
+                                          "one spring per storey (storey i joins floor i to floor i-1, "
+                                          "storey 0 to the ground).")
+    if n < 1:
+        raise fail("[system].masses", "must list at least one floor mass.")
+    for key, short, rule in (("masses", "m", "positive"), ("dampings", "c", "nonnegative"),
+                             ("stiffnesses", "k", "positive")):
+        for i, value in enumerate(getattr(s, key)):
+            _split(fail, f"[system].{key}[{i}]", f"{short}_{i}", value, rule, fixed, free)
+    _check_force_dofs(fail, s.force_dofs, n)
+    return ShearFrame(ndof=n, force_dofs=tuple(s.force_dofs if s.force_dofs is not None else [0]))
 
 
 def _default_method(is_linear: bool, free: dict) -> str:
@@ -430,8 +465,18 @@ def _default_method(is_linear: bool, free: dict) -> str:
     return "kalman-mcmc" if free else "kalman"
 
 
+_FRAME_KEYS = {"m": "masses", "c": "dampings", "k": "stiffnesses"}
+
+
 def _free_key(name: str) -> str:
-    return f"[force].{name.removeprefix('force_')}" if name.startswith("force_") else f"[system].{name}"
+    """The config key of a parameter name: ``force_variance`` -> ``[force].variance``,
+    a shear frame's ``k_1`` -> ``[system].stiffnesses[1]``."""
+    if name.startswith("force_"):
+        return f"[force].{name.removeprefix('force_')}"
+    kind, _, index = name.partition("_")
+    if index.isdigit() and kind in _FRAME_KEYS:
+        return f"[system].{_FRAME_KEYS[kind]}[{index}]"
+    return f"[system].{name}"
 
 
 def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | None = None,
