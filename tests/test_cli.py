@@ -166,3 +166,71 @@ def test_data_override_and_unknown_demo(workdir):
     assert invoke("estimate", "lf.toml", "--data", "other.csv", "--out", "res")[0] == 0
     code, out = invoke("demo", "nosuch")
     assert code != 0 and "oma" in out
+
+
+# ----- every method end to end, and the convergence verdict ------------------------
+def _inferred(method: str, extra: str = "") -> str:
+    text = CONFIG.format(missing="error").replace(
+        "variance = 2.0", 'variance = { prior = "lognormal", mu = 0.7, sigma = 1.0, init = 1.0 }')
+    if method == "pgas":
+        text = text.replace('type = "linear"', 'type = "duffing"').replace("k = 10.0", "k = 10.0\nk3 = 5.0")
+        text = text.replace('method = "kalman"', 'method = "pgas"\nparticles = 16\nstate_every = 2')
+    else:
+        text = text.replace('method = "kalman"', f'method = "{method}"')
+    return text + extra
+
+
+@pytest.mark.parametrize("method", ["kalman-mcmc", "kalman-nuts", "pgas"])
+def test_every_sampling_method_writes_a_result_folder_with_its_verdict(workdir, method):
+    """estimate through the CLI: summary keys and columns, figures, posterior.nc opened by
+    ArviZ, and the convergence verdict (a short run: not converged, and its figures say so)."""
+    import arviz as az
+
+    short = "iterations = 40\nburn_in = 20\nchains = 2\n"
+    (workdir / "m.toml").write_text(_inferred(method, short))
+    code, out = invoke("estimate", "m.toml", "--out", "res")
+    assert code == 0, out
+    assert "NOT CONVERGED" in out  # 40 draws cannot reach an ESS of 400: said on stderr ...
+    summary = json.loads((workdir / "res" / "summary.json").read_text())
+    assert summary["method"] == method and summary["converged"] is False
+    record = summary["convergence"]
+    assert {"max_r_hat", "min_ess_bulk", "min_ess_tail", "worst", "target_ess"} <= set(record)
+    assert record["worst"] and record["min_ess_bulk"] < 400
+    assert {"mean", "sd", "r_hat", "ess_bulk"} <= set(summary["parameters"]["force_variance"])
+    header = (workdir / "res" / "summary.csv").read_text().splitlines()[0].split(",")
+    assert header[:3] == ["time", "displacement_mean", "displacement_sd"] and "force_sd" in header
+    figures = {p.name for p in (workdir / "res" / "figures").iterdir()}
+    assert {"force.png", "traces.png", "histograms.png"} <= figures
+    tree = az.from_netcdf(workdir / "res" / "posterior.nc")
+    assert "force_variance" in tree.posterior and "force" in tree.posterior
+    # ... with --strict the exit code says so too, and the results are written all the same.
+    code, out = invoke("estimate", "m.toml", "--out", "res", "--force", "--strict")
+    assert code == 3 and (workdir / "res" / "summary.json").is_file(), out
+
+
+def test_exact_kalman_is_converged_and_strict_passes(workdir):
+    code, out = invoke("estimate", "lf.toml", "--out", "res", "--strict")
+    assert code == 0, out
+    summary = json.loads((workdir / "res" / "summary.json").read_text())
+    assert summary["converged"] is True and summary["convergence"] == {"exact": True}
+
+
+def test_a_converged_run_has_no_stamp_and_an_unconverged_one_has(workdir):
+    from matplotlib.figure import Figure
+
+    from latentforce import plots
+    from latentforce.results import read_results
+
+    (workdir / "m.toml").write_text(_inferred("kalman-mcmc", "chains = 2\n"))
+    code, out = invoke("estimate", "m.toml", "--out", "res", "--strict")  # "auto": runs to converged
+    assert code == 0, out
+    assert "NOT CONVERGED" not in out
+    result = read_results(workdir / "res")
+    assert result.convergence["converged"] and not plots.not_converged(result)
+    for record, stamped in ((result.convergence, False), (dict(result.convergence, converged=False), True)):
+        result.convergence = record
+        fig = Figure()
+        fig.add_subplot()
+        plots.stamp_unconverged(fig, result)
+        texts = [t.get_text() for t in fig.texts]
+        assert any("NOT CONVERGED" in t for t in texts) == stamped, texts

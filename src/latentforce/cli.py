@@ -48,6 +48,10 @@ def _enable_compilation_cache() -> None:
         pass
 
 
+#: exit code of ``estimate --strict`` for a run that did not converge
+EXIT_NOT_CONVERGED = 3
+
+
 def _fail(message: str, code: int = 1) -> None:
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(code)
@@ -110,6 +114,8 @@ def estimate(
     out: Optional[Path] = typer.Option(None, "--out", help="Result folder (default: CONFIG-NAME-results)."),
     seed: Optional[int] = typer.Option(None, "--seed", help="Random seed; overrides [inference].seed."),
     force: bool = typer.Option(False, "--force", help="Replace the results in an existing result folder."),
+    strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the run did not converge "
+                                                         "(the results are written all the same)."),
 ):
     """Estimate the force, states and parameters from measured data (the main job)."""
     from latentforce import estimate as estimate_mod
@@ -131,8 +137,12 @@ def estimate(
     write_results(out, result, overwrite=force)
     for warning in result.diagnostics.get("warnings", []):
         typer.echo(f"warning: {warning}", err=True)
+    converged = result.method == "kalman" or bool((result.convergence or {}).get("converged", False))
     typer.echo(f"{problem.inference.method}: results written to {out}/ "
-               f"(summary.csv, summary.json, posterior.nc, figures/) in {result.wall_time_s:.1f} s")
+               f"(summary.csv, summary.json, posterior.nc, figures/) in {result.wall_time_s:.1f} s"
+               + ("" if converged else "; NOT CONVERGED (see the warning above)"))
+    if strict and not converged:
+        raise typer.Exit(EXIT_NOT_CONVERGED)
 
 
 @app.command()

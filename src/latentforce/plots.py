@@ -13,6 +13,10 @@
   (force_variance, force_lengthscale), the truth as a red x when
   ``result.diagnostics["true_params"]`` gives it.
 
+Every figure of a sampling run that did not converge carries "NOT
+CONVERGED" across its face and the worst R-hat and ESS at its foot
+(:func:`stamp_unconverged`).
+
 Figures are built as bare :class:`matplotlib.figure.Figure` objects and
 saved with the Agg renderer, so nothing touches pyplot's global state or
 opens a window, and each figure is released once saved.
@@ -93,11 +97,34 @@ def draw_figures(result: RunResult, fig_dir: Path) -> list[Path]:
     return written
 
 
-def _save(fig: Figure, path: Path) -> Path:
+def _save(fig: Figure, path: Path, result: RunResult) -> Path:
     fig.tight_layout()
+    stamp_unconverged(fig, result)
     fig.savefig(path, dpi=DPI)
     fig.clear()
     return Path(path)
+
+
+def not_converged(result: RunResult) -> bool:
+    """A sampling run whose convergence record says no (or that has none); ``kalman`` is exact."""
+    if result.method == "kalman":
+        return False
+    return not (result.convergence or {}).get("converged", False)
+
+
+def stamp_unconverged(fig: Figure, result: RunResult) -> None:
+    """"NOT CONVERGED" across the face of ``fig`` when the run did not converge, with the
+    worst R-hat and ESS: a figure of an unconverged run must say so wherever it is shown."""
+    if not not_converged(result):
+        return
+    record = result.convergence or {}
+    fig.text(0.5, 0.5, "NOT CONVERGED", color="red", alpha=0.35, fontsize=40, fontweight="bold",
+             ha="center", va="center", rotation=20, zorder=1000)
+    detail = (f"max R-hat {record['max_r_hat']:.3f}, min bulk ESS {record['min_ess_bulk']:.0f}"
+              if record.get("max_r_hat") is not None and record.get("min_ess_bulk") is not None
+              else record.get("reason", "no convergence record"))
+    fig.text(0.5, 0.01, f"NOT CONVERGED: {detail}", color="red", fontsize=9, ha="center", va="bottom",
+             zorder=1000)
 
 
 def _columns(array: np.ndarray) -> np.ndarray:
@@ -153,7 +180,7 @@ def plot_measured(result: RunResult, path: Path) -> Path:
         ax.set_title(f"Measured channel '{column}'")
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time [s]")
-    return _save(fig, path)
+    return _save(fig, path, result)
 
 
 def plot_state(result: RunResult, state: str, path: Path) -> Path:
@@ -184,7 +211,7 @@ def plot_state(result: RunResult, state: str, path: Path) -> Path:
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize="small", ncol=5)
     axes[-1].set_xlabel("time [s]")
-    return _save(fig, path)
+    return _save(fig, path, result)
 
 
 def plot_paths(result: RunResult, path: Path, max_paths: int = 30) -> Path:
@@ -214,7 +241,7 @@ def plot_paths(result: RunResult, path: Path, max_paths: int = 30) -> Path:
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize="small")
     axes[-1].set_xlabel("time [s]")
-    return _save(fig, path)
+    return _save(fig, path, result)
 
 
 def plot_traces(result: RunResult, path: Path) -> Path:
@@ -234,7 +261,7 @@ def plot_traces(result: RunResult, path: Path) -> Path:
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right", fontsize="small", ncol=min(6, len(axes[0].lines)))
     axes[-1].set_xlabel("draw (after burn-in)")
-    return _save(fig, path)
+    return _save(fig, path, result)
 
 
 def plot_histograms(result: RunResult, path: Path) -> Path:
@@ -265,7 +292,7 @@ def plot_histograms(result: RunResult, path: Path) -> Path:
         ax_cdf.set_ylabel("empirical CDF")
         ax_cdf.set_ylim(0, 1.02)
         ax_cdf.set_title(f"Empirical CDF of {name}")
-    return _save(fig, path)
+    return _save(fig, path, result)
 
 
 def _bins(n: int) -> int:
@@ -302,4 +329,4 @@ def plot_joint_hyperparameters(result: RunResult, path: Path) -> Path:
     ax.set_xlabel(_param_label("force_lengthscale"))
     ax.set_ylabel(_param_label("force_variance"))
     ax.set_title("Joint posterior of the force hyperparameters")
-    return _save(fig, path)
+    return _save(fig, path, result)

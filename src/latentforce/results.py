@@ -516,6 +516,9 @@ def _summary_json(result: RunResult) -> dict:
         "parameters": (result.param_summary if result.param_summary is not None
                        else summarise_parameters(result.param_draws)),
         "acceptance": [float(a) for a in result.acceptance],
+        # kalman is exact (no sampling error); a sampler is converged only by its record
+        "converged": result.method == "kalman" or bool((result.convergence or {}).get("converged", False)),
+        "convergence": {"exact": True} if result.method == "kalman" else (result.convergence or {}),
     }
     if result.truth:
         summary["nmse"] = _nmse_by_state(result)
@@ -656,6 +659,7 @@ def read_results(out_dir: Path) -> RunResult:
         seed=int(summary.get("seed", attrs.get("seed", 0)) or 0),
         wall_time_s=_float(summary.get("wall_time_s", 0.0)),
         fixed={k: _float(v) for k, v in (summary.get("fixed") or {}).items()},
+        convergence=None if method == "kalman" else dict(summary.get("convergence") or {}),
     )
 
 

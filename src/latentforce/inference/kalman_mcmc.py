@@ -205,7 +205,7 @@ def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains:
 def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
                     progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
-                    max_time: float = 600.0, use_modes: bool = True) -> MCMCOutput:
+                    max_time: float = 600.0, use_modes: bool = True, adapt_shape: bool = True) -> MCMCOutput:
     """Random-walk Metropolis over the ``free`` parameters (Algorithm 1, ISMA 2018).
 
     ``free`` maps a parameter name to ``(prior, init)``; ``fixed`` holds the
@@ -243,7 +243,7 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     burn_total = -(-burn_in // n_chunk) * n_chunk  # rounded up to whole chunks, never down
     # With a Laplace start the proposal already fits: re-shape it from the chain half-way
     # and at three quarters of the warm-up (from the paper's start, at each quarter).
-    fractions = (2, 3) if start["method"] == "laplace" else (1, 2, 3)
+    fractions = ((2, 3) if start["method"] == "laplace" else (1, 2, 3)) if adapt_shape else ()
     shape_at = tuple(sorted({f * burn_total // 4 for f in fractions} - {0}))
 
     @jit
