@@ -168,9 +168,10 @@ def warning_message(record: dict, method: str) -> str | None:
         "pgas": "run longer (iterations = \"auto\" with a larger max_time), use more particles, or check "
                 "that the force kernel suits the data",
         "kalman-mcmc": "run longer (iterations = \"auto\" with a larger max_time), or try "
-                       "method = \"kalman-nuts\"; several modes (see diagnostics.modes) need chains in each",
-        "kalman-nuts": "run longer (iterations = \"auto\" with a larger max_time); several modes (see "
-                       "diagnostics.modes) need chains in each",
+                       "method = \"kalman-nuts\"; check diagnostics.start.modes for a posterior with "
+                       "several modes",
+        "kalman-nuts": "run longer (iterations = \"auto\" with a larger max_time); check "
+                       "diagnostics.start.modes for a posterior with several modes",
     }.get(method, "run longer")
     return (f"NOT CONVERGED{why}: worst max R-hat {record['max_r_hat']:.3f} (need <= {record['r_hat_max']}), "
             f"min bulk ESS {record['min_ess_bulk']:.0f} (need >= {record['target_ess']:.0f}); worst "

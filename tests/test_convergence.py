@@ -1,0 +1,77 @@
+"""The convergence verdict on chains whose answer is known: iid draws, stuck chains, short runs."""
+
+import numpy as np
+import pytest
+
+from latentforce.inference import convergence
+
+
+def _iid(rng, chains=4, draws=1000):
+    return rng.standard_normal((chains, draws))
+
+
+def test_well_mixed_chains_are_converged():
+    rng = np.random.default_rng(0)
+    record = convergence.diagnose({"k": _iid(rng), "c": _iid(rng)})
+    assert record["converged"], record
+    assert record["max_r_hat"] < 1.01 and record["min_ess_bulk"] > 3000
+    assert convergence.warning_message(record, "kalman-mcmc") is None
+
+
+def test_chains_stuck_apart_are_not_converged_and_named():
+    rng = np.random.default_rng(1)
+    stuck = _iid(rng) + np.array([0.0, 0.0, 0.0, 3.0])[:, None]  # one chain in another mode
+    record = convergence.diagnose({"k": _iid(rng), "force_variance": stuck})
+    assert not record["converged"]
+    assert record["worst"][0]["name"] == "force_variance" and record["max_r_hat"] > 1.2
+    message = convergence.warning_message(record, "pgas")
+    assert message.startswith("NOT CONVERGED") and "force_variance" in message and "\n" not in message
+
+
+def test_autocorrelated_chains_below_the_target_ess_are_not_converged():
+    rng = np.random.default_rng(2)
+    # AR(1) with phi = 0.99: bulk ESS about 4 * 1000 * (1 - phi) / (1 + phi) = 20
+    x = np.zeros((4, 1000))
+    for t in range(1, 1000):
+        x[:, t] = 0.99 * x[:, t - 1] + rng.standard_normal(4)
+    record = convergence.diagnose({"k": x, "c": _iid(rng)})
+    assert not record["converged"] and record["min_ess_bulk"] < 100
+    assert record["worst"][0]["name"] == "k"
+    # The same chains pass a target they do reach.
+    assert convergence.diagnose({"c": _iid(rng)}, target_ess=100)["converged"]
+
+
+def test_one_chain_or_too_few_draws_cannot_show_convergence():
+    rng = np.random.default_rng(3)
+    record = convergence.diagnose({"k": _iid(rng, chains=1, draws=5000)})
+    assert not record["converged"] and "2 chains" in record["reason"]
+    record = convergence.diagnose({"k": _iid(rng, chains=4, draws=3)})
+    assert not record["converged"] and "too few draws" in record["reason"]
+
+
+def test_states_decide_or_inform():
+    rng = np.random.default_rng(4)
+    paths = {"force": rng.standard_normal((4, 600, 100, 1)), "displacement": rng.standard_normal((4, 600, 100, 1))}
+    paths["force"][3, :, 52, 0] += 2.0  # one chain differs at one monitored time
+    times = convergence.monitored_times(100)
+    assert len(times) >= 20 and times[0] == 0 and times[-1] == 99 and 52 in times
+    states = convergence.state_quantities(paths, times, np.arange(100) * 0.5)
+    assert "force[t=26]" in states and len(states) == 2 * len(times)
+    params = {"k": _iid(rng, draws=600)}
+    decided = convergence.diagnose(params, states)
+    assert not decided["converged"] and decided["worst"][0]["name"] == "force[t=26]"
+    informed = convergence.diagnose(params, states, states_decide=False)
+    assert informed["converged"] and informed["states"]["max_r_hat"] > 1.2
+    assert informed["states"]["monitored"] == len(states) and not informed["states"]["decide"]
+
+
+def test_a_constant_quantity_is_left_out_of_the_verdict():
+    rng = np.random.default_rng(5)
+    record = convergence.diagnose({"k": _iid(rng), "pinned": np.ones((4, 1000))})
+    assert record["converged"] and np.isnan(convergence.quantity_stats({"p": np.ones((4, 10))})["p"]["r_hat"])
+
+
+@pytest.mark.parametrize("T,n", [(5, 24), (1000, 24), (10, 3)])
+def test_monitored_times_are_spread_and_unique(T, n):
+    times = convergence.monitored_times(T, n)
+    assert len(times) == min(n, T) and np.all(np.diff(times) > 0) and times[-1] == T - 1
