@@ -120,8 +120,13 @@ def test_duffing_pgas(tmp_path):
 def test_initial_state():
     d = copy.deepcopy(DUFFING)
     d["initial"] = {"mean": [0.0, 0.0, 0.0], "sd": [1e-3, 1e-3, 1.0]}
-    mean, sd = config_from_dict(d).initial
-    np.testing.assert_array_equal(sd, [1e-3, 1e-3, 1.0])
+    mean, cov = config_from_dict(d).initial
+    np.testing.assert_array_equal(cov, np.diag([1e-6, 1e-6, 1.0]))
+    full = [[1e-4, 2e-5, 0.0], [2e-5, 1e-3, 1e-3], [0.0, 1e-3, 1.0]]
+    d["initial"] = {"mean": [0.1, 0.0, 0.0], "cov": full}
+    mean, cov = config_from_dict(d).initial
+    np.testing.assert_array_equal(cov, full)
+    np.testing.assert_array_equal(mean, [0.1, 0.0, 0.0])
 
 
 # ----- bad configs ------------------------------------------------------------
@@ -226,6 +231,16 @@ def test_initial_length_explains_state_vector():
     _bad(d, "[initial].mean", "2 entries", "3", "displacement", "velocit", "force state")
     d["initial"] = {"mean": [0.0] * 3, "sd": [1.0, -1.0, 1.0]}
     _bad(d, "[initial].sd[1]", "greater than or equal to 0")
+    d["initial"] = {"mean": [0.0] * 3}
+    _bad(d, "[initial]", "either sd", "cov", "neither")
+    d["initial"] = {"mean": [0.0] * 3, "sd": [1.0] * 3, "cov": np.eye(3).tolist()}
+    _bad(d, "[initial]", "not both")
+    d["initial"] = {"mean": [0.0] * 3, "cov": [[1.0, 0.0, 0.0], [0.0, 1.0], [0.0, 0.0, 1.0]]}
+    _bad(d, "[initial].cov[1]", "2 entries", "3")
+    d["initial"] = {"mean": [0.0] * 3, "cov": [[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]}
+    _bad(d, "[initial].cov", "not symmetric")
+    d["initial"] = {"mean": [0.0] * 3, "cov": [[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]}
+    _bad(d, "[initial].cov", "positive semi-definite", "-1")
 
 
 def test_broken_toml_gives_line(tmp_path):

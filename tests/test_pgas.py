@@ -52,6 +52,32 @@ def test_pgas_mixes_everywhere(linear_run):
     assert np.all(np.isfinite(out.log_likelihood))
 
 
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_pgas_matches_kalman_smoother_for_smooth_forces_from_the_stationary_start(order):
+    """Matérn-3/2, 5/2, 7/2 on the linear SDOF, the default (joint stationary) initial state:
+    PGAS per-time mean and sd vs the exact smoother of the same model and start, and the
+    ancestor sampling alive (the state form's switch rate was 0.10 at 3/2 and 0.00 at 7/2)."""
+    prob = linear_problem(T=100, missing=True, kernel=Matern(order))
+    pm = smc.ParticleModel(prob["model"], prob["params"], prob["dt"])  # stationary start
+    tr = pm.transition(1.0, 0.5)
+    A_d, Q_d, H, m0, P0 = pm.linear_discrete(tr)
+    nm = pm.nm
+    assert np.max(np.abs(np.asarray(P0)[:nm, nm:])) > 1e-3 * np.sqrt(np.max(np.diag(np.asarray(P0))[:nm]))  # joint
+    ks = kalman_smoother(A_d, Q_d, H, pm.R, m0, P0, prob["y"], prob["mask"])
+    out = pgas.run_pgas(jax.random.key(3, impl="rbg"), prob["model"], prob["params"], {}, prob["y"], prob["mask"],
+                        prob["dt"], particles=32, iterations=1000, burn_in=100, chains=4)
+    km = np.asarray(ks.means)
+    ksd = np.sqrt(np.asarray(jnp.diagonal(ks.covs, axis1=1, axis2=2)))
+    for name, i in [("displacement", 0), ("velocity", 1), ("force", 2)]:
+        mean, sd = out.state_mean[name][:, 0], out.state_sd[name][:, 0]
+        nmse = np.mean((mean - km[:, i]) ** 2) / np.var(km[:, i])
+        assert nmse < 0.005, (name, nmse)  # the issue's bar: 0.5 %
+        ratio = sd / ksd[:, i]
+        assert np.mean(np.abs(ratio - 1.0)) < 0.1, (name, ratio)
+    assert min(out.diagnostics["switch_rate"]) > 0.3, out.diagnostics["switch_rate"]
+    assert max(out.diagnostics["rhat"].values()) < 1.05, out.diagnostics["rhat"]
+
+
 def test_pgas_matches_kalman_smoother_two_dof():
     """A 2-DOF chain, force at DOF 0, accelerometers on both DOFs and missing samples: PGAS
     (with the residual-preserving move solving on the accelerometer that sees the force)

@@ -188,8 +188,23 @@ def test_conditional_sweep_keeps_reference_and_compiles_once():
     sc2 = smc.sweep_constants(pm, pm.transition(2.0, 0.3), prob["y"], prob["mask"])
     out2 = f(jax.random.key(1), sc2, out1.trajectory)
     assert len(traces) == 1
-    # the reference's force states are kept by particle N-1 at every step
-    np.testing.assert_allclose(out2.particles[:, -1, pm.nm:], out1.trajectory[:, pm.nm:])
+    # innovation form: particle N-1 keeps the reference's innovations q'_t = g'_t - A g'_{t-1},
+    # driven from the ancestor it drew (the reference itself at t = 0)
+    ref, parts, anc = out1.trajectory, out2.particles, out2.ancestors
+    nm, nfx = pm.nm, pm.nfx
+    A_f = sc2.A[:nfx]
+    q_ref = ref[1:, nm:] - ref[:-1, nm:] @ A_f.T
+    np.testing.assert_allclose(parts[0, -1], ref[0])
+    prev = parts[np.arange(29), anc[1:, -1]]  # each step's drawn ancestor of particle N-1
+    np.testing.assert_allclose(parts[1:, -1, nm:] - prev[:, nm:] @ A_f.T, q_ref, atol=1e-12)
+    assert np.any(np.asarray(anc[1:, -1]) != 15)  # it did switch
+    # without ancestor sampling (CSMC) the reference is kept whole
+    csmc = jit(smc.make_sweep(pm, 16, ancestor_sampling=False))(jax.random.key(1), sc2, ref)
+    np.testing.assert_allclose(csmc.particles[:, -1], ref, atol=1e-12)
+    # the state form (nonlinear systems' default) keeps the reference's force states
+    state = jit(smc.make_sweep(pm, 16, innovation=False))(jax.random.key(1), sc2, ref)
+    np.testing.assert_allclose(state.particles[:, -1, nm:], ref[:, nm:], atol=1e-12)
+    assert float(state.info.switched) > 0.0
     # the returned path is a lineage: traced back through the stored ancestors
     path = out2.trajectory
     idx = [int(out2.info.final_index)]
@@ -199,14 +214,15 @@ def test_conditional_sweep_keeps_reference_and_compiles_once():
     assert 0.0 < float(out2.info.switched) <= 1.0
 
 
-def test_ancestor_information_is_exact_for_linear_model():
-    """Delta from the information recursion equals the brute-force change of the future log-likelihood."""
+def test_state_form_ancestor_information_is_exact_for_linear_model():
+    """The state form (nonlinear systems' default): Delta for a perturbation of the mechanical
+    state with the future latent held equals the brute-force change of the future log-likelihood."""
     prob = linear_problem(T=25)
     pm = prob["pm"]
     sc = smc.sweep_constants(pm, prob["tr"], prob["y"], prob["mask"])
     g = jax.random.normal(jax.random.key(2), (25, pm.nl)).at[:, pm.nfx:].multiply(0.01)
     ref = pm.path(g)
-    Lam, eta = smc.ancestor_information(pm, sc, ref)
+    Lam, eta = smc.ancestor_information(pm, sc, ref, innovation=False)
     t = 5
     delta = jnp.array([0.03, -0.2])
 
@@ -217,4 +233,42 @@ def test_ancestor_information_is_exact_for_linear_model():
 
     brute = future_loglik(ref[t, :pm.nm] + delta) - future_loglik(ref[t, :pm.nm])
     approx = -0.5 * delta @ Lam[t] @ delta + delta @ eta[t]
+    np.testing.assert_allclose(approx, brute, rtol=1e-8)
+
+
+@pytest.mark.parametrize("order", [0, 1, 2, 3])
+def test_ancestor_information_is_exact_for_linear_model(order):
+    """Delta from the information recursion equals the brute-force change of the future
+    log-likelihood when the whole state at t is perturbed and the future innovations are held
+    (the innovation form of the ancestor weights), for every Matérn order."""
+    prob = linear_problem(T=25, kernel=Matern(order))
+    pm = prob["pm"]
+    nm, nfx = pm.nm, pm.nfx
+    sc = smc.sweep_constants(pm, prob["tr"], prob["y"], prob["mask"])
+    g = jax.random.normal(jax.random.key(2), (25, pm.nl)).at[:, pm.nfx:].multiply(0.01)
+    ref = pm.path(g)
+    Lam, eta = smc.ancestor_information(pm, sc, ref)
+    A = prob["tr"].A
+    q = g - jnp.concatenate([jnp.zeros((1, pm.nl)), g[:-1] @ A.T])  # the innovations
+    t = 5
+
+    def rollout(x_t):
+        def step(x, q_s):  # x_s = Phi(mech, x_f) + E x_f + q_w, A_f x_f + q_f
+            m = A @ jnp.concatenate([x[nm:], jnp.zeros(nm)])
+            nxt = jnp.concatenate([pm.phi(x[:nm], x[nm:]) + m[nfx:] + q_s[nfx:], m[:nfx] + q_s[:nfx]])
+            return nxt, nxt
+
+        _, xs = jax.lax.scan(step, x_t, q[t + 1:])
+        return jnp.concatenate([x_t[None], xs])
+
+    def future_loglik(x_t):
+        path = rollout(x_t)
+        r = sc.y[t:] - jax.vmap(lambda x: pm._observe(x[:nm], x[nm:]))(path) * sc.maskf[t:]
+        return -0.5 * jnp.sum(jnp.einsum("td,tde,te->t", r, sc.Rinv[t:], r))
+
+    np.testing.assert_allclose(rollout(ref[t]), ref[t:], rtol=1e-10, atol=1e-12)  # held innovations rebuild it
+    delta = 0.05 * jax.random.normal(jax.random.key(order), (pm.n_state,)) * jnp.sqrt(jnp.diagonal(prob["P0"]))
+    brute = future_loglik(ref[t] + delta) - future_loglik(ref[t])
+    approx = -0.5 * delta @ Lam[t] @ delta + delta @ eta[t]
+    assert abs(float(brute)) > 1e-3  # the perturbation matters
     np.testing.assert_allclose(approx, brute, rtol=1e-8)

@@ -37,19 +37,22 @@ def _truth(model, dataset: Dataset) -> dict[str, np.ndarray]:
 
 
 def _check_stable(problem: Problem, params: dict) -> None:
-    """A linear model must be stable for its stationary initial state to exist."""
+    """The default initial state is the stationary distribution of the system (linear) or of
+    its linearisation about rest (nonlinear): it exists only for a stable one."""
     model = problem.model
-    if not model.system.is_linear:
+    if problem.initial is not None:
         return
-    F, _ = model.continuous(params)
+    F, _ = model.continuous(params, linear_part=True)
     eig = np.linalg.eigvals(np.asarray(F)[: model.n_mech, : model.n_mech])
-    if problem.initial is None and np.max(eig.real) >= 0:
+    if np.max(eig.real) >= 0:
+        what = ("linear system" if model.system.is_linear
+                else "system, linearised about rest,")
         raise LatentForceError(
-            f"The linear system in {problem.config_path} is not asymptotically stable (an eigenvalue "
+            f"The {what} in {problem.config_path} is not asymptotically stable (an eigenvalue "
             f"of its state matrix has real part {np.max(eig.real):.3g} >= 0: is the damping zero or the "
-            "stiffness singular?), so its stationary distribution, the default initial state, does not "
-            "exist. Add damping, or give the initial state explicitly in an [initial] section with "
-            "mean and sd."
+            "stiffness singular or negative?), so its stationary distribution, the default initial state, "
+            "does not exist. Add damping, or give the initial state explicitly in an [initial] section "
+            "with mean and sd."
         )
 
 
@@ -191,16 +194,19 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
         # issue): a fixed count, with the convergence verdict reported as for any run.
         settings = settings._replace(iterations=PGAS_AUTO_ITERATIONS)
     free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
-    # The mechanical initial state: the user's [initial] or the model default at
-    # the initial hyperparameters (fixed during the run; the force states start
-    # from their stationary GP distribution under the current hyperparameters).
+    # The initial state: the user's [initial] for the mechanical states (the force states
+    # start from their stationary GP distribution); else for a linear system the joint
+    # stationary distribution at the current hyperparameters (smc.ParticleModel), for a
+    # nonlinear one the model's near-rest default at the initial hyperparameters.
+    initial = None
+    nm = model.n_mech
     if problem.initial is not None:
-        mean, sd = problem.initial
-        initial = (np.asarray(mean)[: model.n_mech], np.asarray(sd)[: model.n_mech])
-    else:
+        mean, cov = problem.initial
+        initial = (np.asarray(mean)[:nm], np.asarray(cov)[:nm, :nm])
+    elif not model.system.is_linear:
         # one compiled program: op by op its small solves compiled some dozens of programs
         m0, P0 = shared_jit(model.default_initial)(params0)
-        initial = (np.asarray(m0)[: model.n_mech], np.sqrt(np.diag(np.asarray(P0))[: model.n_mech]))
+        initial = (np.asarray(m0)[:nm], np.asarray(P0)[:nm, :nm])
     # PGAS needs a conditional resampling scheme; multinomial is the valid one we have.
     out = run_pgas(key, model, params0, free, np.where(mask, y, np.nan), mask, dataset.dt,
                    particles=settings.particles, iterations=settings.iterations, burn_in=settings.burn_in,

@@ -46,17 +46,17 @@ from latentforce.priors import Prior, log_prob_unconstrained, softplus, softplus
 
 
 class Initial(NamedTuple):
-    """A user-given prior of the first state: mean and standard deviation per state."""
+    """A user-given prior of the first state: mean and covariance (``[initial]``)."""
 
     mean: np.ndarray
-    sd: np.ndarray
+    cov: np.ndarray
 
 
 def initial_moments(model: LatentForceModel, params: dict, initial: Initial | None):
     """``(m0, P0)``: the user's ``[initial]`` section, else the model's default."""
     if initial is None:
         return model.default_initial(params)
-    return jnp.asarray(initial.mean, dtype=float), jnp.diag(jnp.asarray(initial.sd, dtype=float) ** 2)
+    return jnp.asarray(initial.mean, dtype=float), jnp.asarray(initial.cov, dtype=float)
 
 
 def linear_gaussian(model: LatentForceModel, params: dict, dt: float, initial: Initial | None = None):

@@ -1032,8 +1032,9 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     residual-preserving steps (:func:`residual_move`; 0 disables; skipped
     when no channel sees the force) move the ``residual_modes`` slowest
     modes of the mechanical within-step noise, the force following so that
-    the acceleration predictions are kept. ``initial = (mean, sd)`` of the initial
-    mechanical state, else ``model.default_initial``. ``progress(done,
+    the acceleration predictions are kept. ``initial = (mean, sd)`` or ``(mean, cov)`` of
+    the initial mechanical state, else the default of :class:`smc.ParticleModel`
+    (linear systems: the joint stationary start at the current hyperparameters). ``progress(done,
     total, accept_rate)`` is called between scan chunks.
 
     ``channels``: ``(quantity, dof)`` pairs through which the compiled programs

@@ -178,7 +178,8 @@ class _SensorSection(_Strict):
 
 class _InitialSection(_Strict):
     mean: list[float]
-    sd: list[Annotated[float, Field(ge=0)]]
+    sd: list[Annotated[float, Field(ge=0)]] | None = None
+    cov: list[list[float]] | None = None
 
 
 class _InferenceSection(_Strict):
@@ -524,14 +525,7 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
 
     initial = None
     if cfg.initial is not None:
-        layout = (f"{model.ndof} displacement(s), {model.ndof} velocity(ies), then "
-                  f"{model.nforce} x {kernel.dim} force state(s) of the {kernel.name} kernel")
-        for name in ("mean", "sd"):
-            got = len(getattr(cfg.initial, name))
-            if got != model.n_state:
-                raise fail(f"[initial].{name}", f"has {got} entries but the state vector has "
-                                                f"{model.n_state}: {layout}.")
-        initial = (np.asarray(cfg.initial.mean, dtype=float), np.asarray(cfg.initial.sd, dtype=float))
+        initial = _initial_state(cfg.initial, model, kernel, fail)
 
     inf = cfg.inference
     method = inf.method or _default_method(system.is_linear, free)
@@ -611,6 +605,45 @@ def data_path(problem: Problem) -> Path:
         raise LatentForceError(f"{problem.config_path}: [data].path is missing; give it in the config "
                                f"or pass --data FILE.")
     return problem.data.path
+
+
+def _initial_state(section: _InitialSection, model: LatentForceModel, kernel, fail):
+    """``(mean, cov)`` of the first state from ``[initial]``: ``mean`` with ``sd`` (independent
+    states) or ``cov`` (a full covariance matrix, symmetric positive semi-definite)."""
+    layout = (f"{model.ndof} displacement(s), {model.ndof} velocity(ies), then "
+              f"{model.nforce} x {kernel.dim} force state(s) of the {kernel.name} kernel")
+    n = model.n_state
+    if (section.sd is None) == (section.cov is None):
+        raise fail("[initial]", "give either sd (a list of standard deviations) or cov (a full "
+                                f"{n} x {n} covariance matrix, a list of rows), not "
+                                f"{'both' if section.sd is not None else 'neither'}.")
+    lengths = {"mean": len(section.mean)}
+    if section.sd is not None:
+        lengths["sd"] = len(section.sd)
+    else:
+        lengths["cov"] = len(section.cov)
+        for i, row in enumerate(section.cov):
+            if len(row) != n:
+                raise fail(f"[initial].cov[{i}]", f"has {len(row)} entries but the state vector has {n}: "
+                                                  f"{layout}.")
+    for name, got in lengths.items():
+        if got != n:
+            raise fail(f"[initial].{name}", f"has {got} entries but the state vector has {n}: {layout}.")
+    mean = np.asarray(section.mean, dtype=float)
+    if section.sd is not None:
+        return mean, np.diag(np.asarray(section.sd, dtype=float) ** 2)
+    cov = np.asarray(section.cov, dtype=float)
+    if not np.all(np.isfinite(cov)):
+        raise fail("[initial].cov", "holds a value that is not a finite number.")
+    scale = max(float(np.max(np.abs(cov))), np.finfo(float).tiny)
+    asym = float(np.max(np.abs(cov - cov.T)))
+    if asym > 1e-10 * scale:
+        raise fail("[initial].cov", f"is not symmetric (largest |cov[i][j] - cov[j][i]| = {asym:.3g}).")
+    low = float(np.min(np.linalg.eigvalsh(0.5 * (cov + cov.T))))
+    if low < -1e-10 * scale:
+        raise fail("[initial].cov", f"is not positive semi-definite (smallest eigenvalue {low:.3g}); "
+                                    "a covariance matrix must have no negative eigenvalue.")
+    return mean, 0.5 * (cov + cov.T)
 
 
 def initial_params(problem: Problem) -> dict[str, float | np.ndarray]:
