@@ -46,7 +46,7 @@ import numpy as np
 
 import latentforce  # noqa: F401
 from latentforce.compile import jit
-from latentforce.inference import pgas, smc
+from latentforce.inference import latent, pgas, smc
 from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor
 from latentforce.priors import LogNormal
@@ -62,7 +62,7 @@ def problem(T: int, seed: int = 0):
                              [Sensor("displacement", 0, NOISE[0]), Sensor("acceleration", 0, NOISE[1])])
     pm = smc.ParticleModel(model, PARAMS, DT, initial=(0.0, 0.01))
     tr = pm.transition(PARAMS["force_variance"], PARAMS["force_lengthscale"])
-    path = pm.path(pgas.gp_prior_path(jax.random.key(seed), tr, T))
+    path = pm.path(latent.gp_prior_path(jax.random.key(seed), tr, T))
     y = jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path)
     y = y + jax.random.normal(jax.random.key(seed + 1), y.shape) * jnp.asarray(NOISE)
     return model, pm, tr, np.asarray(y), np.asarray(path)
@@ -359,7 +359,7 @@ def main(argv=None):
             ("JAX PGAS, 4 vmapped chains (per chain-sweep)", ms4, ""),
             ("NumPy PGAS (same sweep)", ms["numpy"], ""),
             ("particles CSMC", ms["peer"], "bootstrap CSMC, no AS" if ms["peer"] is not None else peer.why)]
-    table = [f"| implementation | ms/sweep | × JAX 1 chain | note |", "|---|---:|---:|---|"]
+    table = ["| implementation | ms/sweep | × JAX 1 chain | note |", "|---|---:|---:|---|"]
     print(f"{'implementation':48s} {'ms/sweep':>10s} {'x JAX-1':>8s}  note")
     for name, t, note in rows:
         if t is None:

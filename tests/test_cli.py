@@ -4,7 +4,6 @@ import json
 import math
 import os
 
-import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -234,3 +233,34 @@ def test_a_converged_run_has_no_stamp_and_an_unconverged_one_has(workdir):
         plots.stamp_unconverged(fig, result)
         texts = [t.get_text() for t in fig.texts]
         assert any("NOT CONVERGED" in t for t in texts) == stamped, texts
+
+
+@pytest.mark.slow
+def test_pgas_auto_runs_until_converged_and_strict_passes(workdir):
+    """pgas with iterations = "auto" (the default) on a Duffing record with a Matérn-3/2 force
+    and its variance inferred, displacement and acceleration: the run stops by itself once
+    converged (about 5 min), says how many iterations it took, and --strict exits 0."""
+    (workdir / "m.toml").write_text(_inferred("pgas", "burn_in = 400\nmax_time = 500\n"))
+    code, out = invoke("estimate", "m.toml", "--out", "res", "--strict")
+    assert code == 0, out
+    summary = json.loads((workdir / "res" / "summary.json").read_text())
+    assert summary["converged"] is True, summary["convergence"]
+    diag = summary["diagnostics"]
+    assert diag["iterations_setting"] == "auto" and diag["stopped"] == "converged"
+    assert 0 < diag["iterations"] < 50_000
+    assert summary["convergence"]["max_r_hat"] <= 1.01
+
+
+def test_pgas_auto_stops_at_max_time_and_says_so(workdir):
+    """iterations = "auto" with a max_time too short to converge: the run stops after its first
+    check, writes its results, says NOT CONVERGED and why it stopped; --strict exits 3."""
+    (workdir / "m.toml").write_text(_inferred("pgas", "burn_in = 100\nchains = 2\nmax_time = 1\n"))
+    code, out = invoke("estimate", "m.toml", "--out", "res", "--strict")
+    assert code == 3, out
+    assert "NOT CONVERGED" in out
+    summary = json.loads((workdir / "res" / "summary.json").read_text())
+    assert summary["converged"] is False
+    diag = summary["diagnostics"]
+    assert diag["iterations_setting"] == "auto" and diag["stopped"] == "max_time"
+    assert 0 < diag["iterations"] < 2_000
+    assert any("[t=" in w["name"] or w["name"] == "force_variance" for w in summary["convergence"]["worst"])

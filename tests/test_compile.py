@@ -92,7 +92,7 @@ if sys.argv[1] == "plain":
     jax.devices()  # the backend starts before latentforce is imported: XLA_FLAGS is left alone
 import jax.numpy as jnp
 import numpy as np
-from latentforce.inference import pgas, smc
+from latentforce.inference import latent, path_moves, pgas, smc
 from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor
 from latentforce.systems import Duffing
@@ -102,8 +102,8 @@ params = dict(m=1.0, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthsca
 pm = smc.ParticleModel(model, params, 0.01, initial=(0.0, 0.01))
 path = pm.path(jnp.zeros((T, pm.nl)))
 y = jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path)
-od = pgas.observation_density(pm, y, jnp.ones(y.shape, bool))
-rm = pgas.ResidualMove(pm, T, 8, np.ones(pm.nm))
+od = latent.observation_density(pm, y, jnp.ones(y.shape, bool))
+rm = path_moves.ResidualMove(pm, T, 8, np.ones(pm.nm))
 build = rm.builder(pm, od, path)
 text = jax.jit(jax.vmap(lambda c: build(c)[1])).lower(jnp.zeros((2, rm.dim))).compile().as_text()
 print("hoisted" if "xla_cpu_small_call" in text else "stepped")

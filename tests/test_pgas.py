@@ -4,17 +4,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_smc import linear_problem
 
 import latentforce  # noqa: F401  (enables float64)
 from latentforce.compile import jit
-from latentforce.inference import pgas, smc
+from latentforce.inference import hyper_moves, latent, path_moves, pgas, pgas_start, smc
 from latentforce.inference.kalman import kalman_smoother
 from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor
 from latentforce.priors import LogNormal
 from latentforce.systems import Duffing
-
-from test_smc import linear_problem
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +90,7 @@ def test_pgas_matches_kalman_smoother_two_dof():
                              [Sensor("acceleration", 0, 0.05), Sensor("acceleration", 1, 0.05)])
     dt, T = 0.05, 80
     pm = smc.ParticleModel(model, params, dt, initial=(0.0, 0.1))
-    rm = pgas.ResidualMove(pm, T, 8, jnp.ones(pm.nm))
+    rm = path_moves.ResidualMove(pm, T, 8, jnp.ones(pm.nm))
     assert rm.applies and list(rm.rows) == [0]
     A_d, Q_d, H, m1, P1 = (np.asarray(a) for a in pm.linear_discrete(pm.transition(1.0, 0.5)))
     rng = np.random.default_rng(2)
@@ -136,7 +135,7 @@ def test_gibbs_with_free_hyperparameters_matches_exact_marginal_posterior():
     prob = linear_problem(T=100, missing=True)
     pm, y, mask = prob["pm"], prob["y"], prob["mask"]
     free = {"force_variance": (LogNormal(0.0, 1.0), 2.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 1.0)}
-    hyper = pgas.Hyper(prob["params"], free)
+    hyper = hyper_moves.Hyper(prob["params"], free)
 
     def discrete(x):
         return pm.linear_discrete(pm.transition(*hyper.values(x)))
@@ -186,8 +185,8 @@ def _grid_problem():
     params = dict(m=1.0, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthscale=0.5)
     pm = smc.ParticleModel(model, params, 0.05)
     free = {"force_variance": (LogNormal(0.0, 1.0), 1.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 0.5)}
-    hyper = pgas.Hyper(params, free)
-    g = pgas.gp_prior_path(jax.random.key(0), pm.transition(1.0, 0.5), 200)
+    hyper = hyper_moves.Hyper(params, free)
+    g = latent.gp_prior_path(jax.random.key(0), pm.transition(1.0, 0.5), 200)
     return pm, hyper, g
 
 
@@ -220,7 +219,7 @@ def test_hyper_log_target_is_log_space_density():
     x = jnp.array([0.3, -0.9])
     th = np.exp(np.asarray(x))
     lp = float(LogNormal(0.0, 1.0).log_prob(th[0]) + LogNormal(-0.5, 1.0).log_prob(th[1])) + float(x.sum())
-    ref = lp + float(pgas.gp_path_log_density(pm, th[0], th[1], xf))
+    ref = lp + float(hyper_moves.gp_path_log_density(pm, th[0], th[1], xf))
     assert abs(float(hyper.log_target(pm, x, xf)) - ref) < 1e-9
     assert np.allclose(hyper.values(x), th)
 
@@ -234,7 +233,7 @@ def test_hyperparameter_mh_matches_grid_posterior():
     """
     pm, hyper, xf = _grid_problem()
     burn, n = 3000, 20000
-    schedule = jnp.asarray(pgas.adaptation_schedule(burn))
+    schedule = jnp.asarray(hyper_moves.adaptation_schedule(burn))
     assert len(schedule) >= 4 and int(schedule[-1]) < burn
 
     def log_target(x):
@@ -245,11 +244,11 @@ def test_hyperparameter_mh_matches_grid_posterior():
         k0, k1 = jax.random.split(key)
         # a dispersed start, away from the mode
         x0 = hyper.to_unconstrained(jnp.array([1.0, 0.5])) + jax.random.normal(k0, (2,))
-        state = pgas.init_proposal(hyper, log_target, x0)
+        state = hyper_moves.init_proposal(hyper, log_target, x0)
 
         def step(s, inp):
             k, i = inp
-            s, info = pgas.mh_step(k, s, log_target, adapt=i < burn, reshape=jnp.any(i == schedule),
+            s, info = hyper_moves.mh_step(k, s, log_target, adapt=i < burn, reshape=jnp.any(i == schedule),
                                    target=0.38)
             return s, (s.x, info.accepted)
 
@@ -260,7 +259,7 @@ def test_hyperparameter_mh_matches_grid_posterior():
     theta = np.exp(np.asarray(xs))  # (chains, n, 2)
     exact_mean, exact_sd = _grid_moments(pm, hyper, xf)
     # the proposal was adapted to the posterior's shape and then frozen
-    cov = np.asarray(jax.vmap(pgas.proposal_covariance)(states))
+    cov = np.asarray(jax.vmap(hyper_moves.proposal_covariance)(states))
     assert np.all(np.isfinite(cov)) and np.all(np.linalg.eigvalsh(cov) > 0)
     # Monte-Carlo error by batch means (4 chains x 25 batches)
     se = _batch_se(theta, 25)
@@ -273,9 +272,9 @@ def test_hyperparameter_mh_matches_grid_posterior():
 
 
 def test_adaptation_schedule():
-    assert pgas.adaptation_schedule(0) == ()
-    assert pgas.adaptation_schedule(10) == ()
-    s = pgas.adaptation_schedule(1000)
+    assert hyper_moves.adaptation_schedule(0) == ()
+    assert hyper_moves.adaptation_schedule(10) == ()
+    s = hyper_moves.adaptation_schedule(1000)
     assert s == tuple(sorted(s)) and s[0] >= 9 and s[-1] < 1000
 
 
@@ -285,7 +284,7 @@ def test_duffing_gibbs_runs_and_converges():
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("displacement", 0, 0.01), Sensor("acceleration", 0, 0.1)])
     params = dict(m=1.0, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthscale=0.5)
     pm = smc.ParticleModel(model, params, 0.02, initial=(0.0, 0.01))
-    path = pm.path(pgas.gp_prior_path(jax.random.key(5), pm.transition(1.0, 0.5), 200))
+    path = pm.path(latent.gp_prior_path(jax.random.key(5), pm.transition(1.0, 0.5), 200))
     xf = path[:, 2:]
     y = jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path)
     y = y + jax.random.normal(jax.random.key(6), y.shape) * jnp.array([0.01, 0.1])
@@ -303,19 +302,19 @@ def test_whiten_colour_and_observation_density():
     """Innovations round-trip; the masked observation log-likelihood vs a direct sum."""
     pm, hyper, g = _grid_problem()
     tr = pm.transition(1.3, 0.4)
-    eps = pgas.whiten(tr, g)
-    assert np.allclose(pgas.colour(tr, eps), g, atol=1e-10)
+    eps = latent.whiten(tr, g)
+    assert np.allclose(latent.colour(tr, eps), g, atol=1e-10)
     path = pm.path(g)
     y = np.asarray(jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path)) + 0.05
     mask = np.ones_like(y, dtype=bool)
     mask[::7] = False
-    od = pgas.observation_density(pm, np.where(mask, y, np.nan), mask)
+    od = latent.observation_density(pm, np.where(mask, y, np.nan), mask)
     sd = float(np.sqrt(pm.R[0, 0]))
     direct = np.sum(mask * (-0.5 * (0.05 / sd) ** 2 - np.log(sd) - 0.5 * np.log(2 * np.pi)))
-    assert abs(float(pgas.observation_log_likelihood(pm, od, path)) - direct) < 1e-8
+    assert abs(float(latent.observation_log_likelihood(pm, od, path)) - direct) < 1e-8
     # the non-centred target at the path's own theta rebuilds the same path
     x = hyper.to_unconstrained(jnp.array([1.3, 0.4]))
-    lt, (g_rebuilt, rebuilt, _) = pgas.noncentred_log_target(hyper, pm, od, x, eps)
+    lt, (g_rebuilt, rebuilt, _) = hyper_moves.noncentred_log_target(hyper, pm, od, x, eps)
     assert np.allclose(rebuilt, path, atol=1e-10)
     assert np.allclose(g_rebuilt, g, atol=1e-10)
     assert abs(float(lt) - (direct + float(hyper.log_prior(x)))) < 1e-6
@@ -328,22 +327,22 @@ def test_noncentred_mh_matches_grid_posterior():
     path = pm.path(g)
     y = np.asarray(jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path))
     y = y + 0.1 * np.asarray(jax.random.normal(jax.random.key(2), y.shape))
-    od = pgas.observation_density(pm, y, np.ones_like(y, dtype=bool))
-    eps = pgas.whiten(pm.transition(1.0, 0.5), g)
+    od = latent.observation_density(pm, y, np.ones_like(y, dtype=bool))
+    eps = latent.whiten(pm.transition(1.0, 0.5), g)
 
     def log_target(x):
-        return pgas.noncentred_log_target(hyper, pm, od, x, eps)[0]
+        return hyper_moves.noncentred_log_target(hyper, pm, od, x, eps)[0]
 
     burn, n = 1000, 6000
-    schedule = jnp.asarray(pgas.adaptation_schedule(burn))
+    schedule = jnp.asarray(hyper_moves.adaptation_schedule(burn))
 
     @jit
     def chain(key):
-        state = pgas.init_proposal(hyper, log_target, jnp.zeros(2))
+        state = hyper_moves.init_proposal(hyper, log_target, jnp.zeros(2))
 
         def step(s, inp):
             k, i = inp
-            s, info = pgas.mh_step(k, s, log_target, adapt=i < burn, reshape=jnp.any(i == schedule), target=0.38)
+            s, info = hyper_moves.mh_step(k, s, log_target, adapt=i < burn, reshape=jnp.any(i == schedule), target=0.38)
             return s, s.x
 
         return jax.lax.scan(step, state, (jax.random.split(key, burn + n), jnp.arange(burn + n)))[1][burn:]
@@ -407,19 +406,19 @@ def test_lowfreq_move_matches_exact_conditional():
     pm, tr = prob["pm"], prob["tr"]
     mask = np.asarray(prob["mask"]).copy()
     mask[:, 0] = False  # acceleration only
-    od = pgas.observation_density(pm, prob["y"], mask)
-    frame = pgas.LowFrequencyFrame(tr, pgas.lowfreq_basis(60, 8))
-    g_start = 2.0 * pgas.gp_prior_path(jax.random.key(4), tr, 60)
+    od = latent.observation_density(pm, prob["y"], mask)
+    frame = path_moves.LowFrequencyFrame(tr, path_moves.lowfreq_basis(60, 8))
+    g_start = 2.0 * latent.gp_prior_path(jax.random.key(4), tr, 60)
     start = pm.path(g_start.at[0, pm.nfx:].set(jnp.array([0.3, -1.0]) - pm.mech0_mean))
-    w_start, eps_perp = pgas.lowfreq_coordinates(pm, frame, start)
-    assert np.allclose(pgas.lowfreq_path(pm, frame, eps_perp, w_start), start, atol=1e-9)
+    w_start, eps_perp = path_moves.lowfreq_coordinates(pm, frame, start)
+    assert np.allclose(path_moves.lowfreq_path(pm, frame, eps_perp, w_start), start, atol=1e-9)
 
     def functionals(w):
-        path = pgas.lowfreq_path(pm, frame, eps_perp, w)
+        path = path_moves.lowfreq_path(pm, frame, eps_perp, w)
         return jnp.array([jnp.mean(path[:, pm.nm]), path[0, 0]])
 
     # exact conditional: the log target is quadratic in w
-    lt = lambda w: pgas.lowfreq_log_target(pm, od, frame, eps_perp, w)[0]  # noqa: E731
+    lt = lambda w: path_moves.lowfreq_log_target(pm, od, frame, eps_perp, w)[0]  # noqa: E731
     w0 = jnp.zeros_like(w_start)
     prec = -np.asarray(jit(jax.hessian(lt))(w0))
     cov = np.linalg.inv(prec)
@@ -430,16 +429,16 @@ def test_lowfreq_move_matches_exact_conditional():
 
     burn, n, steps = 200, 2000, 5
     # the Gauss-Newton shape is computed at a different, dispersed path (exact here: the model is linear)
-    init = pgas.lowfreq_init(pm, od, frame, pm.path(pgas.gp_prior_path(jax.random.key(9), tr, 60)))
+    init = path_moves.lowfreq_init(pm, od, frame, pm.path(latent.gp_prior_path(jax.random.key(9), tr, 60)))
     assert np.allclose(np.asarray(init.cov), cov, rtol=1e-6, atol=1e-10)
 
     def move(k, rwm, path, b):
-        return pgas.lowfreq_move(k, rwm, pm, od, frame, path, steps, adapt=b < burn, step0=b * steps,
+        return path_moves.lowfreq_move(k, rwm, pm, od, frame, path, steps, adapt=b < burn, step0=b * steps,
                                  reshape_steps=jnp.asarray((-1,)))
 
     _check_move_against_gaussian(
         move, lambda rwm, path: functionals(rwm.x), init,
-        lambda key: pgas.lowfreq_path(pm, frame, eps_perp, w_start + 0.5 * jax.random.normal(key, w_start.shape)),
+        lambda key: path_moves.lowfreq_path(pm, frame, eps_perp, w_start + 0.5 * jax.random.normal(key, w_start.shape)),
         burn, n, exact_mean, exact_sd)
 
 
@@ -463,10 +462,10 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
     mask = np.asarray(prob["mask"]).copy()
     if acc_only:
         mask[:, 0] = False
-    od = pgas.observation_density(pm, prob["y"], mask)
-    rm = pgas.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx:]))
+    od = latent.observation_density(pm, prob["y"], mask)
+    rm = path_moves.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx:]))
     assert rm.applies and list(rm.rows) == [1] and list(rm.cols) == [0]
-    g_start = 2.0 * pgas.gp_prior_path(jax.random.key(4), tr, T)
+    g_start = 2.0 * latent.gp_prior_path(jax.random.key(4), tr, T)
     start = pm.path(g_start.at[0, pm.nfx:].set(jnp.array([0.3, -1.0]) - pm.mech0_mean))
     build = rm.builder(pm, od, start)
     c0 = jnp.zeros(rm.dim)
@@ -481,7 +480,7 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
     def functionals(path):
         return jnp.array([jnp.mean(path[:, pm.nm]), path[0, 0]])
 
-    lt = lambda c: pgas.residual_log_target(tr, pm, od, build, c)[0]  # noqa: E731
+    lt = lambda c: path_moves.residual_log_target(tr, pm, od, build, c)[0]  # noqa: E731
     prec = -np.asarray(jit(jax.hessian(lt))(c0))
     cov = np.linalg.inv(prec)
     c_mean = cov @ np.asarray(jit(jax.grad(lt))(c0))
@@ -504,13 +503,13 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
     exact_mean = np.asarray(functionals(build(jnp.asarray(c_mean))[1]))
     exact_sd = np.sqrt(np.diag(J @ cov @ J.T))
     # the Gauss-Newton shape, computed at another path, is the exact covariance (linear model)
-    init = pgas.residual_init(rm, pm, od, tr, pm.path(pgas.gp_prior_path(jax.random.key(9), tr, T)))
+    init = path_moves.residual_init(rm, pm, od, tr, pm.path(latent.gp_prior_path(jax.random.key(9), tr, T)))
     assert np.allclose(np.asarray(init.cov), cov, rtol=1e-6, atol=1e-10 * np.abs(cov).max())
 
     burn, n, steps = 200, 2000, 5
 
     def move(k, rwm, path, b):
-        return pgas.residual_move(k, rwm, rm, pm, od, tr, path, steps, adapt=b < burn)
+        return path_moves.residual_move(k, rwm, rm, pm, od, tr, path, steps, adapt=b < burn)
 
     _check_move_against_gaussian(
         move, lambda rwm, path: functionals(path), init,
@@ -523,16 +522,16 @@ def test_residual_move_is_skipped_without_a_force_channel():
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("displacement", 0, 1e-4)])
     params = dict(m=1.0, c=20.0, k=1e4, k3=1e9, force_variance=20.0, force_lengthscale=0.1)
     pm = smc.ParticleModel(model, params, 1 / 2048)
-    assert not pgas.ResidualMove(pm, 64, 8, jnp.ones(2)).applies
+    assert not path_moves.ResidualMove(pm, 64, 8, jnp.ones(2)).applies
 
 
 def test_lowfreq_basis_is_orthonormal_dct():
-    B = np.asarray(pgas.lowfreq_basis(50, 12))
+    B = np.asarray(path_moves.lowfreq_basis(50, 12))
     assert B.shape == (50, 13)  # 12 DCT modes and the first innovation
     assert np.allclose(B.T @ B, np.eye(13), atol=1e-12)
     assert np.allclose(B[:, 0], 1 / np.sqrt(50))
     assert np.linalg.norm(B @ (B.T @ np.eye(50)[0]) - np.eye(50)[0]) < 1e-12
-    assert pgas.lowfreq_basis(5, 16).shape == (5, 5)
+    assert path_moves.lowfreq_basis(5, 16).shape == (5, 5)
 
 
 def test_dispersed_start_fits_data_and_spreads_the_slow_directions():
@@ -559,18 +558,18 @@ def test_dispersed_start_fits_data_and_spreads_the_slow_directions():
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, sd)])
     pm = smc.ParticleModel(model, params, dt)
     tr = pm.transition(20.0, 0.1)
-    od = pgas.observation_density(pm, y, mask)
-    eks = pgas.extended_kalman_smoother(pm, tr, y, mask)
-    frame = pgas.LowFrequencyFrame(tr, pgas.lowfreq_basis(T, 16))
-    rwm_lf = pgas.lowfreq_init(pm, od, frame, eks)
+    od = latent.observation_density(pm, y, mask)
+    eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
+    frame = path_moves.LowFrequencyFrame(tr, path_moves.lowfreq_basis(T, 16))
+    rwm_lf = path_moves.lowfreq_init(pm, od, frame, eks)
     q = rwm_lf.x.shape[0]
-    starts = jit(jax.vmap(lambda k: pgas.dispersed_start(k, pm, frame, rwm_lf, eks)))(
+    starts = jit(jax.vmap(lambda k: pgas_start.dispersed_start(k, pm, frame, rwm_lf, eks)))(
         jax.random.split(jax.random.key(5), 64))
-    ll = jax.vmap(lambda p: pgas.observation_log_likelihood(pm, od, p))(starts)
-    ll_eks = float(pgas.observation_log_likelihood(pm, od, eks))
+    ll = jax.vmap(lambda p: latent.observation_log_likelihood(pm, od, p))(starts)
+    ll_eks = float(latent.observation_log_likelihood(pm, od, eks))
     assert np.all(np.asarray(ll) > ll_eks - 4 * q), (np.asarray(ll).min(), ll_eks)
-    w, eps_perp = pgas.lowfreq_coordinates(pm, frame, eks)
-    grad = jax.grad(lambda w_: jnp.mean(pgas.lowfreq_path(pm, frame, eps_perp, w_)[:, pm.nm]))(w)
+    w, eps_perp = path_moves.lowfreq_coordinates(pm, frame, eks)
+    grad = jax.grad(lambda w_: jnp.mean(path_moves.lowfreq_path(pm, frame, eps_perp, w_)[:, pm.nm]))(w)
     expected_var = 4.0 * float(grad @ rwm_lf.cov @ grad)  # linearised: the map is nearly linear over 2 sd
     ratio = float(np.var(np.asarray(starts[:, :, pm.nm]).mean(axis=1), ddof=1)) / expected_var
     assert 0.45 < ratio < 1.7, ratio
@@ -596,8 +595,8 @@ def _joint_model():
 
 def _joint_draw(pm, tr, mask, k_path, k_noise):
     """One (path, data) from the model at transition ``tr``; NaN where ``mask`` is False."""
-    x = pm.path(pgas.gp_prior_path(k_path, tr, _JOINT_T))
-    y = pgas.predicted_observations(pm, x) + jnp.asarray(_JOINT_NOISE) * jax.random.normal(k_noise, (_JOINT_T, 2))
+    x = pm.path(latent.gp_prior_path(k_path, tr, _JOINT_T))
+    y = latent.predicted_observations(pm, x) + jnp.asarray(_JOINT_NOISE) * jax.random.normal(k_noise, (_JOINT_T, 2))
     return x, jnp.where(mask, y, jnp.nan)
 
 
@@ -618,8 +617,8 @@ def _joint_statistics(pm, tr, mask, x, y):
     displacement moments, the initial state, the latent's whitened innovations (its prior
     density) and each channel's normalised squared residuals (the likelihood)."""
     u, z = x[:, pm.nm], x[:, 0]
-    r = (jnp.nan_to_num(y) - pgas.predicted_observations(pm, x)) / jnp.asarray(_JOINT_NOISE) * mask
-    eps = pgas.whiten(tr, pm.latent(x))
+    r = (jnp.nan_to_num(y) - latent.predicted_observations(pm, x)) / jnp.asarray(_JOINT_NOISE) * mask
+    eps = latent.whiten(tr, pm.latent(x))
     return jnp.array([jnp.mean(u), jnp.mean(u**2), jnp.mean(z), jnp.mean(z**2), 100.0 * jnp.mean(z**4),
                       x[0, 0], x[0, 1], jnp.mean(eps**2),
                       jnp.sum(r[:, 0] ** 2) / jnp.sum(mask[:, 0]), jnp.sum(r[:, 1] ** 2) / jnp.sum(mask[:, 1])])
@@ -644,8 +643,8 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
     tempering of a move's likelihood is below this test's resolution (|z| < 4).
     """
     pm, tr, mask, xs, ys = duffing_joint
-    rm = pgas.ResidualMove(pm, _JOINT_T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx:]))
-    frame = pgas.LowFrequencyFrame(tr, pgas.lowfreq_basis(_JOINT_T, 8))
+    rm = path_moves.ResidualMove(pm, _JOINT_T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx:]))
+    frame = path_moves.LowFrequencyFrame(tr, path_moves.lowfreq_basis(_JOINT_T, 8))
     proposal = "bootstrap" if kind == "sweep-bootstrap" else "optimal"
     sweep = smc.make_sweep(pm, 16, proposal=proposal)
 
@@ -658,13 +657,13 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
 
             x, switched = jax.lax.scan(one, x, jax.random.split(key, 3))
             return x, jnp.mean(switched)  # the ancestor switch rate
-        od = pgas.observation_density(pm, y, mask)
-        eks = pgas.extended_kalman_smoother(pm, tr, y, mask)
+        od = latent.observation_density(pm, y, mask)
+        eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
         if kind == "residual":
-            _, x, acc = pgas.residual_move(key, pgas.residual_init(rm, pm, od, tr, eks), rm, pm, od, tr, x, 30,
+            _, x, acc = path_moves.residual_move(key, path_moves.residual_init(rm, pm, od, tr, eks), rm, pm, od, tr, x, 30,
                                            adapt=False)
         else:
-            _, x, acc = pgas.lowfreq_move(key, pgas.lowfreq_init(pm, od, frame, eks), pm, od, frame, x, 30,
+            _, x, acc = path_moves.lowfreq_move(key, path_moves.lowfreq_init(pm, od, frame, eks), pm, od, frame, x, 30,
                                           adapt=False, step0=0, reshape_steps=jnp.asarray((-1,)))
         return x, jnp.mean(acc.astype(float))
 
@@ -698,14 +697,14 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
     T = _JOINT_T
     free = {"force_variance": (LogNormal(0.0, 0.4), 1.0), "force_lengthscale": (LogNormal(np.log(0.5), 0.3), 0.5)}
     pm, mask = _joint_model()
-    hyper = pgas.Hyper(_JOINT_PARAMS, free)
+    hyper = hyper_moves.Hyper(_JOINT_PARAMS, free)
     tr_ref = pm.transition(1.0, 0.5)
-    basis = pgas.lowfreq_basis(T, 8)
-    rm = pgas.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr_ref.Q)[pm.nfx:]))
+    basis = path_moves.lowfreq_basis(T, 8)
+    rm = path_moves.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr_ref.Q)[pm.nfx:]))
     sched = pgas.schedule(0, 6, state_every=2, mh_steps=2, thin_draws=1)
     assert sched.burn_blocks == 0 and sched.n_blocks == 3
-    block = pgas.make_block(pm, hyper, sched, rm, basis, np.array([0, T - 1]), particles=16,
-                            lowfreq_steps=5, residual_steps=20)
+    block = pgas.make_block(pm, hyper, sched, rm, basis, np.array([0, T - 1]), np.array([0, T // 2]),
+                            particles=16, lowfreq_steps=5, residual_steps=20)
     n_draws = sched.n_draws
 
     def draw(key):
@@ -713,17 +712,17 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
         x = jnp.array([0.0, np.log(0.5)]) + jnp.array([0.4, 0.3]) * jax.random.normal(k_theta, (2,))
         tr = pm.transition(*hyper.values(x))
         path, y = _joint_draw(pm, tr, mask, k_path, k_noise)
-        od = pgas.observation_density(pm, y, mask)
-        eks = pgas.extended_kalman_smoother(pm, tr_ref, y, mask)
+        od = latent.observation_density(pm, y, mask)
+        eks = pgas_start.extended_kalman_smoother(pm, tr_ref, y, mask)
         # fixed proposals: the non-centred step moves the whole path, so it takes smaller steps
-        rwm = pgas.init_proposal(hyper, lambda x_: jnp.zeros(()), x, proposal_sd=0.25)
-        rwm_nc = pgas.init_proposal(hyper, lambda x_: jnp.zeros(()), x, proposal_sd=0.03)
-        rwm_lf = pgas.lowfreq_init(pm, od, pgas.LowFrequencyFrame(tr_ref, basis), eks)
+        rwm = hyper_moves.init_proposal(hyper, lambda x_: jnp.zeros(()), x, proposal_sd=0.25)
+        rwm_nc = hyper_moves.init_proposal(hyper, lambda x_: jnp.zeros(()), x, proposal_sd=0.03)
+        rwm_lf = path_moves.lowfreq_init(pm, od, path_moves.LowFrequencyFrame(tr_ref, basis), eks)
         nq = 2 * pm.ndof + pm.nforce
-        state = pgas.ChainState(k_chain, path, rwm, rwm_nc, rwm_lf, pgas.residual_init(rm, pm, od, tr_ref, eks), tr,
+        state = pgas.ChainState(k_chain, path, rwm, rwm_nc, rwm_lf, path_moves.residual_init(rm, pm, od, tr_ref, eks), tr,
                                 jnp.zeros((), jnp.int32),
                                 jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
-                                jnp.zeros((n_draws + 1, T, pm.n_state)))
+                                jnp.zeros((n_draws + 1, T, pm.n_state)), jnp.asarray(sched.thin, jnp.int32))
         return state, pgas.BlockData(y, mask, pm.R, od, jnp.zeros((T, nq)))
 
     @jit
@@ -761,7 +760,7 @@ def _two_sensor_records():
 
     @jax.jit  # one program, not op by op
     def observed(key):
-        path = pm.path(pgas.gp_prior_path(key, pm.transition(1.0, 0.5), 80))
+        path = pm.path(latent.gp_prior_path(key, pm.transition(1.0, 0.5), 80))
         return jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path)
 
     y = np.asarray(observed(jax.random.key(5))) + np.random.default_rng(0).normal(size=(80, 2)) * np.array([0.1, 0.01])
@@ -779,8 +778,8 @@ def test_observe_through_keeps_the_likelihood_and_checks_the_sensors():
     np.testing.assert_array_equal(y2[:, 1], y[:, 0])
     np.testing.assert_array_equal(mask2[:, 1], mask[:, 0])
     pm, pm2 = (smc.ParticleModel(m, params, 0.02, initial=(0.0, 0.01)) for m in (acc_only, model2))
-    path = jax.jit(lambda k: pm.path(pgas.gp_prior_path(k, pm.transition(1.0, 0.5), y.shape[0])))(jax.random.key(3))
-    lls = [float(jax.jit(lambda yy, mm: pgas.observation_log_likelihood(p, pgas.observation_density(p, yy, mm, p.R),
+    path = jax.jit(lambda k: pm.path(latent.gp_prior_path(k, pm.transition(1.0, 0.5), y.shape[0])))(jax.random.key(3))
+    lls = [float(jax.jit(lambda yy, mm: latent.observation_log_likelihood(p, latent.observation_density(p, yy, mm, p.R),
                                                                         path))(yy, mm))
            for p, yy, mm in ((pm, y, mask), (pm2, y2, mask2))]
     assert abs(lls[0] - lls[1]) < 1e-10 * abs(lls[0])
@@ -817,3 +816,58 @@ def test_runs_through_the_same_channels_compile_once_and_agree_with_their_own_se
     for name in own.state_mean:
         np.testing.assert_allclose(shared.state_mean[name], own.state_mean[name], rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(shared.trajectories, own.trajectories, rtol=1e-6, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------
+# iterations = "auto": run until the convergence verdict holds
+# ---------------------------------------------------------------------------
+def test_fit_draws_halves_the_stored_paths_and_doubles_the_stride():
+    from typing import NamedTuple
+
+    class Stub(NamedTuple):
+        draws: jnp.ndarray
+        thin: jnp.ndarray
+
+    n_slots = 8
+    # slot j holds sweep j (stride 1); the last slot is the discard slot
+    draws = jnp.broadcast_to(jnp.arange(n_slots + 1.0)[None, :, None, None], (2, n_slots + 1, 3, 1))
+    st = pgas.fit_draws(Stub(draws, jnp.ones(2, jnp.int32)), 8, n_slots)
+    assert int(st.thin[0]) == 1 and np.array_equal(st.draws, draws)  # fits: unchanged
+    st = pgas.fit_draws(Stub(draws, jnp.ones(2, jnp.int32)), 30, n_slots)  # 30 sweeps need stride 4
+    assert np.all(np.asarray(st.thin) == 4)
+    np.testing.assert_array_equal(np.asarray(st.draws)[0, :2, 0, 0], [0.0, 4.0])  # sweeps 0 and 4 kept
+    np.testing.assert_array_equal(np.asarray(st.draws)[1, 2:, 0, 0], 0.0)
+
+
+def test_auto_runs_until_converged_and_matches_the_exact_smoother():
+    """iterations=None: the run stops when R-hat and ESS over the hyperparameters and the
+    monitored states say converged, well before the cap; the stored paths are thinned on the
+    fly to at most thin_draws; the posterior is the exact smoother's."""
+    prob = linear_problem(T=100, missing=True, kernel=Matern(1))
+    pm = smc.ParticleModel(prob["model"], prob["params"], prob["dt"])
+    A_d, Q_d, H, m0, P0 = pm.linear_discrete(pm.transition(1.0, 0.5))
+    ks = kalman_smoother(A_d, Q_d, H, pm.R, m0, P0, prob["y"], prob["mask"])
+    out = pgas.run_pgas(jax.random.key(3), prob["model"], prob["params"], {}, prob["y"], prob["mask"], prob["dt"],
+                        particles=32, iterations=None, burn_in=200, chains=4, thin_draws=50, max_time=600,
+                        max_iterations=20_000)
+    d = out.diagnostics
+    assert d["stopped"] == "converged" and d["convergence"]["converged"], d["convergence"]
+    assert d["convergence"]["max_r_hat"] <= 1.01 and d["convergence"]["min_ess_bulk"] >= 400
+    assert any(w["name"].startswith(("displacement[", "velocity[", "force[")) for w in d["convergence"]["worst"])
+    assert 200 <= d["iterations_run"] < 20_000
+    sweeps = d["iterations_run"]  # state_every = 1
+    assert out.trajectories.shape[1] == -(-sweeps // d["thin"]) <= 50 < sweeps
+    km = np.asarray(ks.means)
+    for name, i in [("displacement", 0), ("force", 2)]:
+        mean = out.state_mean[name][:, 0]
+        assert np.mean((mean - km[:, i]) ** 2) / np.var(km[:, i]) < 0.005, name
+
+
+def test_auto_stops_at_max_time_and_says_so():
+    prob = linear_problem(T=50, missing=False, kernel=Matern(1))
+    out = pgas.run_pgas(jax.random.key(4), prob["model"], prob["params"], {}, prob["y"], prob["mask"], prob["dt"],
+                        particles=16, iterations=None, burn_in=100, chains=2, max_time=0.0, target_ess=1e6)
+    d = out.diagnostics
+    assert d["stopped"] == "max_time" and not d["convergence"]["converged"]
+    assert 0 < d["iterations_run"] <= 200  # the first check, after a handful of post-burn-in sweeps
+    assert np.all(np.isfinite(out.state_mean["force"]))

@@ -195,6 +195,9 @@ def demo(
     quick: bool = typer.Option(False, "--quick", help="A short run (under a minute)."),
     seed: int = typer.Option(0, "--seed", help="Random seed."),
     force: bool = typer.Option(False, "--force", help="Replace results in an existing folder."),
+    paper_settings: bool = typer.Option(False, "--paper-settings",
+                                        help="duffing, sine: the paper's fixed counts (1e5 iterations after 1e4 "
+                                             "burn-in) instead of running until converged."),
 ):
     """Run a built-in case end to end: simulate, estimate, write results, print NMSE."""
     from latentforce.demos import DEMOS
@@ -202,7 +205,10 @@ def demo(
     if name not in DEMOS:
         raise LatentForceError(f"Unknown demo {name!r}; available demos: {', '.join(DEMOS)}.")
     out = out if out is not None else Path(f"demo-{name}")
-    DEMOS[name](out=out, quick=quick, seed=seed, overwrite=force, echo=typer.echo, progress=Progress)
+    kwargs = {"paper_settings": True} if paper_settings and name != "oma" else {}
+    if paper_settings and name == "oma":
+        raise LatentForceError("--paper-settings applies to the nonlinear demos (duffing, sine), not to oma.")
+    DEMOS[name](out=out, quick=quick, seed=seed, overwrite=force, echo=typer.echo, progress=Progress, **kwargs)
 
 
 @app.command()

@@ -12,7 +12,6 @@ import time as _time
 from typing import Callable
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from latentforce.errors import LatentForceError
@@ -23,7 +22,20 @@ from latentforce.results import RunResult, summarise_parameters
 
 STATES = ("displacement", "velocity", "force")
 #: iterations of a pgas run whose config says "auto" (the default), for now
-PGAS_AUTO_ITERATIONS = 10000
+#: the most iterations an "auto" pgas run makes (it stops earlier when converged or at max_time)
+PGAS_AUTO_ITERATIONS = 50_000
+
+
+def _label_times(record: dict, time: np.ndarray) -> dict:
+    """A convergence record with ``name[t=index]`` relabelled ``name[t=time]``."""
+    import re
+
+    def relabel(name):
+        return re.sub(r"\[t=(\d+)\]", lambda m: f"[t={time[int(m.group(1))]:.6g}]", name)
+
+    out = dict(record)
+    out["worst"] = [dict(w, name=relabel(w["name"])) for w in record.get("worst", [])]
+    return out
 
 
 def _truth(model, dataset: Dataset) -> dict[str, np.ndarray]:
@@ -189,10 +201,6 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
 
     model = problem.model
     settings = problem.inference
-    if settings.iterations is None:
-        # "auto" for pgas is not yet a run-until-converged loop (the nonlinear-sampler
-        # issue): a fixed count, with the convergence verdict reported as for any run.
-        settings = settings._replace(iterations=PGAS_AUTO_ITERATIONS)
     free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
     # The initial state: the user's [initial] for the mechanical states (the force states
     # start from their stationary GP distribution); else for a linear system the joint
@@ -213,7 +221,8 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
                    state_every=settings.state_every, chains=settings.chains, mh_steps=settings.mh_steps,
                    discretisation=settings.discretisation, proposal=settings.proposal,
                    resampling="multinomial", thin_draws=settings.thin_draws, initial=initial,
-                   progress=progress, channels=channels)
+                   progress=progress, channels=channels, target_ess=settings.target_ess,
+                   max_time=settings.max_time, max_iterations=PGAS_AUTO_ITERATIONS)
     nd, nm, kd = model.ndof, model.n_mech, model.kernel.dim
     force_idx = nm + kd * np.arange(model.nforce)
     tr = out.trajectories
@@ -222,17 +231,19 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
     # hyperparameters drawn at the end of that block (conditional on that trajectory).
     k = settings.state_every
     burn_blocks = -(-settings.burn_in // k)
-    n_blocks = -(-(settings.burn_in + settings.iterations) // k)
-    thin = max(1, -(-(n_blocks - burn_blocks) // max(1, settings.thin_draws)))
+    iterations = int(out.diagnostics.pop("iterations_run"))
+    thin = int(out.diagnostics.pop("thin"))
     slots = np.arange(tr.shape[1])
-    idx = np.clip((burn_blocks + slots * thin) * k + k - 1 - settings.burn_in, 0, settings.iterations - 1)
+    idx = np.clip((burn_blocks + slots * thin) * k + k - 1 - settings.burn_in, 0, max(iterations - 1, 0))
     param_draws = {n: v[:, idx] for n, v in out.theta.items()}
     pooled = {n: v.reshape(-1) for n, v in out.theta.items()}
     point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
     point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
     ll = out.log_likelihood
     diagnostics = dict(out.diagnostics)
-    diagnostics.update({"particles": settings.particles, "iterations": settings.iterations,
+    record = diagnostics.pop("convergence")
+    diagnostics.update({"particles": settings.particles, "iterations": iterations,
+                        "iterations_setting": "auto" if settings.iterations is None else settings.iterations,
                         "burn_in": settings.burn_in, "state_every": k, "chains": settings.chains,
                         "discretisation": settings.discretisation, "proposal": settings.proposal,
                         "resampling": "multinomial", "log_likelihood_note":
@@ -248,11 +259,9 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
             "Matérn-(p+1/2)), so with a flat "
             "prior the posterior can be improper along that ridge and the slow part of the force "
             "wanders. Use proper priors (e.g. lognormal) on the force hyperparameters; see docs/config.md.")
-    # Monitored: the hyperparameters (all draws) and every state at spread times (stored paths).
-    states = convergence.state_quantities(paths, convergence.monitored_times(tr.shape[2]),
-                                          np.asarray(dataset.time))
-    record = convergence.diagnose(dict(out.theta), states if tr.shape[1] >= 4 else None,
-                                  target_ess=settings.target_ess)
+    # The run's verdict: the hyperparameters (every iteration) and the displacement, velocity
+    # and force at 24 spread times (every sweep); its time indices become the record's times.
+    record = _label_times(record, np.asarray(dataset.time))
     message = convergence.warning_message(record, "pgas")
     if message:
         diagnostics.setdefault("warnings", []).append(message)

@@ -12,8 +12,10 @@ rest, acceleration measured with 1 % RMS noise.
 Both are estimated with the paper's model (Matérn-1/2 force, both
 hyperparameters inferred, with weakly informative lognormal priors instead of
 the paper's flat ones, which leave the posterior improper along the
-variance/lengthscale ridge on a 0.5 s record) by particle Gibbs: N = 50 particles, 1e5 iterations after 1e4 burn-in, a state sweep
-every 5th iteration (``--quick``: a short run). The main folder is the
+variance/lengthscale ridge on a 0.5 s record) by particle Gibbs: N = 50 particles, a state sweep
+every 5th iteration, 2 000 burn-in iterations and then ``iterations = "auto"``: the run
+stops once R-hat and ESS say it has converged (``--paper-settings``: the paper's fixed
+1e5 iterations after 1e4 burn-in; ``--quick``: a short run). The main folder is the
 paper's acceleration-only case; ``with-displacement/`` adds a displacement
 channel (1 % RMS noise), which makes the force's low frequencies observable.
 
@@ -72,7 +74,16 @@ def _simulate(seed: int, force: str):
     return columns, acc_sd, disp_sd, sim
 
 
-def _config(acc_sd: float, disp_sd: float | None, quick: bool, seed: int) -> dict:
+def _counts(quick: bool, paper: bool) -> dict:
+    """Chains, iterations, burn-in and stored paths: quick, the paper's, or until converged."""
+    if quick:
+        return {"chains": 2, "iterations": 750, "burn_in": 250, "thin_draws": 50}
+    if paper:
+        return {"chains": 4, "iterations": 100000, "burn_in": 10000, "thin_draws": 200}
+    return {"chains": 4, "iterations": "auto", "burn_in": 2000, "thin_draws": 200}
+
+
+def _config(acc_sd: float, disp_sd: float | None, quick: bool, seed: int, paper: bool = False) -> dict:
     sensors = [{"column": "acc", "quantity": "acceleration", "dof": 0, "noise_std": acc_sd}]
     if disp_sd is not None:
         sensors.append({"column": "disp", "quantity": "displacement", "dof": 0, "noise_std": disp_sd})
@@ -88,24 +99,23 @@ def _config(acc_sd: float, disp_sd: float | None, quick: bool, seed: int) -> dic
                   "variance": {"prior": "lognormal", "mu": 2.3, "sigma": 1.5, "init": 5.0},
                   "lengthscale": {"prior": "lognormal", "mu": -1.6, "sigma": 1.5, "init": 0.3}},
         "sensors": sensors,
-        "inference": {"method": "pgas", "particles": 50, "state_every": 5, "seed": seed,
-                      "chains": 2 if quick else 4,
-                      "iterations": 750 if quick else 100000, "burn_in": 250 if quick else 10000,
-                      "mh_steps": 5, "thin_draws": 50 if quick else 200},
+        "inference": {"method": "pgas", "particles": 50, "state_every": 5, "seed": seed, "mh_steps": 5,
+                      **_counts(quick, paper)},
     }
 
 
-def _run(name: str, force: str, out: Path, quick: bool, seed: int, overwrite: bool, echo, progress):
+def _run(name: str, force: str, out: Path, quick: bool, seed: int, overwrite: bool, echo, progress,
+         paper: bool = False):
     out = Path(out)
     check_out_dir(out, overwrite)
     t0 = time.perf_counter()
     preload_modules()
     with figure_process() as pool:
-        _run_cases(name, force, out, quick, seed, echo, pool)
+        _run_cases(name, force, out, quick, seed, echo, pool, paper)
     echo(f"done in {time.perf_counter() - t0:.1f} s; results in {out}/ and {out / 'with-displacement'}/")
 
 
-def _run_cases(name: str, force: str, out: Path, quick: bool, seed: int, echo, pool) -> None:
+def _run_cases(name: str, force: str, out: Path, quick: bool, seed: int, echo, pool, paper: bool = False) -> None:
     columns, acc_sd, disp_sd, sim = _simulate(seed, force)
     what = "Matérn-1/2 GP force (variance 20, lengthscale 0.1 s)" if force == "gp" else "force 10 sin(100 t)"
     echo(f"{name} demo (Vibration 2020): Duffing m=1, c=20, k=1e4, k3=1e9; {what}; "
@@ -119,7 +129,7 @@ def _run_cases(name: str, force: str, out: Path, quick: bool, seed: int, echo, p
     # that their compiled programs are the same and are compiled once
     channels = [("acceleration", 0), ("displacement", 0)]
     # the cases finish together: the second draws its figures in another process
-    jobs = [functools.partial(write_case, folder, _config(acc_sd, dsd, quick, seed), columns,
+    jobs = [functools.partial(write_case, folder, _config(acc_sd, dsd, quick, seed, paper), columns,
                               overwrite=True, seed=seed, diagnostics=truth, channels=channels,
                               figure_pool=pool if i else None)
             for i, (_, folder, dsd) in enumerate(cases)]
@@ -151,6 +161,11 @@ def _report(title: str, folder: Path, result, force: str, echo) -> None:
                      f"{s['r_hat']:.3f}" if s.get("r_hat") is not None else "-", f"{s['ess_bulk']:.0f}"])
     echo(table(prow, ["hyperparameter", "true", "mean", "median", "90% interval", "R-hat", "ESS"]))
     d = result.diagnostics
+    conv = result.convergence or {}
+    if conv.get("converged") is not None:
+        echo(f"{'converged' if conv['converged'] else 'NOT CONVERGED'}: max R-hat {conv.get('max_r_hat', float('nan')):.3f}, "
+             f"min bulk ESS {conv.get('min_ess_bulk', float('nan')):.0f} after {d.get('iterations', '?')} iterations "
+             f"per chain")
     echo("per chain: MH acceptance " + ", ".join(f"{a:.2f}" for a in result.acceptance)
          + "; ancestor switch rate " + ", ".join(f"{a:.2f}" for a in d.get("switch_rate", []))
          + "; filter ESS/N " + ", ".join(f"{a:.2f}" for a in d.get("ess_per_particle", [])))
@@ -180,10 +195,10 @@ def _eom_figure(sim, path: Path) -> None:
 
 
 def run_duffing(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = False, echo=print,
-                progress=None) -> None:
-    _run("Duffing", "gp", out, quick, seed, overwrite, echo, progress)
+                progress=None, paper_settings: bool = False) -> None:
+    _run("Duffing", "gp", out, quick, seed, overwrite, echo, progress, paper_settings)
 
 
 def run_sine(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = False, echo=print,
-             progress=None) -> None:
-    _run("Sine", "sine", out, quick, seed, overwrite, echo, progress)
+             progress=None, paper_settings: bool = False) -> None:
+    _run("Sine", "sine", out, quick, seed, overwrite, echo, progress, paper_settings)

@@ -149,7 +149,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Float, Int
 
 from latentforce.compile import shared_jit
 from latentforce.kernels import KernelParams, Matern
@@ -887,12 +887,3 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
         return SweepOutput(path, info, particles, ancestors, logw_T)
 
     return sweep
-
-
-def particle_filter(key: Array, pm: ParticleModel, tr: Transition, y, mask, n_particles: int, *,
-                    proposal: str = "optimal", resampling: str = "multinomial"):
-    """Convenience wrapper: the (unconditional) particle filter; returns ``(log_likelihood, SweepOutput)``."""
-    sc = sweep_constants(pm, tr, jnp.asarray(y, dtype=float), mask, proposal)
-    sweep = make_sweep(pm, n_particles, proposal=proposal, resampling=resampling, conditional=False)
-    out = sweep(key, sc, jnp.zeros((sc.y.shape[0], pm.n_state)))
-    return out.info.log_likelihood, out

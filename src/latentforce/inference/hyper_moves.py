@@ -1,0 +1,143 @@
+r"""Metropolis-within-Gibbs for the GP hyperparameters given the path (Eq. 23-25, Vibration 2020):
+the centred step on the latent path's density and the non-centred (interweaving, Yu & Meng 2011)
+step on the whitened innovations; the sampling space and its adaptation are described in
+:mod:`latentforce.inference.pgas`."""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from latentforce.inference import mcmc, smc
+from latentforce.inference.latent import (
+    ObservationDensity,
+    colour,
+    latent_log_density,
+    observation_log_likelihood,
+)
+
+# fractions of the burn-in MH steps after which the proposal shape is re-estimated
+_RESHAPE_AT = (0.05, 0.1, 0.2, 0.4, 0.7)
+HYPERPARAMETERS = ("force_variance", "force_lengthscale")
+
+
+def gp_path_log_density(pm: smc.ParticleModel, variance, lengthscale,
+                        g: Float[Array, "T nl"]) -> Float[Array, ""]:
+    r""":math:`\log p(g_{1:T} \mid \theta)` of the latent path (force states and within-step
+    mechanical noise, :mod:`smc`), vectorised over time (no scan)."""
+    return latent_log_density(pm.transition(variance, lengthscale), g)
+
+
+class Hyper:
+    """Which hyperparameters are free, their priors, and the fixed values of the others.
+
+    The sampling coordinates are :math:`x = \\log\\theta` (module doc).
+    """
+
+    def __init__(self, params: dict, free: dict):
+        bad = [n for n in free if n not in HYPERPARAMETERS]
+        if bad:
+            raise ValueError(f"PGAS samples only {HYPERPARAMETERS}; cannot sample {bad}")
+        self.names = tuple(n for n in HYPERPARAMETERS if n in free)
+        self.priors = tuple(free[n][0] for n in self.names)
+        self.init = np.array([float(free[n][1]) for n in self.names], dtype=float)
+        if not np.all(self.init > 0):
+            raise ValueError(f"initial hyperparameters must be positive, got {dict(zip(self.names, self.init))}")
+        self.fixed = {n: float(params[n]) for n in HYPERPARAMETERS}
+
+    @staticmethod
+    def to_unconstrained(theta: Float[Array, " p"]) -> Float[Array, " p"]:
+        r""":math:`x = \log\theta` (the sampling coordinates)."""
+        return jnp.log(jnp.asarray(theta, dtype=float))
+
+    @staticmethod
+    def to_constrained(x: Float[Array, " p"]) -> Float[Array, " p"]:
+        r""":math:`\theta = e^x`."""
+        return jnp.exp(jnp.asarray(x, dtype=float))
+
+    def values(self, x: Float[Array, " p"]):
+        """``(variance, lengthscale)`` from the unconstrained vector ``x``."""
+        vals = dict(self.fixed)
+        theta = self.to_constrained(x)
+        for i, n in enumerate(self.names):
+            vals[n] = theta[i]
+        return jnp.asarray(vals["force_variance"], dtype=float), jnp.asarray(vals["force_lengthscale"], dtype=float)
+
+    def log_prior(self, x: Float[Array, " p"]) -> Float[Array, ""]:
+        r""":math:`\sum_i \log p(\theta_i) + x_i`: the prior density of :math:`x = \log\theta`."""
+        theta = self.to_constrained(x)
+        lp = jnp.zeros(())
+        for i, prior in enumerate(self.priors):
+            lp = lp + prior.log_prob(theta[i]) + x[i]
+        return lp
+
+    def log_target(self, pm, x: Float[Array, " p"], g: Float[Array, "T nl"]) -> Float[Array, ""]:
+        """Centred MH target in log space: prior + log-Jacobian + latent path density (module doc)."""
+        return self.log_target_and_transition(pm, x, g)[0]
+
+    def log_target_and_transition(self, pm, x: Float[Array, " p"], g: Float[Array, "T nl"]
+                                  ) -> tuple[Float[Array, ""], smc.Transition]:
+        """:meth:`log_target` and the latent's transition at ``x`` (which the sampler carries)."""
+        tr = pm.transition(*self.values(x))
+        return self.log_target_given(tr, x, g), tr
+
+    def log_target_given(self, tr: smc.Transition, x: Float[Array, " p"], g: Float[Array, "T nl"]
+                         ) -> Float[Array, ""]:
+        """:meth:`log_target` when ``tr``, the transition at ``x``, is already known."""
+        return self.log_prior(x) + latent_log_density(tr, g)
+
+
+def init_proposal(hyper: Hyper, log_target: Callable, x: Float[Array, " p"],
+                  proposal_sd: float = 0.05) -> mcmc.RWMState:
+    """Start the hyperparameter random walk at ``x`` with a diagonal proposal (log space)."""
+    return mcmc.init(x, log_target, jnp.full(x.shape, proposal_sd))
+
+
+def adaptation_schedule(burn_in_steps: int) -> tuple[int, ...]:
+    """MH step numbers (0-based, burn-in) after which the proposal shape is reset (module doc)."""
+    out = sorted({int(math.ceil(f * burn_in_steps)) - 1 for f in _RESHAPE_AT})
+    return tuple(s for s in out if s >= 9)  # at least ten steps in the first window
+
+
+def mh_step(key: Array, state: mcmc.RWMState, log_target: Callable, *, adapt: Array,
+            reshape: Array, target: float, aux=None):
+    """One random-walk MH step on the hyperparameters (``mcmc.step``), adaptive only where ``adapt``.
+
+    ``state.logdensity`` must be ``log_target(state.x)`` (refresh it when the
+    conditioning path changes). ``reshape``: reset the proposal shape from
+    the running covariance, then restart the running moments. A non-finite
+    proposed target is a rejection (never a propagated NaN). With ``aux``,
+    as :func:`mcmc.step` (the target returns ``(log density, aux)``).
+    """
+    out = mcmc.step(key, state, log_target, adapt, reshape & adapt, target, aux)
+    restart = reshape & adapt
+    state = out[0]._replace(mean=jnp.where(restart, out[0].x, out[0].mean),
+                            count=jnp.where(restart, 0.0, out[0].count))
+    return (state,) + tuple(out[1:])
+
+
+def proposal_covariance(state: mcmc.RWMState) -> Float[Array, "p p"]:
+    """The (frozen after burn-in) random-walk covariance :math:`s^2 L L^\\top` in log space."""
+    return jnp.exp(2.0 * state.log_scale) * state.chol @ state.chol.T
+
+
+def noncentred_log_target(hyper: Hyper, pm: smc.ParticleModel, od: ObservationDensity,
+                          x: Float[Array, " p"], eps: Float[Array, "T nl"]
+                          ) -> tuple[Float[Array, ""], tuple[Float[Array, "T nl"], Float[Array, "T n"], smc.Transition]
+                                     ]:
+    r"""Target of :math:`x = \log\theta` given the latent's innovations; the rebuilt latent, path and transition.
+
+    :math:`\log p(\theta) + \sum_i x_i + \log p(y \mid x_{1:T}(\theta, \varepsilon))`:
+    the innovations' density does not depend on :math:`\theta` and, the
+    innovations being held fixed, there is no path Jacobian. Returns
+    ``(log target, (latent, path, transition at theta))``.
+    """
+    tr = pm.transition(*hyper.values(x))
+    g = colour(tr, eps)
+    path = pm.path(g)
+    return hyper.log_prior(x) + observation_log_likelihood(pm, od, path), (g, path, tr)
+

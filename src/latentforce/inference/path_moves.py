@@ -1,0 +1,337 @@
+r"""Trajectory moves at fixed hyperparameters that the PGAS sweep cannot make: the low-frequency
+move and the residual-preserving move (their derivation: :mod:`latentforce.inference.pgas`)."""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from latentforce.inference import mcmc, smc
+from latentforce.inference.hyper_moves import mh_step
+from latentforce.inference.latent import (
+    ObservationDensity,
+    _whiten,
+    colour,
+    observation_log_likelihood,
+    predicted_observations,
+    whiten,
+)
+from latentforce.linalg import cho_solve, cholesky, symmetrise
+
+
+def lowfreq_basis(T: int, K: int) -> Float[Array, "T K1"]:
+    r"""Orthonormal basis of the ``K`` lowest DCT-II vectors, :math:`\cos(\pi k (t + 1/2) / T)`, and of :math:`e_1`.
+
+    :math:`e_1` (the first innovation, i.e. the initial force state) is
+    added because the weakly observed start-up direction (initial force and
+    displacement moving together, decaying over a lengthscale) is local to
+    the start of the record and not spanned by a few global modes. ``K + 1``
+    columns (``T`` when ``K >= T``).
+    """
+    K = min(int(K), int(T))
+    t = np.arange(T)[:, None] + 0.5
+    k = np.arange(K)[None, :]
+    B = np.sqrt(2.0 / T) * np.cos(np.pi * k * t / T)
+    B[:, 0] = 1.0 / np.sqrt(T)
+    if K < T:
+        e1 = np.zeros(T)
+        e1[0] = 1.0
+        e1 -= B @ (B.T @ e1)
+        B = np.concatenate([B, (e1 / np.linalg.norm(e1))[:, None]], axis=1)
+    return jnp.asarray(B)
+
+
+class LowFrequencyFrame(NamedTuple):
+    r"""What a low-frequency move holds fixed: :math:`\theta` (through ``tr``) and the basis.
+
+    With :math:`\varepsilon` the latent's innovations (:func:`whiten`; the
+    first row whitens the initial force and mechanical states), the path is
+    coordinatised by :math:`W = B^\top \varepsilon` (``(K, nl)``: every
+    latent column, the force states and the within-step mechanical noise)
+    and :math:`\varepsilon_\perp = \varepsilon - B W`, held fixed. :math:`B`
+    contains :math:`e_1`, so the initial state is moved too. The move samples
+    :math:`w = \mathrm{vec}\,W`.
+    """
+
+    tr: smc.Transition
+    basis: Float[Array, "T K"]
+
+
+def lowfreq_coordinates(pm: smc.ParticleModel, frame: LowFrequencyFrame,
+                        path: Float[Array, "T n"]) -> tuple[Float[Array, " q"], Float[Array, "T nl"]]:
+    """``(w, eps_perp)`` of a path (inverse of :func:`lowfreq_path`)."""
+    eps = whiten(frame.tr, pm.latent(path))
+    W = frame.basis.T @ eps
+    return W.ravel(), eps - frame.basis @ W
+
+
+def lowfreq_path(pm: smc.ParticleModel, frame: LowFrequencyFrame, eps_perp: Float[Array, "T nl"],
+                 w: Float[Array, " q"]) -> Float[Array, "T n"]:
+    """The full path with low-frequency coordinates ``w`` (``colour`` then :meth:`~smc.ParticleModel.path`)."""
+    W = jnp.reshape(w, (frame.basis.shape[1], pm.nl))
+    return pm.path(colour(frame.tr, eps_perp + frame.basis @ W))
+
+
+def lowfreq_log_target(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
+                       eps_perp: Float[Array, "T nf"], w: Float[Array, " q"]
+                       ) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
+    r""":math:`\log N(w; 0, I) + \log p(y \mid x_{1:T}(w, \varepsilon_\perp))` up to a constant, and the path.
+
+    The maps :math:`w \mapsto (\mathrm{mech}_1, \varepsilon) \mapsto x_{1:T}`
+    are affine with a constant Jacobian, and the prior of
+    :math:`(\mathrm{mech}_1, \varepsilon)` is standard normal in these
+    coordinates, so this is the conditional posterior of :math:`w` given
+    :math:`\varepsilon_\perp` and :math:`\theta`.
+    """
+    path = lowfreq_path(pm, frame, eps_perp, w)
+    return -0.5 * jnp.sum(w**2) + observation_log_likelihood(pm, od, path), path
+
+
+def lowfreq_init(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
+                 path: Float[Array, "T n"]) -> mcmc.RWMState:
+    r"""Adaptation state of the low-frequency walk, its shape from a Gauss-Newton precision at ``path``.
+
+    The proposal covariance starts at :math:`(2.38^2/q)\,(I + J^\top R^{-1} J)^{-1}`,
+    :math:`J` the Jacobian of the predicted observations with respect to the
+    :math:`q` coordinates :math:`w` (exact posterior covariance for a linear
+    model). The observed directions are hundreds of times tighter than the
+    prior-dominated slow one, and a walk that had to learn that shape from
+    its own draws would spend the burn-in doing so.
+    """
+    w, eps_perp = lowfreq_coordinates(pm, frame, path)
+    q = w.shape[0]
+
+    def predicted(w_):
+        x = lowfreq_path(pm, frame, eps_perp, w_)
+        return (predicted_observations(pm, x) * od.maskf).ravel()
+
+    J = jnp.reshape(jax.jacfwd(predicted)(w), (od.y.shape[0], od.y.shape[1], q))
+    prec = symmetrise(jnp.eye(q) + jnp.einsum("tim,tij,tjn->mn", J, od.Rinv, J))
+    cov = symmetrise(cho_solve(cholesky(prec), jnp.eye(q)))
+    chol = cholesky(cov) * (2.38 / math.sqrt(q))
+    return mcmc.RWMState(w, jnp.zeros(()), jnp.zeros(()), chol, w, cov, jnp.zeros(()))
+
+
+def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: smc.ParticleModel, od: ObservationDensity,
+                 frame: LowFrequencyFrame, path: Float[Array, "T n"], n_steps: int, *, adapt: Array,
+                 step0: Array, reshape_steps: Array, target: float = 0.25
+                 ) -> tuple[mcmc.RWMState, Float[Array, "T n"], Float[Array, " n_steps"]]:
+    r"""``n_steps`` Metropolis steps on the path's low-frequency non-centred coordinates, :math:`\theta` fixed.
+
+    The sweep's ancestor-sampling splice keeps the reference's future force
+    and changes only the mechanical state; with acceleration-only data the
+    weakly observed direction is a slow, coherent shift of force and
+    displacement (:math:`\delta u \approx k\,\delta z` leaves the acceleration
+    unchanged), which such splices cannot make. This move proposes
+    :math:`w' = w + s L \xi` in the span of the ``K`` lowest DCT-II modes of
+    the innovations of every force state and the whitened initial mechanical
+    state, holding :math:`\varepsilon_\perp` fixed (:func:`lowfreq_log_target`).
+    The proposal is symmetric; its shape :math:`L` (Haario et al. 2001) and
+    scale :math:`s` (Robbins-Monro towards ``target``) adapt only where
+    ``adapt``, so the frozen kernel is a plain Metropolis kernel that leaves
+    the posterior invariant. ``step0``: index of the first step (for
+    ``reshape_steps``). Returns the walk state, the new path (the input path
+    bit-for-bit when nothing was accepted) and the acceptances.
+    """
+    w, eps_perp = lowfreq_coordinates(pm, frame, path)
+
+    def log_target(w_):
+        return lowfreq_log_target(pm, od, frame, eps_perp, w_)
+
+    # the path is the one at w (up to round-off): no rebuild for the current point's target
+    rwm = rwm._replace(x=w, logdensity=-0.5 * jnp.sum(w**2) + observation_log_likelihood(pm, od, path))
+
+    return _walk(key, rwm, log_target, path, n_steps, adapt=adapt, step0=step0, reshape_steps=reshape_steps,
+                 target=target)
+
+
+class ResidualMove:
+    r"""Static pieces of the residual-preserving move for one model and record length.
+
+    **Why.** With acceleration-only data on a stiffening system the slow
+    direction of the posterior is a slow displacement offset :math:`\delta z(t)`
+    with the force following it, :math:`\delta u \approx k_t(t)\,\delta z`,
+    where the tangent stiffness :math:`k_t = k + 3k_3 z(t)^2` varies *fast*
+    along the path. The low-frequency move holds the fast content of the
+    force's innovations fixed, so it cannot make that step (its conditional
+    sd of the mean force is a twentieth of the posterior's on the Duffing
+    case), and the sweep's splices cannot either.
+
+    **The map.** Coordinates of the latent path :math:`(x_f, w)`: the within-step
+    mechanical noise :math:`w_{1:T}` (``w_1`` the initial state's offset), the
+    residuals :math:`\rho_t = y_t - c_S(\mathrm{mech}_t) - D_S x_{f,t}` of a set
+    :math:`S` of ``nforce`` channels whose force block :math:`D_S` (on the force
+    *value* states) is invertible, and the other force states (Matérn
+    derivatives), which are held. Given :math:`w` the force values follow
+    sample by sample, :math:`u_t = D_S^{-1}(y_{S,t} - \rho_t - c_S(\mathrm{mech}_t))`,
+    and :math:`\mathrm{mech}_{t+1} = \Phi(\mathrm{mech}_t, x_{f,t}) + w_{t+1}`:
+    a move in :math:`w` at fixed :math:`\rho` keeps the noise-free prediction
+    :math:`c_S(\mathrm{mech}_t) + D_S x_{f,t}` of every sample, observed or
+    missing, and only the other channels' residuals change. The map is
+    triangular in time with the constant diagonal block :math:`-D_S`, so its
+    Jacobian is constant.
+
+    **The move.** A symmetric random walk on :math:`w` in the span of the ``K``
+    lowest DCT-II modes of every mechanical component (from the second
+    sample on, scaled by the within-step noise sd times :math:`\sqrt T`) and
+    of the initial state (scaled by its prior sd), everything else in the
+    coordinates above held. The Jacobian being constant, the acceptance ratio
+    is the latent's prior density ratio times the likelihood ratio (1 on the
+    channels of :math:`S`); no linearisation enters it, so the move leaves
+    the exact posterior invariant for any system. The proposal's shape is a
+    Gauss-Newton covariance at a path (exact for linear systems), its scale
+    adapts in burn-in (:func:`residual_move`).
+
+    ``applies`` is False (the move is skipped) when no set of ``nforce``
+    channels sees the force values through an invertible block, e.g.
+    displacement sensors only, or a kernel whose force is a combination of
+    several states.
+    """
+
+    def __init__(self, pm: smc.ParticleModel, T: int, K: int, noise_sd: Float[Array, " nm"]):
+        D = np.asarray(pm.D)
+        self.cols = np.flatnonzero(np.any(D != 0.0, axis=0))
+        self.applies = len(self.cols) == pm.nforce and pm.nforce > 0
+        self.rows = np.zeros(0, dtype=int)
+        if self.applies:
+            import scipy.linalg
+
+            # the best-conditioned nforce channels: QR with column pivoting of D_cols^T
+            _, _, piv = scipy.linalg.qr(D[:, self.cols].T, pivoting=True)
+            self.rows = np.sort(piv[: pm.nforce])
+            self.applies = bool(np.linalg.cond(D[np.ix_(self.rows, self.cols)]) < 1e10)
+        self.Dinv = jnp.asarray(np.linalg.inv(D[np.ix_(self.rows, self.cols)])) if self.applies else None
+        self.K = min(int(K), int(T))
+        self.basis = lowfreq_basis(T, self.K)[:, : self.K].at[0].set(0.0)  # w_1 moves on its own
+        # noise_sd: the within-step noise sd at one fixed theta (the initial one in run_pgas),
+        # so that a proposal shape computed at one theta stays meaningful at another
+        self.scale_w = jnp.asarray(noise_sd) * math.sqrt(T)
+        self.scale_0 = jnp.sqrt(jnp.diagonal(pm.mech0_cov))
+        self.dim = (self.K + 1) * pm.nm
+
+    def delta_w(self, c: Float[Array, " q"]) -> Float[Array, "T nm"]:
+        """The change of the within-step noise for coordinates ``c``."""
+        C = jnp.reshape(c, (self.K + 1, -1))
+        return ((self.basis @ C[: self.K]) * self.scale_w).at[0].set(C[self.K] * self.scale_0)
+
+    def builder(self, pm: smc.ParticleModel, od: ObservationDensity, path: Float[Array, "T n"]):
+        """``c -> (latent, path)``: the path with noise ``w + delta_w(c)`` and the residuals of ``path`` kept."""
+        nm = pm.nm
+        rows, cols = self.rows, self.cols
+        g0 = pm.latent(path)
+        xf0, w0 = g0[:, : pm.nfx], g0[:, pm.nfx:]
+        # y_S,t - rho_t is the path's own noise-free prediction on S: the map keeps it,
+        # whether or not y_S,t was observed
+        target = predicted_observations(pm, path)[:, rows]
+        T = path.shape[0]
+        # the solved-for states as a scatter matrix (no indexed updates inside the scan:
+        # batched over chains they were slow on CPU)
+        scatter = jnp.zeros((pm.nfx, len(cols))).at[cols, jnp.arange(len(cols))].set(1.0)
+        keep = 1.0 - jnp.sum(scatter, axis=1)
+
+        def _force(mech, target_t, xf0_t):
+            # products as broadcast-multiply-sums: XLA fuses them (a dot per step,
+            # batched over chains, cost ten times the whole step on CPU)
+            u = smc._mv1(self.Dinv, target_t - pm.offset(mech)[rows])
+            return xf0_t * keep + smc._mv1(scatter, u)
+
+        def build(c):
+            w = w0 + self.delta_w(c)
+            mech1 = pm.mech0_mean + w[0]
+
+            def _step(mech, inp):
+                target_t, xf0_t, w_next = inp
+                xf = _force(mech, target_t, xf0_t)
+                # one stacked output: two (mech and xf), batched over chains, made XLA's
+                # CPU loop several times slower
+                return pm.phi(mech, xf) + w_next, jnp.concatenate([mech, xf])
+
+            last, rows_ = jax.lax.scan(_step, mech1, (target[:-1], xf0[:-1], w[1:]))
+            new_path = jnp.concatenate([rows_, jnp.concatenate([last, _force(last, target[-1], xf0[-1])])[None]])
+            return jnp.concatenate([new_path[:, nm:], w], axis=1), new_path
+
+        return build
+
+
+def residual_log_target(tr: smc.Transition, pm: smc.ParticleModel, od: ObservationDensity, build,
+                        c: Float[Array, " q"], cP=None, cQ=None) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
+    r"""Log target of the residual-preserving move up to a constant, and the path.
+
+    :math:`-\tfrac12|\varepsilon(c)|^2 + \log p(y \mid x_{1:T}(c))`, :math:`\varepsilon`
+    the latent's whitened innovations (its prior density up to a constant);
+    the map's Jacobian is constant (:class:`ResidualMove`).
+    """
+    cP = smc._chol(tr.Pinf) if cP is None else cP
+    cQ = smc._chol(tr.Q) if cQ is None else cQ
+    g, path = build(c)
+    return -0.5 * jnp.sum(_whiten(tr, g, cP, cQ) ** 2) + observation_log_likelihood(pm, od, path), path
+
+
+def residual_init(rm: ResidualMove, pm: smc.ParticleModel, od: ObservationDensity, tr: smc.Transition,
+                  path: Float[Array, "T n"]) -> mcmc.RWMState:
+    r"""Adaptation state of the residual-preserving walk, its shape a Gauss-Newton covariance at ``path``.
+
+    :math:`(2.38^2/q)(J_\varepsilon^\top J_\varepsilon + J_y^\top R^{-1} J_y)^{-1}`, the
+    Jacobians of the whitened innovations and of the predicted observations
+    with respect to the :math:`q` coordinates at ``path`` (the exact
+    posterior covariance of the coordinates for a linear model).
+    """
+    build = rm.builder(pm, od, path)
+    q = rm.dim
+    cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
+
+    def features(c):
+        g, x = build(c)
+        return _whiten(tr, g, cP, cQ).ravel(), predicted_observations(pm, x) * od.maskf
+
+    Je, Jy = jax.jacfwd(features)(jnp.zeros(q))
+    prec = symmetrise(Je.T @ Je + jnp.einsum("tim,tij,tjn->mn", Jy, od.Rinv, Jy))
+    cov = symmetrise(cho_solve(cholesky(prec), jnp.eye(q)))
+    chol = cholesky(cov) * (2.38 / math.sqrt(q))
+    return mcmc.RWMState(jnp.zeros(q), jnp.zeros(()), jnp.zeros(()), chol, jnp.zeros(q), cov, jnp.zeros(()))
+
+
+def residual_move(key: Array, rwm: mcmc.RWMState, rm: ResidualMove, pm: smc.ParticleModel,
+                  od: ObservationDensity, tr: smc.Transition, path: Float[Array, "T n"], n_steps: int, *,
+                  adapt: Array, target: float = 0.25
+                  ) -> tuple[mcmc.RWMState, Float[Array, "T n"], Float[Array, " n_steps"]]:
+    r"""``n_steps`` residual-preserving Metropolis steps (:class:`ResidualMove`) at fixed :math:`\theta`.
+
+    The coordinates are re-origined at ``path`` (``c = 0``); the proposal
+    :math:`c' = c + s L \xi` keeps ``rwm``'s shape :math:`L`, and its scale
+    :math:`s` follows Robbins-Monro towards ``target`` only where ``adapt``
+    (the frozen kernel is a plain Metropolis kernel). Returns the walk state,
+    the new path (the input path bit-for-bit when nothing was accepted) and
+    the acceptances.
+    """
+    build = rm.builder(pm, od, path)
+    cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
+
+    def log_target(c):
+        return residual_log_target(tr, pm, od, build, c, cP, cQ)
+
+    ld0 = -0.5 * jnp.sum(_whiten(tr, pm.latent(path), cP, cQ) ** 2) + observation_log_likelihood(pm, od, path)
+    rwm = rwm._replace(x=jnp.zeros_like(rwm.x), logdensity=ld0)
+    return _walk(key, rwm, log_target, path, n_steps, adapt=adapt, step0=jnp.zeros((), jnp.int32),
+                 reshape_steps=jnp.asarray((-1,)), target=target)
+
+
+def _walk(key, rwm: mcmc.RWMState, log_target: Callable, path, n_steps: int, *, adapt, step0, reshape_steps,
+          target):
+    """``n_steps`` of :func:`mh_step` whose target also returns the path (kept bit-for-bit on rejection)."""
+
+    def _one(carry, inp):
+        r, x = carry
+        k, s = inp
+        r, info, x = mh_step(k, r, log_target, adapt=adapt, reshape=jnp.any(step0 + s == reshape_steps),
+                             target=target, aux=x)
+        return (r, x), info.accepted
+
+    (rwm, path), accs = jax.lax.scan(_one, (rwm, path), (jax.random.split(key, n_steps), jnp.arange(n_steps)))
+    return rwm, path, accs
+
