@@ -801,7 +801,7 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
                 mean = m
             # what a particle passes to its offspring (the prior mean only where the
             # linearisation correction below needs it)
-            moved = [mech_pred, mean, r] + ([m] if correct or conditional else [])
+            moved = [mech_pred, mean, r] + ([m] if correct or (conditional and innovation) else [])
             if first:
                 # t = 0: the particles are drawn from the proposal directly (no ancestors)
                 anc = jnp.arange(N, dtype=jnp.int32)
