@@ -38,7 +38,7 @@ the default burn-in and chains.
 replicate traces and compiles them anew; the record is an argument of those
 programs, not a constant, so their lowered text is the same from one
 replicate to the next. JAX's persistent compilation cache (pointed at a
-temporary directory for this process, :func:`persistent_compile_cache`)
+temporary directory for this process, :func:`latentforce.compile.persistent_cache`)
 therefore serves every replicate after the first. Measured on the SBC case
 (T = 300, 4 chains, 500 + 500 iterations of kalman-mcmc, 2 cores):
 4.6 s per replicate without it, 1.3 s with it, the draws identical.
@@ -69,13 +69,11 @@ if __name__ == "__main__":
         os.environ.setdefault(_var, "1")
 
 import argparse
-import contextlib
 import dataclasses
 import datetime
 import math
 import platform
 import sys
-import tempfile
 import time
 import traceback
 import zlib
@@ -94,39 +92,6 @@ FLAG_SD = 3.0
 FLAG_P = 0.01
 LABELS = {"k": "k", "c": "c", "force_variance": "σ²", "force_lengthscale": "ℓ"}
 SPARK = "▁▂▃▄▅▆▇█"
-
-
-# ----- the compile cache ----------------------------------------------------------------
-@contextlib.contextmanager
-def persistent_compile_cache(path: str | Path | None = None):
-    """JAX's persistent compilation cache in ``path`` (a temporary directory when None), then as before.
-
-    Every compile is cached (no minimum compile time or size): the samplers'
-    programs are rebuilt in each call (module doc). On exit the previous
-    settings come back and the cache is reset, so that later compiles in the
-    process (e.g. other tests) see the configuration they had.
-    """
-    import jax
-    from jax.experimental.compilation_cache import compilation_cache
-
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
-             "jax_persistent_cache_min_entry_size_bytes", "jax_enable_compilation_cache")
-    old = {n: getattr(jax.config, n) for n in names}
-    with contextlib.ExitStack() as stack:
-        if path is None:
-            path = stack.enter_context(tempfile.TemporaryDirectory(prefix="jax-cache-"))
-        jax.config.update("jax_enable_compilation_cache", True)
-        jax.config.update("jax_compilation_cache_dir", str(path))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-        # JAX decides once per process whether the cache is in use (at the first compile): ask again.
-        compilation_cache.reset_cache()
-        try:
-            yield Path(path)
-        finally:
-            for n, v in old.items():
-                jax.config.update(n, v)
-            compilation_cache.reset_cache()
 
 
 # ----- cases, families, samplers ----------------------------------------------------------
@@ -642,7 +607,9 @@ def main(argv=None) -> int:
     started = time.perf_counter()
     chosen = studies(mode, args.only, args.sbc_replications, args.coverage_replications)
     summaries = []
-    with persistent_compile_cache(args.compile_cache):
+    from latentforce.compile import persistent_cache
+
+    with persistent_cache(args.compile_cache):
         for study in chosen:
             print(f"{study.label} ({study.case.kind}, T = {study.case.T}, {study.replications} runs)", flush=True)
             summaries.append(run_study(study, args.seed, log=lambda s: print(s, flush=True)))

@@ -27,7 +27,7 @@ import pytest
 from scipy import integrate, stats
 
 import latentforce  # noqa: F401
-from latentforce.compile import jit
+from latentforce.compile import jit, persistent_cache
 from latentforce.inference.convergence import quantity_stats
 from latentforce.inference.kalman import log_likelihood
 from latentforce.inference.kalman_mcmc import linear_gaussian, run_kalman_mcmc
@@ -53,7 +53,7 @@ SIGMAS = 4.0  # Monte-Carlo tolerances, in standard errors
 @pytest.fixture(scope="module", autouse=True)
 def compile_cache(tmp_path_factory):
     """Replicates share compiled programs through JAX's persistent cache (benchmark doc); restored after."""
-    with cal.persistent_compile_cache(tmp_path_factory.mktemp("jax-cache")):
+    with persistent_cache(tmp_path_factory.mktemp("jax-cache")):
         yield
 
 

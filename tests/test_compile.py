@@ -253,3 +253,33 @@ def test_programs_with_the_same_text_but_other_arguments_or_callbacks_are_not_sh
 def test_a_shared_program_closing_over_an_outer_tracer_is_inlined():
     out = jax.jit(lambda q: lc.shared_jit(lambda: q * 2.0)())(1.5)
     assert float(out) == 3.0
+
+
+def test_persistent_cache_serves_a_new_process_and_restores_the_settings(tmp_path):
+    """Every compile is written to the cache (no minimum compile time), a second process with
+    other data of the same shape finds its program there, and the settings come back on exit."""
+    import subprocess
+    import sys
+
+    before = jax.config.jax_compilation_cache_dir
+    script = (
+        "import sys, numpy as np, jax, jax.numpy as jnp\n"
+        "from latentforce.compile import persistent_cache, jit\n"
+        "from jax._src import monitoring\n"
+        "hits = []\n"
+        "monitoring.register_event_listener(lambda e, **k: hits.append(e) if 'cache_hits' in e else None)\n"
+        "with persistent_cache(sys.argv[1]):\n"
+        "    f = jit(lambda y: jnp.cumsum(jnp.sin(y)) @ y)\n"
+        "    print(float(f(np.random.default_rng(int(sys.argv[2])).normal(size=64))))\n"
+        "print('HITS', len(hits))\n")
+    env = {**__import__("os").environ, "PYTHONPATH": str(Path(lc.__file__).resolve().parents[1])}
+    runs = [subprocess.run([sys.executable, "-c", script, str(tmp_path), str(s)], capture_output=True, text=True,
+                           env=env, timeout=300) for s in (1, 2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr
+    assert any(tmp_path.iterdir())  # the first process wrote its program
+    hits = [int(r.stdout.split("HITS")[1]) for r in runs]
+    assert hits[0] == 0 and hits[1] >= 1, hits
+    with lc.persistent_cache(tmp_path / "inner"):
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "inner")
+    assert jax.config.jax_compilation_cache_dir == before

@@ -8,6 +8,7 @@ tracebacks of internal errors).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import sys
@@ -26,26 +27,27 @@ app = typer.Typer(
 )
 
 
-def _enable_compilation_cache() -> None:
-    """Keep compiled XLA programs between runs (JAX's persistent cache).
+def _compilation_cache():
+    """Keep compiled XLA programs between runs (JAX's persistent cache, every compile;
+    :func:`latentforce.compile.persistent_cache`).
 
-    The samplers compile a few large programs (tens of seconds on a laptop);
-    caching them makes every later run with the same shapes start at once.
+    The samplers compile a few large programs and dozens of small ones (tens
+    of seconds on a laptop); caching them makes every later run with the same
+    config and record shape start at once (a campaign's second record).
     ``LATENTFORCE_CACHE_DIR`` moves the cache; ``LATENTFORCE_CACHE_DIR=""``
-    turns it off.
+    turns it off; an unwritable directory runs uncached.
     """
     cache = os.environ.get("LATENTFORCE_CACHE_DIR",
                            os.path.join(os.path.expanduser("~"), ".cache", "latentforce", "xla"))
-    if not cache:
-        return
-    try:
-        import jax
+    if cache:
+        try:
+            os.makedirs(cache, exist_ok=True)
+            from latentforce.compile import persistent_cache
 
-        os.makedirs(cache, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    except (OSError, AttributeError):  # an unwritable home or an older JAX: run uncached
-        pass
+            return persistent_cache(cache)
+        except OSError:
+            pass
+    return contextlib.nullcontext()
 
 
 #: exit code of ``estimate --strict`` for a run that did not converge
@@ -63,8 +65,8 @@ def handle_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
-            _enable_compilation_cache()
-            return fn(*args, **kwargs)
+            with _compilation_cache():
+                return fn(*args, **kwargs)
         except LatentForceError as err:
             _fail(str(err))
         except KeyboardInterrupt:

@@ -82,11 +82,14 @@ at half speed and then waiting on the same compile.
 from __future__ import annotations
 
 import collections
+import contextlib
 import functools
 import hashlib
 import os
+import tempfile
 import threading
 from concurrent.futures import Future
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -291,3 +294,39 @@ def _constants_are_embedded(_flag) -> bool:
     device_marker = jnp.asarray(-marker)
     text = jax.jit(lambda x: x + marker + 2.0 * device_marker).lower(np.zeros(64)).as_text()
     return all(v in text for v in ("8.765250e+03", "1.234500e+03", "-8.765250e+03", "-1.234500e+03"))
+
+
+@contextlib.contextmanager
+def persistent_cache(path: str | Path | None = None):
+    """JAX's persistent compilation cache in ``path`` (a temporary directory when None), then as before.
+
+    Every compile is cached, with no minimum compile time or size: a sampler
+    compiles a few large programs and dozens of small ones (the Laplace
+    start's, the mixture's), each a fraction of a second, and together they
+    are most of a fresh process's time on a record of up to ~5e4 samples
+    (``benchmarks/results/linear_long.md``; the calibration benchmark measured
+    4.6 -> 1.3 s per replicate with every compile cached). The programs take
+    the record as an argument, so a second record of the same shape and
+    config reuses them. On exit the previous settings come back and the cache
+    is reset, so later compiles in the process see the configuration they had.
+    """
+    from jax.experimental.compilation_cache import compilation_cache
+
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+             "jax_persistent_cache_min_entry_size_bytes", "jax_enable_compilation_cache")
+    old = {n: getattr(jax.config, n) for n in names}
+    with contextlib.ExitStack() as stack:
+        if path is None:
+            path = stack.enter_context(tempfile.TemporaryDirectory(prefix="jax-cache-"))
+        jax.config.update("jax_enable_compilation_cache", True)
+        jax.config.update("jax_compilation_cache_dir", str(path))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+        # JAX decides once per process whether the cache is in use (at the first compile): ask again.
+        compilation_cache.reset_cache()
+        try:
+            yield Path(path)
+        finally:
+            for n, v in old.items():
+                jax.config.update(n, v)
+            compilation_cache.reset_cache()
