@@ -81,6 +81,20 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
     ``extras`` holds what a demo may want beyond the result folder, e.g. the
     smoother at the point estimate for ``kalman-mcmc``.
     """
+    result, extras = _run(problem, dataset, seed, progress, channels)
+    if problem.carried:
+        result.diagnostics["carried_priors"] = problem.carried
+        for key, c in problem.carried.items():
+            if c["converged"] is False:
+                result.diagnostics.setdefault("warnings", []).append(
+                    f"the prior of {key} is carried from {c['from']}, whose run did not converge: its "
+                    "posterior, and so this prior, may be wrong or too narrow. Rerun that calibration to "
+                    "convergence first.")
+    return result, extras
+
+
+def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callable | None,
+         channels) -> tuple[RunResult, dict]:
     t0 = _time.perf_counter()
     model = problem.model
     settings = problem.inference

@@ -30,6 +30,7 @@ acceleration row carries the force feed-through of Eq. (23b):
 
 from __future__ import annotations
 
+import re
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -43,12 +44,25 @@ QUANTITIES = ("displacement", "velocity", "acceleration")
 
 
 class Sensor(NamedTuple):
-    """One measured channel: ``quantity`` at ``dof`` with known Gaussian noise."""
+    """One measured channel: ``quantity`` at ``dof`` with Gaussian noise of standard deviation
+    ``noise_std``.
+
+    An inferred noise level is a parameter named :attr:`noise_param` in the
+    params dict; ``noise_std`` is then its starting value (and what
+    ``simulate`` uses).
+    """
 
     quantity: str
     dof: int
     noise_std: float
     name: str = ""
+
+    @property
+    def noise_param(self) -> str:
+        """The name of this channel's noise standard deviation as a parameter:
+        ``noise_std_`` + the channel name, characters other than letters, digits and
+        ``_`` replaced by ``_`` (netCDF and CSV column rules)."""
+        return "noise_std_" + re.sub(r"\W", "_", self.name or f"{self.quantity}_{self.dof}")
 
 
 class LatentForceModel:
@@ -150,10 +164,14 @@ class LatentForceModel:
             else:  # acceleration: the velocity row of the drift, Eq. (23b)
                 rows.append(F[nd + s.dof])
         H = jnp.stack(rows)
-        return H, self.noise_covariance()
+        return H, self.noise_covariance(params)
 
-    def noise_covariance(self):
-        return jnp.diag(jnp.asarray([s.noise_std**2 for s in self.sensors], dtype=float))
+    def noise_covariance(self, params=None):
+        """Diagonal ``R``: each sensor's ``noise_std``, or its inferred value
+        ``params[sensor.noise_param]`` where ``params`` holds one."""
+        params = {} if params is None else params
+        sd = [jnp.asarray(params.get(s.noise_param, s.noise_std), dtype=float) for s in self.sensors]
+        return jnp.diag(jnp.stack(sd) ** 2)
 
     def stationary_initial(self, params, linear_part: bool = False):
         """Zero mean and the stationary covariance solving ``F P + P F^T + W = 0``."""

@@ -37,6 +37,7 @@ __all__ = [
     "LogNormal",
     "Normal",
     "Prior",
+    "SoftplusNormal",
     "log_jacobian_softplus",
     "log_prob_unconstrained",
     "prior_from_spec",
@@ -211,6 +212,34 @@ class Gamma(Prior):
 
     def default_init(self):
         return float(self.shape) / float(self.rate)
+
+
+@_register
+class SoftplusNormal(Prior):
+    r"""Normal in the samplers' space: :math:`x = \operatorname{softplus}^{-1}(\theta) \sim N(\text{loc}, \text{scale}^2)`.
+
+    The density of :math:`\theta` carries the Jacobian
+    :math:`dx/d\theta = 1/(1 - e^{-\theta})`. This is the form a parameter
+    takes when its prior is carried over from an earlier run's posterior
+    (``prior = "posterior"`` in a config): the posterior draws in the
+    softplus space, where the samplers work and posteriors are close to
+    Gaussian, fitted by their mean and standard deviation.
+    """
+
+    loc: Any
+    scale: Any
+    name: ClassVar[str] = "softplus-normal"
+
+    def log_prob(self, theta):
+        t, ok = _positive(theta)
+        x = softplus_inverse(t)
+        return _mask(ok, stats.norm.logpdf(x, self.loc, self.scale) - jnp.log(-jnp.expm1(-t)))
+
+    def sample(self, key, shape=()):
+        return softplus(self.loc + self.scale * jax.random.normal(key, shape, dtype=float))
+
+    def default_init(self):
+        return float(softplus(self.loc))
 
 
 #: Each prior's name in a config file, with its parameter names in order.

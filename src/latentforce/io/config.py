@@ -36,6 +36,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError
 
 from latentforce.errors import LatentForceError
+from latentforce.io.carry import carried_prior
 from latentforce.kernels import KERNELS, kernel_from_name
 from latentforce.models import LatentForceModel, Sensor
 from latentforce.priors import PRIOR_PARAMS, Prior, prior_from_spec
@@ -110,6 +111,8 @@ class Problem(NamedTuple):
     inference: InferenceSettings
     data: DataSettings
     config_path: Path
+    #: priors carried over from earlier result folders, by config key (``prior = "posterior"``)
+    carried: dict = {}
 
 
 # ----- stage 1: shape, by pydantic -------------------------------------------
@@ -173,7 +176,7 @@ class _SensorSection(_Strict):
     column: str
     quantity: Literal["displacement", "velocity", "acceleration"]
     dof: int = Field(default=0, ge=0)
-    noise_std: float = Field(gt=0)
+    noise_std: _Param  # a number (known) or a prior table (inferred)
 
 
 class _InitialSection(_Strict):
@@ -280,19 +283,49 @@ def _from_validation_error(source: str, exc: ValidationError) -> LatentForceErro
 class _Fail:
     """Raises stage-2 errors in the common format ``FILE: KEY: message``."""
 
-    def __init__(self, source: str):
+    def __init__(self, source: str, base_dir: Path | None = None):
         self.source = source
+        self.base_dir = Path.cwd() if base_dir is None else Path(base_dir)
+        #: priors carried over from earlier runs, by config key (recorded in the result)
+        self.carried: dict[str, Any] = {}
 
     def __call__(self, key: str, message: str) -> LatentForceError:
         return LatentForceError(f"{self.source}: {key}: {message}")
 
 
 # ----- stage 2: meaning ------------------------------------------------------
-def _prior_spec(fail: _Fail, key: str, table: _PriorTable) -> ParamSpec:
+def _carried_spec(fail: _Fail, key: str, table: _PriorTable, param: str) -> ParamSpec:
+    """``prior = "posterior"``: the marginal posterior of ``param`` in an earlier result folder
+    (:mod:`latentforce.io.carry`), ``from`` resolved against the config's folder."""
+    extras = dict(table.model_extra or {})
+    for extra in extras:
+        if extra not in ("from", "param"):
+            valid = ("prior", "from", "param", "init")
+            raise fail(f"{key}.{extra}", f"unknown key for a \"posterior\" prior{_did_you_mean(extra, valid)} "
+                                         f"Valid keys: {', '.join(valid)}.")
+    source, param = extras.get("from"), extras.get("param", param)
+    if not isinstance(source, str) or not source:
+        raise fail(f"{key}.from", "a \"posterior\" prior needs from = \"FOLDER\", the result folder of an "
+                                  "earlier run whose posterior becomes this prior.")
+    if not isinstance(param, str) or not param:
+        raise fail(f"{key}.param", f"must be a parameter name (a string), got {param!r}.")
+    folder = fail.base_dir / Path(source).expanduser()
+    carried = carried_prior(folder, param, f"{fail.source}: {key}")
+    init = table.init if table.init is not None else carried.prior.default_init()
+    if not (math.isfinite(init) and init > 0):
+        raise fail(f"{key}.init", f"the initial value must be positive and finite, got {init!r}.")
+    fail.carried[key] = carried
+    return ParamSpec(prior=carried.prior, init=float(init))
+
+
+def _prior_spec(fail: _Fail, key: str, table: _PriorTable, param: str = "") -> ParamSpec:
     name = table.prior
+    if name == "posterior":
+        return _carried_spec(fail, key, table, param)
     if name not in PRIOR_PARAMS:
         raise fail(f"{key}.prior", f"unknown prior {name!r}{_did_you_mean(name, tuple(PRIOR_PARAMS), '{!r}')} "
-                                   f"Valid priors: {', '.join(PRIOR_PARAMS)}.")
+                                   f"Valid priors: {', '.join(PRIOR_PARAMS)}, posterior "
+                                   "(carried from an earlier result folder).")
     wanted = PRIOR_PARAMS[name]
     extras = dict(table.model_extra or {})
     for extra in extras:
@@ -334,7 +367,7 @@ def _scalar(fail: _Fail, key: str, value: float, rule: str) -> float:
 
 def _split(fail: _Fail, key: str, name: str, value, rule: str, fixed: dict, free: dict) -> None:
     if isinstance(value, _PriorTable):
-        free[name] = _prior_spec(fail, key, value)
+        free[name] = _prior_spec(fail, key, value, name)
     else:
         fixed[name] = _scalar(fail, key, value, rule)
 
@@ -460,6 +493,26 @@ def _shear_frame(fail: _Fail, s: _SystemSection, given: set, fixed: dict, free: 
     return ShearFrame(ndof=n, force_dofs=tuple(s.force_dofs if s.force_dofs is not None else [0]))
 
 
+def _sensor(fail: _Fail, i: int, sen: _SensorSection, free: dict, noise_names: dict) -> Sensor:
+    """A :class:`Sensor` from ``[[sensors]][i]``; an inferred ``noise_std`` joins ``free``
+    as ``noise_std_<column>`` (:attr:`Sensor.noise_param`)."""
+    key = f"[[sensors]][{i}].noise_std"
+    sensor = Sensor(sen.quantity, sen.dof, 1.0, name=sen.column)
+    if not isinstance(sen.noise_std, _PriorTable):
+        if not sen.noise_std > 0:
+            raise fail(key, f"the noise standard deviation of column {sen.column!r} must be positive, "
+                            f"got {sen.noise_std!r}.")
+        return sensor._replace(noise_std=float(sen.noise_std))
+    name = sensor.noise_param
+    if name in noise_names:
+        raise fail(key, f"columns {noise_names[name]!r} and {sen.column!r} both give the parameter name "
+                        f"{name!r} to their inferred noise; rename one of the columns.")
+    noise_names[name] = sen.column
+    spec = _prior_spec(fail, key, sen.noise_std, name)
+    free[name] = spec
+    return sensor._replace(noise_std=spec.init)
+
+
 def _default_method(is_linear: bool, free: dict) -> str:
     if not is_linear:
         return "pgas"
@@ -472,6 +525,8 @@ _FRAME_KEYS = {"m": "masses", "c": "dampings", "k": "stiffnesses"}
 def _free_key(name: str) -> str:
     """The config key of a parameter name: ``force_variance`` -> ``[force].variance``,
     a shear frame's ``k_1`` -> ``[system].stiffnesses[1]``."""
+    if name.startswith("noise_std_"):
+        return f"[[sensors]].noise_std (column {name.removeprefix('noise_std_')!r})"
     if name.startswith("force_"):
         return f"[force].{name.removeprefix('force_')}"
     kind, _, index = name.partition("_")
@@ -489,7 +544,7 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
     replaces ``[data].path`` and is resolved against the current folder.
     """
     base_dir = Path.cwd() if base_dir is None else Path(base_dir)
-    fail = _Fail(source)
+    fail = _Fail(source, base_dir)
     if not isinstance(d, dict):
         raise LatentForceError(f"{source}: a config must be a table of sections, got {type(d).__name__}.")
     try:
@@ -511,6 +566,7 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
 
     sensors = []
     seen: dict[str, int] = {}
+    noise_names: dict[str, str] = {}
     for i, sen in enumerate(cfg.sensors):
         if sen.dof >= system.ndof:
             valid = "only DOF 0" if system.ndof == 1 else f"DOFs 0..{system.ndof - 1}"
@@ -520,7 +576,7 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
             raise fail(f"[[sensors]][{i}].column", f"column {sen.column!r} is already used by sensor "
                                                    f"{seen[sen.column]}.")
         seen[sen.column] = i
-        sensors.append(Sensor(sen.quantity, sen.dof, float(sen.noise_std), name=sen.column))
+        sensors.append(_sensor(fail, i, sen, free, noise_names))
     model = LatentForceModel(system, kernel, sensors)
 
     initial = None
@@ -568,8 +624,11 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
     time_column = None if dat.sample_rate is not None else (dat.time_column or "time")
     data = DataSettings(path=path, time_column=time_column, sample_rate=dat.sample_rate, missing=dat.missing)
 
+    carried = {key: {"from": c.source, "param": c.param, "draws": c.draws, "converged": c.converged,
+                     "softplus_loc": c.prior.loc, "softplus_scale": c.prior.scale}
+               for key, c in fail.carried.items()}
     return Problem(model=model, fixed=fixed, free=free, columns=[s.name for s in sensors],
-                   initial=initial, inference=settings, data=data, config_path=Path(source))
+                   initial=initial, inference=settings, data=data, config_path=Path(source), carried=carried)
 
 
 _TOML_POSITION = re.compile(r"\(at line (\d+), column (\d+)\)")
