@@ -602,7 +602,9 @@ def parse_args(argv=None):
 def main(argv=None) -> int:
     args = parse_args(argv)
     mode = "quick" if args.quick else "full"
-    import latentforce  # noqa: F401  (float64, XLA flags: before JAX starts its backend)
+    import latentforce
+
+    latentforce.enable_x64()  # float64; XLA's small-loop threshold before JAX starts
 
     started = time.perf_counter()
     chosen = studies(mode, args.only, args.sbc_replications, args.coverage_replications)

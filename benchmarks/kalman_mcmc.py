@@ -369,7 +369,9 @@ def main(argv=None) -> int:
 
     import jax
 
-    import latentforce  # noqa: F401  (enables float64)
+    import latentforce
+
+    latentforce.enable_x64()  # float64; XLA's small-loop threshold before JAX starts
 
     T = args.T or (1024 if args.quick else 4096)
     reps = dict(numpy=3, one=5, many=5) if args.quick else dict(numpy=7, one=15, many=15)

@@ -163,7 +163,9 @@ def worker(job_path: str, out_path: str) -> None:
     job = json.loads(Path(job_path).read_text())
     import jax
 
-    import latentforce  # noqa: F401  (float64)
+    import latentforce
+
+    latentforce.enable_x64()  # float64; XLA's small-loop threshold before JAX starts
     from latentforce import estimate
     from latentforce.io.config import config_from_dict
     from latentforce.io.data import Dataset
@@ -363,7 +365,9 @@ def main(argv=None) -> int:
 
     import jax
 
-    import latentforce  # noqa: F401  (float64, for the simulation's matrices)
+    import latentforce
+
+    latentforce.enable_x64()  # float64; XLA's small-loop threshold before JAX starts
 
     rows = []
     load_before = ", ".join(f"{v:.2f}" for v in os.getloadavg())

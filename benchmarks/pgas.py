@@ -44,7 +44,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import latentforce  # noqa: F401
+import latentforce
+
+latentforce.enable_x64()  # float64; XLA's small-loop threshold before JAX starts
 from latentforce.compile import jit
 from latentforce.inference import latent, pgas, smc
 from latentforce.kernels import Matern

@@ -23,7 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import latentforce  # noqa: F401
+import latentforce
+
+latentforce.enable_x64()  # float64; XLA's small-loop threshold before JAX starts
 from latentforce.inference import pgas, smc
 from latentforce.inference.kalman import kalman_smoother
 from latentforce.kernels import Matern

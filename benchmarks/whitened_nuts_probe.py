@@ -81,7 +81,9 @@ def main(argv=None) -> int:
     import jax.scipy.linalg as jsl
     from blackjax.adaptation.step_size import dual_averaging_adaptation
 
-    import latentforce  # noqa: F401  (float64)
+    import latentforce
+
+    latentforce.enable_x64()  # float64; XLA's small-loop threshold before JAX starts
     from latentforce.inference import latent, pgas_start, smc
     from latentforce.kernels import Matern
     from latentforce.models import LatentForceModel, Sensor

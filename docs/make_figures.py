@@ -14,7 +14,9 @@ import jax
 import numpy as np
 from matplotlib.figure import Figure
 
-import latentforce  # noqa: F401
+import latentforce
+
+latentforce.enable_x64()  # float64; XLA's small-loop threshold before JAX starts
 from latentforce.inference.kalman_mcmc import Initial, smooth, state_moments
 from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor

@@ -62,7 +62,7 @@ def test_an_unknown_option_is_dropped_and_the_others_kept(monkeypatch):
 
 
 # ---------------------------------------------------------------------------
-# XLA CPU's small-loop threshold (set in XLA_FLAGS when the package is imported)
+# XLA CPU's small-loop threshold (set in XLA_FLAGS by latentforce.enable_x64)
 # ---------------------------------------------------------------------------
 def test_threshold_is_added_to_xla_flags_unless_the_user_set_backend_options(monkeypatch):
     from jax._src import xla_bridge
@@ -89,7 +89,9 @@ _HOIST_PROBE = """
 import sys
 import jax
 if sys.argv[1] == "plain":
-    jax.devices()  # the backend starts before latentforce is imported: XLA_FLAGS is left alone
+    jax.devices()  # the backend starts before latentforce.enable_x64(): XLA_FLAGS is left alone
+import latentforce
+latentforce.enable_x64()
 import jax.numpy as jnp
 import numpy as np
 from latentforce.inference import latent, path_moves, pgas, smc
@@ -283,3 +285,43 @@ def test_persistent_cache_serves_a_new_process_and_restores_the_settings(tmp_pat
     with lc.persistent_cache(tmp_path / "inner"):
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "inner")
     assert jax.config.jax_compilation_cache_dir == before
+
+
+_IMPORT_PROBE = """
+import json, os, sys
+import jax
+before = (dict(os.environ), {k: getattr(jax.config, k) for k in ("jax_enable_x64", "jax_compilation_cache_dir", "jax_default_matmul_precision")})
+import latentforce, latentforce.cli, latentforce.estimate, latentforce.results, latentforce.inference.pgas
+after = (dict(os.environ), {k: getattr(jax.config, k) for k in ("jax_enable_x64", "jax_compilation_cache_dir", "jax_default_matmul_precision")})
+print(json.dumps(before == after))
+if sys.argv[1] == "enable":
+    latentforce.enable_x64()
+    print("X64", jax.config.jax_enable_x64, "--xla_backend_extra_options" in os.environ.get("XLA_FLAGS", ""))
+    sys.exit(0)
+from latentforce.io.config import config_from_dict
+try:
+    config_from_dict({"system": {"type": "linear", "m": 1.0, "c": 0.1, "k": 1.0},
+                      "force": {"kernel": "matern12", "variance": 1.0, "lengthscale": 1.0},
+                      "sensors": [{"column": "a", "quantity": "acceleration", "noise_std": 0.1}]})
+except latentforce.LatentForceError as exc:
+    print("REFUSED", exc)
+"""
+
+
+def test_import_has_no_side_effects_and_float64_is_asked_for(tmp_path):
+    """``import latentforce`` (and its main modules) leaves ``os.environ`` and JAX's settings alone;
+    building a model without float64 is refused with a message; ``enable_x64`` sets both."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64")}
+    env["PYTHONPATH"] = str(Path(lc.__file__).resolve().parents[1])
+    outs = [subprocess.run([sys.executable, "-c", _IMPORT_PROBE, mode], capture_output=True, text=True, env=env,
+                           timeout=300) for mode in ("refuse", "enable")]
+    for out in outs:
+        assert out.returncode == 0, out.stderr
+    refuse, enable = (out.stdout.splitlines() for out in outs)
+    assert refuse[0] == "true" and enable[0] == "true", (refuse, enable)
+    assert refuse[1].startswith("REFUSED") and "latentforce.enable_x64()" in refuse[1], refuse
+    assert enable[1] == "X64 True True", enable

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-import latentforce  # noqa: F401  (enables float64)
+import latentforce  # noqa: F401
 from latentforce.compile import jit
 from latentforce.inference.kalman import (
     kalman_filter,

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import latentforce  # noqa: F401  (enables float64)
+import latentforce  # noqa: F401
 from latentforce import compile as lf_compile
 from latentforce import linalg
 from latentforce.kernels import Matern

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from test_smc import linear_problem
 
-import latentforce  # noqa: F401  (enables float64)
+import latentforce  # noqa: F401
 from latentforce.compile import jit
 from latentforce.inference import hyper_moves, latent, path_moves, pgas, pgas_start, smc
 from latentforce.inference.kalman import kalman_smoother

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import latentforce  # noqa: F401  (enables float64)
+import latentforce  # noqa: F401
 from latentforce.compile import jit
 from latentforce.inference import smc
 from latentforce.inference.kalman import log_likelihood

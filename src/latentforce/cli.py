@@ -65,6 +65,9 @@ def handle_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
+            import latentforce
+
+            latentforce.enable_x64()
             with _compilation_cache():
                 return fn(*args, **kwargs)
         except LatentForceError as err:

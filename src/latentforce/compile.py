@@ -47,8 +47,8 @@ move's rebuild, vmapped over two chains, ran 10x slower than one chain
 quick demo's Gibbs block took twice as long as the acceleration-only one
 (110 ms against 63 ms; 50 ms each with the threshold raised). The threshold
 is a backend option read once from ``XLA_FLAGS`` when JAX starts its CPU
-backend, so :func:`raise_small_loop_threshold` (run when the package is
-imported) adds it there, unless the backend is already running or the user's
+backend, so :func:`raise_small_loop_threshold` (run by
+:func:`latentforce.enable_x64`) adds it there, unless the backend is already running or the user's
 ``XLA_FLAGS`` set backend options of their own.
 
 The value, 1 MB, is a compile-time trade. A loop holding a library call is
@@ -101,6 +101,17 @@ CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_l
 
 SMALL_LOOP_BYTES = 1_000_000
 _EXTRA_OPTIONS_FLAG = "--xla_backend_extra_options"
+
+
+def require_x64(what: str) -> None:
+    """Refuse to run ``what`` unless JAX computes in float64 (:func:`latentforce.enable_x64`)."""
+    if not jax.config.jax_enable_x64:
+        from latentforce.errors import LatentForceError
+
+        raise LatentForceError(
+            f"{what} needs JAX's float64 mode, which is off: the Kalman recursions and lightly damped "
+            "structural models lose too much precision in float32. Call latentforce.enable_x64() once at "
+            "the start of your program (the latentforce command does), before any JAX computation.")
 
 
 def raise_small_loop_threshold(environ=os.environ) -> bool:

@@ -14,6 +14,7 @@ from typing import Callable
 import jax
 import numpy as np
 
+from latentforce.compile import require_x64
 from latentforce.errors import LatentForceError
 from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth, state_moments
 from latentforce.io.config import Problem
@@ -81,6 +82,7 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
     ``extras`` holds what a demo may want beyond the result folder, e.g. the
     smoother at the point estimate for ``kalman-mcmc``.
     """
+    require_x64("latentforce.estimate.run")
     result, extras = _run(problem, dataset, seed, progress, channels)
     if problem.carried:
         result.diagnostics["carried_priors"] = problem.carried

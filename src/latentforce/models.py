@@ -36,6 +36,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from latentforce.compile import require_x64
 from latentforce.kernels import Kernel, KernelParams
 from latentforce.linalg import inv, solve_lyapunov, symmetrise, van_loan
 from latentforce.systems import System
@@ -73,6 +74,7 @@ class LatentForceModel:
     """
 
     def __init__(self, system: System, kernel: Kernel, sensors: list[Sensor] | tuple[Sensor, ...]):
+        require_x64("a latent force model")
         self.system = system
         self.kernel = kernel
         self.sensors = tuple(sensors)

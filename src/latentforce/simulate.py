@@ -90,6 +90,7 @@ def simulate(key, model: LatentForceModel, params: dict, n_samples: int, dt: flo
 
     ``force(t) -> (T_fine, nforce)`` overrides the GP force (e.g. a sine).
     """
+    require_x64("latentforce.simulate.simulate")
     n_fine = (n_samples - 1) * substeps + 1
     dt_fine = dt / substeps
     t_fine = np.arange(n_fine) * dt_fine

@@ -22,6 +22,7 @@ pass, symmetrisation after every update, all in float64.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -30,7 +31,7 @@ from jaxtyping import Array, Bool, Float
 
 from latentforce.linalg import psd_sqrt, solve, symmetrise
 
-_LOG_2PI = jnp.log(2.0 * jnp.pi)
+_LOG_2PI = math.log(2.0 * math.pi)
 
 
 class FilterResult(NamedTuple):
