@@ -92,17 +92,6 @@ def acc_only_bands(seeds=range(8), start="rest"):
     return rows
 
 
-if __name__ == "__main__":
-    import sys
-
-    if len(sys.argv) > 1:  # a `latentforce demo oma` result folder
-        oma_readme_figure(Path(sys.argv[1]))
-    rows = acc_only_bands(start="rest") + acc_only_bands(start="stationary")
-    for start, seed, label, nm, cov, ratio in rows:
-        print(f"{start:10s} seed {seed}  {label:28s}  force NMSE {nm:6.2f} %   within 3 sd {100 * cov:5.1f} %   "
-              f"posterior var / prior var {ratio:.3f}")
-
-
 def oma_readme_figure(result_dir: Path, window=(0.0, 400.0)):
     """README figure from a `latentforce demo oma` result folder: force and displacement, zoomed."""
     import csv
@@ -135,3 +124,14 @@ def oma_readme_figure(result_dir: Path, window=(0.0, 400.0)):
                       "(latentforce demo oma)", fontsize=10)
     fig.tight_layout()
     fig.savefig(OUT / "oma_force.png", dpi=110)
+
+
+if __name__ == "__main__":
+    import sys
+
+    if len(sys.argv) > 1:  # a `latentforce demo oma` result folder
+        oma_readme_figure(Path(sys.argv[1]))
+    rows = acc_only_bands(start="rest") + acc_only_bands(start="stationary")
+    for start, seed, label, nm, cov, ratio in rows:
+        print(f"{start:10s} seed {seed}  {label:28s}  force NMSE {nm:6.2f} %   within 3 sd {100 * cov:5.1f} %   "
+              f"posterior var / prior var {ratio:.3f}")

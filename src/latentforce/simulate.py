@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from latentforce.compile import jit
+from latentforce.compile import jit, require_x64
 from latentforce.models import LatentForceModel, Sensor
 
 

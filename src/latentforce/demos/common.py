@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 from pathlib import Path
 
-import numpy as np
 
 from latentforce import estimate
 from latentforce.io.config import config_from_dict
