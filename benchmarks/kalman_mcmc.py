@@ -259,10 +259,15 @@ def dynamax_worker(npz_path: str, json_path: str) -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    import jax.numpy as jnp
     import dynamax
-    from dynamax.linear_gaussian_ssm import (ParamsLGSSM, ParamsLGSSMDynamics, ParamsLGSSMEmissions,
-                                             ParamsLGSSMInitial, lgssm_filter)
+    import jax.numpy as jnp
+    from dynamax.linear_gaussian_ssm import (
+        ParamsLGSSM,
+        ParamsLGSSMDynamics,
+        ParamsLGSSMEmissions,
+        ParamsLGSSMInitial,
+        lgssm_filter,
+    )
 
     data = np.load(npz_path)
     A, Q, H, R = (jnp.asarray(data[k]) for k in ("A", "Q", "H", "R"))

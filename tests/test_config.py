@@ -156,7 +156,7 @@ def _edit(base, path, value, delete=False):
 def test_unknown_section_suggests():
     d = copy.deepcopy(DUFFING)
     d["sytem"] = d.pop("system")
-    msg = _bad(d, "unknown section [sytem]", "did you mean [system]?", "Valid sections: data, system")
+    _bad(d, "unknown section [sytem]", "did you mean [system]?", "Valid sections: data, system")
 
 
 def test_unknown_key_suggests():

@@ -9,8 +9,8 @@ from scipy import integrate
 import latentforce  # noqa: F401
 from latentforce.compile import jit
 from latentforce.inference import mcmc
-from latentforce.inference.kalman_mcmc import linear_gaussian, make_log_posterior, run_kalman_mcmc
 from latentforce.inference.kalman import log_likelihood
+from latentforce.inference.kalman_mcmc import linear_gaussian, make_log_posterior, run_kalman_mcmc
 from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor
 from latentforce.priors import Flat, LogNormal, Normal, log_prob_unconstrained

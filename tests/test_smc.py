@@ -44,7 +44,7 @@ def test_sampler_discretisation_is_the_exact_one_for_linear_systems():
     """The latent (force states + within-step mechanical noise) reproduces the exact Van Loan
     discretisation of the continuous model: A up to RK4's error, Q exactly."""
     prob = linear_problem(T=5, kernel=Matern(1))
-    pm, tr = prob["pm"], prob["tr"]
+    pm = prob["pm"]
     A_ex, Q_ex = prob["model"].discretise({**prob["params"], "force_variance": 1.0, "force_lengthscale": 0.5},
                                           prob["dt"])
     nm = pm.nm

@@ -170,7 +170,8 @@ def simulate(
 
     from latentforce.io.config import initial_params, load_config
     from latentforce.io.data import write_data
-    from latentforce.simulate import measure, simulate as simulate_fn, truth_columns
+    from latentforce.simulate import measure, truth_columns
+    from latentforce.simulate import simulate as simulate_fn
 
     problem = load_config(config)
     if out.exists() and not force:

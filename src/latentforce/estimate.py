@@ -211,9 +211,8 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
               progress, t0: float, channels=None) -> RunResult:
     """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
     from latentforce.compile import shared_jit
-    from latentforce.inference.pgas import run_pgas
-
     from latentforce.inference import convergence
+    from latentforce.inference.pgas import run_pgas
 
     model = problem.model
     settings = problem.inference

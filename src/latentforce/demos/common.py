@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 from pathlib import Path
 
-
 from latentforce import estimate
 from latentforce.io.config import config_from_dict
 from latentforce.io.data import load_data, write_csv

@@ -53,7 +53,6 @@ def target_acceptance(dim: int) -> float:
 
 def init(x: Float[Array, " p"], logdensity: Callable, proposal_sd: Float[Array, " p"]) -> RWMState:
     """Start a chain at ``x`` with a diagonal proposal ``proposal_sd``."""
-    p = x.shape[0]
     ld = logdensity(x)
     return RWMState(x, ld, jnp.zeros(()), jnp.diag(proposal_sd), x, jnp.diag(proposal_sd**2), jnp.zeros(()))
 

@@ -228,7 +228,6 @@ class ResidualMove:
         # y_S,t - rho_t is the path's own noise-free prediction on S: the map keeps it,
         # whether or not y_S,t was observed
         target = predicted_observations(pm, path)[:, rows]
-        T = path.shape[0]
         # the solved-for states as a scatter matrix (no indexed updates inside the scan:
         # batched over chains they were slow on CPU)
         scatter = jnp.zeros((pm.nfx, len(cols))).at[cols, jnp.arange(len(cols))].set(1.0)

@@ -29,7 +29,7 @@ def extended_kalman_smoother(pm: smc.ParticleModel, tr: smc.Transition, y, mask,
     Alg. 9.5). Exact for linear systems. ``R``: the channels' noise covariance
     (default ``pm.R``).
     """
-    nm, nfx, n = pm.nm, pm.nfx, pm.n_state
+    nm, nfx = pm.nm, pm.nfx
     R = pm.R if R is None else R
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool)
