@@ -1,0 +1,27 @@
+"""Every demo's ``--quick`` path through the command line: it finishes, writes its result
+folders (the main case and its variants) with a summary that has the truth's NMSE, and says
+whether it converged."""
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from latentforce.cli import app
+
+#: the subfolders each demo writes beside its main case (INTERFACE.md, `demo`)
+VARIANTS = {"oma": ["known-system"], "duffing": ["with-displacement"], "sine": []}
+
+
+@pytest.mark.parametrize("name", sorted(VARIANTS))
+def test_a_quick_demo_writes_its_result_folders(tmp_path, monkeypatch, name):
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(app, ["demo", name, "--quick", "--out", "d"])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "d" / "data.csv").is_file()
+    for folder in [tmp_path / "d"] + [tmp_path / "d" / v for v in VARIANTS[name]]:
+        summary = json.loads((folder / "summary.json").read_text())
+        assert set(summary["nmse"]) >= {"displacement", "force"}, folder
+        assert isinstance(summary["converged"], bool), folder
+        assert (folder / "figures" / "force.png").stat().st_size > 1000, folder
+        assert (folder / "posterior.nc").is_file() and (folder / "summary.csv").is_file(), folder
