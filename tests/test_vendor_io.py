@@ -423,3 +423,35 @@ def test_config_keys(tmp_path):
     problem = config_from_dict(config(None, ("a", "b"), paths=(None, "b.csv")), source="lf.toml")
     _raises(lambda: load_problem_data(problem), "[data].path")
     assert math.isclose(G, 9.80665)
+
+
+def test_simulate_writes_a_channel_in_its_unit(tmp_path, monkeypatch):
+    """simulate -> estimate round trip with unit = "mm": the file holds millimetres, the data set metres."""
+    from typer.testing import CliRunner
+
+    from latentforce.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lf.toml").write_text(
+        '[data]\npath = "sim.csv"\n[system]\ntype = "linear"\nm = 1.0\nc = 0.8\nk = 40.0\n'
+        '[force]\nkernel = "matern32"\nvariance = 4.0\nlengthscale = 0.1\n'
+        '[[sensors]]\ncolumn = "disp"\nquantity = "displacement"\nnoise_std = 0.01\nunit = "mm"\n'
+        '[inference]\nmethod = "kalman"\n')
+    result = CliRunner().invoke(app, ["simulate", "lf.toml", "--out", "sim.csv", "--duration", "2",
+                                      "--sample-rate", "50"])
+    assert result.exit_code == 0, result.output
+    raw = load_data(tmp_path / "sim.csv", ["disp"])
+    # the column in mm: truth (m) x 1000 plus noise of sd 0.01 mm
+    z = (raw.values[:, 0] - 1e3 * raw.truth["displacement"]) / 0.01
+    assert abs(z.mean()) < 5 / math.sqrt(z.size) and 0.7 < z.std() < 1.3
+    problem = config_from_dict(json.loads(json.dumps({"data": {"path": "sim.csv"}, **_sim_cfg()})),
+                               source="lf.toml", base_dir=tmp_path)
+    ds = load_problem_data(problem)
+    np.testing.assert_array_equal(ds.values[:, 0], raw.values[:, 0] * 1e-3)
+
+
+def _sim_cfg():
+    return {"system": {"type": "linear", "m": 1.0, "c": 0.8, "k": 40.0},
+            "force": {"kernel": "matern32", "variance": 4.0, "lengthscale": 0.1},
+            "sensors": [{"column": "disp", "quantity": "displacement", "noise_std": 0.01, "unit": "mm"}],
+            "inference": {"method": "kalman"}}

@@ -134,15 +134,19 @@ def resolve_unit(quantity: str | None, sensor_unit: str | None, file_unit: str |
             quantity = _quantity_for(given)
             if quantity is None:
                 raise _WrongDimension(f"dimension {_dimension(_parse(given))}, which is none of "
-                                 f"{', '.join(f'{k} ({v})' for k, v in SI_UNITS.items())}")
+                                      f"{', '.join(f'{k} ({v})' for k, v in SI_UNITS.items())}")
         si = SI_UNITS[quantity]
         scale = unit_scale(given, si)
     except ValueError as exc:
         hint = ("" if source == "sensor"
                 else " Give the channel's unit in the sensor's unit key to override the file's label.")
         if isinstance(exc, _WrongDimension):
-            need = (f"quantity {quantity!r}: it has {exc}; a {quantity} channel needs a unit like "
-                    f"{SI_UNITS[quantity]!r}" if quantity is not None else f"any sensor quantity: it has {exc}")
+            if quantity is None:
+                need = f"any sensor quantity: it has {exc}"
+            else:
+                article = "an" if quantity[0] in "aeiou" else "a"
+                need = (f"quantity {quantity!r}: it has {exc}; {article} {quantity} channel needs a unit like "
+                        f"{SI_UNITS[quantity]!r}")
             raise LatentForceError(f"{who}: unit {given!r} (from {origin}) does not fit {need}.{hint}") from None
         raise LatentForceError(
             f"{who}: unit {given!r} (from {origin}) is not a unit the units library (pint) knows "

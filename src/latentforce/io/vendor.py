@@ -20,6 +20,7 @@ or one that is cut short, is a one-paragraph error naming the file.
 from __future__ import annotations
 
 import logging
+import sys
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Mapping, NamedTuple
@@ -202,15 +203,22 @@ class TdmsTable:
         self._fail = lambda message: LatentForceError(f"data file {str(path)!r}: {message}")
         # npTDMS recovers what it can from a segment cut short (a LabVIEW crash) and says so
         # only in a log warning (npTDMS 1.13): we listen, and refuse such a file.
+        # Its own console handler would print them too, before our message: hushed meanwhile.
         handler = _Collect()
         logger = logging.getLogger("nptdms")
+        console = getattr(getattr(sys.modules.get("nptdms.log"), "log_manager", None), "console_handler", None)
+        level = console.level if console is not None else None
         logger.addHandler(handler)
+        if console is not None:
+            console.setLevel(logging.CRITICAL)
         try:
             tdms = TdmsFile.read(path)
         except Exception as exc:  # struct, value and EOF errors from the binary reader
             raise self._fail(f"is not a readable TDMS file (npTDMS: {exc})") from None
         finally:
             logger.removeHandler(handler)
+            if console is not None:
+                console.setLevel(level)
         if handler.messages:
             raise self._fail(f"is cut short or corrupt (npTDMS: {handler.messages[0]}); the last "
                              "segment is incomplete (an interrupted acquisition or copy?)")
