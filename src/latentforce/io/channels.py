@@ -25,19 +25,34 @@ and the values multiplied to SI; :func:`noise_in_si` converts the sensors'
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from fractions import Fraction
 from pathlib import Path
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
 from latentforce.errors import LatentForceError
 from latentforce.io.data import Dataset, load_data
 from latentforce.io.units import ChannelUnit, resolve_unit
-from latentforce.io.vendor import VENDOR_EXTENSIONS, RawChannel, Sep005Table, open_vendor
+from latentforce.io.vendor import (
+    VENDOR_EXTENSIONS,
+    RawChannel,
+    Sep005Table,
+    open_vendor,
+)
 
-__all__ = ["ChannelSpec", "OFFSET_TOL", "RATE_RTOL", "channel_units", "dataset_from_sep005", "load_channels",
-           "load_problem_data", "noise_in_si", "sensor_unit_scales"]
+__all__ = [
+    "OFFSET_TOL",
+    "RATE_RTOL",
+    "ChannelSpec",
+    "channel_units",
+    "dataset_from_sep005",
+    "load_channels",
+    "load_problem_data",
+    "noise_in_si",
+    "sensor_unit_scales",
+]
 
 #: relative tolerance on a channel's step being a whole multiple of the grid's step
 RATE_RTOL = 1e-5

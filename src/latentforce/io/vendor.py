@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import logging
 import sys
-from datetime import datetime, timezone
+from collections.abc import Mapping
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Mapping, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -110,7 +111,7 @@ def _datetime64(value) -> np.datetime64 | None:
     if isinstance(value, str):
         value = datetime.fromisoformat(value)
     if isinstance(value, datetime) and value.tzinfo is not None:
-        value = value.astimezone(timezone.utc).replace(tzinfo=None)
+        value = value.astimezone(UTC).replace(tzinfo=None)
     return np.datetime64(value, "ns")
 
 
@@ -136,7 +137,7 @@ class UffTable:
             types = [int(t) for t in self._uff.get_set_types()]
             self._index = [i for i, t in enumerate(types) if t == 58]
             heads = self._uff.read_sets(self._index, header_only=True) if self._index else []
-        except Exception as exc:  # pyuff raises bare Exceptions on malformed files
+        except Exception as exc:  # noqa: BLE001 - pyuff raises bare Exceptions on malformed files
             raise self._fail(f"is not a readable UFF file (pyuff: {exc})") from None
         if not self._index:
             found = sorted(set(types))
@@ -162,7 +163,7 @@ class UffTable:
         what = f"record {name!r}"
         try:
             record = self._uff.read_sets(self._index[hits[0]])
-        except Exception as exc:  # pyuff raises bare Exceptions on malformed records
+        except Exception as exc:  # noqa: BLE001 - pyuff raises bare Exceptions on malformed records
             raise self._fail(f"{what} cannot be read (pyuff: {exc}); the file is corrupt") from None
         data = np.asarray(record["data"])
         expected = int(record.get("num_pts", data.size))
@@ -213,7 +214,7 @@ class TdmsTable:
             console.setLevel(logging.CRITICAL)
         try:
             tdms = TdmsFile.read(path)
-        except Exception as exc:  # struct, value and EOF errors from the binary reader
+        except Exception as exc:  # noqa: BLE001 - struct, value and EOF errors from the binary reader
             raise self._fail(f"is not a readable TDMS file (npTDMS: {exc})") from None
         finally:
             logger.removeHandler(handler)
