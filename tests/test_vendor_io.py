@@ -484,3 +484,19 @@ def test_nptdms_still_reads_a_truncated_file_with_only_a_log_warning(tmp_path, c
     with caplog.at_level("WARNING", logger="nptdms"):
         TdmsFile.read(path)
     assert any("less data than expected" in r.getMessage() for r in caplog.records)
+
+
+def test_plain_csv_config_gives_load_datas_dataset(tmp_path):
+    """Backward compatible: without units or paths, the CLI's loader returns load_data's numbers."""
+    acc, disp = _signals(6)
+    csv = tmp_path / "plain.csv"
+    write_csv(csv, {"time": 0.5 + DT * np.arange(T_FAST), "acc": acc, "disp": np.resize(disp, T_FAST),
+                    "displacement": np.arange(T_FAST) * 1.0})
+    new = load_problem_data(config_from_dict(config(csv, ("acc", "disp")), source="lf.toml"))
+    old = load_data(csv, ["acc", "disp"])
+    for field in ("time", "values", "mask"):
+        np.testing.assert_array_equal(getattr(new, field), getattr(old, field))
+    assert new.dt == old.dt and new.columns == old.columns
+    np.testing.assert_array_equal(new.truth["displacement"], old.truth["displacement"])
+    assert {c: (u.unit, u.scale, u.source) for c, u in new.units.items()} == {
+        "acc": ("m/s^2", 1.0, "assumed"), "disp": ("m", 1.0, "assumed")}
