@@ -124,16 +124,15 @@ def estimate(
 ):
     """Estimate the force, states and parameters from measured data (the main job)."""
     from latentforce import estimate as estimate_mod
-    from latentforce.io.config import data_path, load_config
-    from latentforce.io.data import load_data
+    from latentforce.io.channels import load_problem_data
+    from latentforce.io.config import load_config
     from latentforce.results import check_out_dir, write_results
 
     problem = load_config(config, data_override=str(data) if data is not None else None)
     out = out if out is not None else Path(f"{config.stem}-results")
     check_out_dir(out, force)
-    settings = problem.data
-    dataset = load_data(data_path(problem), problem.columns, time_column=settings.time_column,
-                        sample_rate=settings.sample_rate, missing=settings.missing)
+    # [data].path and the sensors' own paths; several rates on one grid; units to SI
+    dataset = load_problem_data(problem)
     progress = Progress(problem.inference.method)
     try:
         result, _ = estimate_mod.run(problem, dataset, seed=seed, progress=progress)
@@ -168,6 +167,7 @@ def simulate(
     """
     import jax
 
+    from latentforce.io.channels import sensor_unit_scales
     from latentforce.io.config import initial_params, load_config
     from latentforce.io.data import write_data
     from latentforce.simulate import measure, truth_columns
@@ -184,9 +184,12 @@ def simulate(
     params = initial_params(problem)
     key_force, key_noise = jax.random.split(jax.random.key(seed))
     sim = simulate_fn(key_force, problem.model, params, n, 1.0 / rate)
-    y = measure(key_noise, sim, problem.model.sensors)
+    # A sensor with a unit key: noise_std and the written channel in that unit, the model in SI.
+    scales = sensor_unit_scales(problem)
+    sensors = [s._replace(noise_std=s.noise_std * f) for s, f in zip(problem.model.sensors, scales)]
+    y = measure(key_noise, sim, sensors)
     columns = {(problem.data.time_column or "time"): sim.time}
-    columns.update({c: y[:, i] for i, c in enumerate(problem.columns)})
+    columns.update({c: y[:, i] / scales[i] for i, c in enumerate(problem.columns)})
     columns.update({k: v for k, v in truth_columns(sim).items() if k not in columns})
     write_data(out, columns)
     typer.echo(f"wrote {n} samples at {rate:g} Hz to {out} "

@@ -17,6 +17,7 @@ import numpy as np
 from latentforce.compile import require_x64
 from latentforce.errors import LatentForceError
 from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth, state_moments
+from latentforce.io.channels import channel_units, noise_in_si
 from latentforce.io.config import Problem
 from latentforce.io.data import Dataset
 from latentforce.results import RunResult, summarise_parameters
@@ -98,6 +99,8 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
 def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callable | None,
          channels) -> tuple[RunResult, dict]:
     t0 = _time.perf_counter()
+    # The data are in SI (io/channels.py); each sensor's noise_std, in its channel's unit, follows.
+    problem = noise_in_si(problem, dataset)
     model = problem.model
     settings = problem.inference
     seed = settings.seed if seed is None else seed
@@ -114,7 +117,7 @@ def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callabl
     fixed_record = {k: (float(v) if np.ndim(v) == 0 else np.asarray(v).tolist()) for k, v in problem.fixed.items()}
     extras: dict = {}
     common = dict(time=np.asarray(dataset.time), ndof=model.ndof, nforce=model.nforce, observed=observed,
-                  truth=truth, seed=seed, fixed=fixed_record)
+                  truth=truth, seed=seed, fixed=fixed_record, units=channel_units(dataset))
 
     if settings.method == "kalman":
         sm = smooth(model, params0, y, mask, dataset.dt, initial)

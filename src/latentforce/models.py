@@ -57,6 +57,9 @@ class Sensor(NamedTuple):
     dof: int
     noise_std: float
     name: str = ""
+    #: SI per unit of an inferred ``noise_param``: the parameter stays in the channel's
+    #: unit (its prior is written in it) while the data are in SI (io/channels.py)
+    noise_scale: float = 1.0
 
     @property
     def noise_param(self) -> str:
@@ -170,9 +173,11 @@ class LatentForceModel:
 
     def noise_covariance(self, params=None):
         """Diagonal ``R``: each sensor's ``noise_std``, or its inferred value
-        ``params[sensor.noise_param]`` where ``params`` holds one."""
+        ``params[sensor.noise_param]`` (times the sensor's ``noise_scale``) where ``params``
+        holds one."""
         params = {} if params is None else params
-        sd = [jnp.asarray(params.get(s.noise_param, s.noise_std), dtype=float) for s in self.sensors]
+        sd = [jnp.asarray(params[s.noise_param], dtype=float) * s.noise_scale if s.noise_param in params
+              else jnp.asarray(s.noise_std, dtype=float) for s in self.sensors]
         return jnp.diag(jnp.stack(sd) ** 2)
 
     def stationary_initial(self, params, linear_part: bool = False):

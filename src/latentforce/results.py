@@ -25,7 +25,9 @@ Result folder layout
         ``velocity_mean``, ... with dims ``(time[, dof|force_index])``.
     ``observed_data``
         The measured channels by column name, dim ``time``; NaN where a
-        sample was missing.
+        sample was missing. Where the units are known, each carries
+        ``units`` (SI), ``original_units``, ``scale_to_si`` and
+        ``units_source`` attributes.
     ``sample_stats``
         The sampler statistics (``accepted``, ``log_likelihood``, ...) with
         dims ``(chain, draw)``.
@@ -42,8 +44,10 @@ Result folder layout
     ``force_0_mean``, ... for several forces), written at full (round-trip)
     precision.
 ``summary.json``
-    The layout of INTERFACE.md, plus ``point_estimate``, ``fixed`` and
-    ``diagnostics``. Non-finite numbers are written as ``null``.
+    The layout of INTERFACE.md, plus ``point_estimate``, ``fixed``,
+    ``diagnostics`` and, where known, ``units`` (``states``: the SI unit
+    of each state; ``channels``: per column its SI unit, original unit,
+    factor and source). Non-finite numbers are written as ``null``.
 ``figures/``
     PNG plots drawn by :mod:`latentforce.plots`.
 
@@ -130,6 +134,9 @@ class RunResult:
     #: The convergence record (:func:`latentforce.inference.convergence.diagnose`);
     #: None for ``kalman``, which has no sampling error.
     convergence: dict | None = None
+    #: column -> {"unit" (SI, what ``observed`` carries), "original", "scale", "source"}
+    #: (:func:`latentforce.io.channels.channel_units`); empty when unknown
+    units: dict = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------------
@@ -415,7 +422,14 @@ def _to_datatree(result: RunResult) -> xr.DataTree:
             v = np.asarray(values, dtype=float).ravel()
             if v.size != T:
                 raise ValueError(f"observed[{column!r}] has {v.size} samples, time has {T}")
-            observed[column] = ("time", v)
+            unit = result.units.get(column)
+            attrs = {} if not unit else {"units": unit["unit"], "original_units": unit["original"],
+                                         "scale_to_si": unit["scale"], "units_source": unit["source"]}
+            # "/" separates groups in a DataTree: a TDMS "group/channel" or HDF5 path is stored as
+            # "group|channel" with its column name in the attrs.
+            if "/" in column:
+                attrs["column"] = column
+            observed[column.replace("/", "|")] = ("time", v, attrs)
         groups["observed_data"] = observed
 
     if result.sample_stats:
@@ -522,6 +536,8 @@ def _summary_json(result: RunResult) -> dict:
     }
     if result.truth:
         summary["nmse"] = _nmse_by_state(result)
+    if result.units:
+        summary["units"] = {"states": dict(_UNITS), "channels": dict(result.units)}
     summary.update(
         {
             "wall_time_s": result.wall_time_s,
@@ -604,7 +620,8 @@ def read_results(out_dir: Path) -> RunResult:
 
     sample_stats = {name: np.asarray(v.values) for name, v in _group(tree, "sample_stats").data_vars.items()}
     observed_ds = _group(tree, "observed_data")
-    observed = {name: np.asarray(v.values, dtype=float) for name, v in observed_ds.data_vars.items()}
+    observed = {str(v.attrs.get("column", name)): np.asarray(v.values, dtype=float)
+                for name, v in observed_ds.data_vars.items()}
     if time.size == 0 and "time" in observed_ds.coords:
         time = np.asarray(observed_ds["time"].values, dtype=float)
     truth = {}
@@ -660,6 +677,7 @@ def read_results(out_dir: Path) -> RunResult:
         wall_time_s=_float(summary.get("wall_time_s", 0.0)),
         fixed={k: _float(v) for k, v in (summary.get("fixed") or {}).items()},
         convergence=None if method == "kalman" else dict(summary.get("convergence") or {}),
+        units=dict((summary.get("units") or {}).get("channels") or {}),
     )
 
 

@@ -92,12 +92,18 @@ class InferenceSettings(NamedTuple):
 
 class DataSettings(NamedTuple):
     """``[data]``: ``path`` is absolute (None when the config gives none);
-    exactly one of ``time_column`` and ``sample_rate`` is set."""
+    exactly one of ``time_column`` and ``sample_rate`` is set. ``dt``: the
+    common time grid's step (None: the fastest channel's). ``units`` and
+    ``sensor_paths``: each sensor's ``unit`` and ``path`` keys (None where
+    not given; paths absolute), in sensor order."""
 
     path: Path | None
     time_column: str | None
     sample_rate: float | None
     missing: str
+    dt: float | None = None
+    units: tuple[str | None, ...] = ()
+    sensor_paths: tuple[Path | None, ...] = ()
 
 
 class Problem(NamedTuple):
@@ -149,6 +155,7 @@ class _DataSection(_Strict):
     time_column: str | None = None
     sample_rate: float | None = Field(default=None, gt=0)
     missing: Literal["error", "skip"] = "error"
+    dt: float | None = Field(default=None, gt=0)
 
 
 class _SystemSection(_Strict):
@@ -177,6 +184,8 @@ class _SensorSection(_Strict):
     quantity: Literal["displacement", "velocity", "acceleration"]
     dof: int = Field(default=0, ge=0)
     noise_std: _Param  # a number (known) or a prior table (inferred)
+    unit: str | None = None
+    path: str | None = None
 
 
 class _InitialSection(_Strict):
@@ -576,6 +585,7 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
             raise fail(f"[[sensors]][{i}].column", f"column {sen.column!r} is already used by sensor "
                                                    f"{seen[sen.column]}.")
         seen[sen.column] = i
+        _check_sensor_unit(fail, i, sen)
         sensors.append(_sensor(fail, i, sen, free, noise_names))
     model = LatentForceModel(system, kernel, sensors)
 
@@ -622,7 +632,11 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
         path = None
     # With a sample rate the time axis is implicit; otherwise default to "time".
     time_column = None if dat.sample_rate is not None else (dat.time_column or "time")
-    data = DataSettings(path=path, time_column=time_column, sample_rate=dat.sample_rate, missing=dat.missing)
+    data = DataSettings(path=path, time_column=time_column, sample_rate=dat.sample_rate, missing=dat.missing,
+                        dt=dat.dt, units=tuple(sen.unit for sen in cfg.sensors),
+                        sensor_paths=tuple(None if sen.path is None
+                                           else (base_dir / Path(sen.path).expanduser()).resolve()
+                                           for sen in cfg.sensors))
 
     carried = {key: {"from": c.source, "param": c.param, "draws": c.draws, "converged": c.converged,
                      "softplus_loc": c.prior.loc, "softplus_scale": c.prior.scale}
@@ -655,6 +669,18 @@ def load_config(path: str | Path, data_override: str | None = None) -> Problem:
     problem = config_from_dict(raw, source=str(path), base_dir=path.resolve().parent,
                                data_override=data_override)
     return problem._replace(config_path=path.resolve())
+
+
+def _check_sensor_unit(fail: _Fail, i: int, sen: _SensorSection) -> None:
+    """A sensor's ``unit`` must parse and fit its quantity (io/units.py)."""
+    if sen.unit is None:
+        return
+    from latentforce.io.units import resolve_unit
+
+    try:
+        resolve_unit(sen.quantity, sen.unit, None, who=f"sensor {i} (column {sen.column!r})", where="")
+    except LatentForceError as exc:
+        raise fail(f"[[sensors]][{i}].unit", str(exc)) from None
 
 
 # ----- small helpers for the commands ------------------------------------------

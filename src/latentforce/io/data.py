@@ -30,7 +30,9 @@ from latentforce.errors import LatentForceError
 
 __all__ = ["Dataset", "SUPPORTED_EXTENSIONS", "TRUTH_NAMES", "load_data", "write_csv"]
 
-SUPPORTED_EXTENSIONS = (".csv", ".h5", ".hdf5", ".mat", ".nc")
+SUPPORTED_EXTENSIONS = (".csv", ".h5", ".hdf5", ".mat", ".nc", ".uff", ".unv", ".tdms")
+# Vendor formats (io/vendor.py): each channel carries its own time axis and unit.
+_VENDOR_EXTENSIONS = (".uff", ".unv", ".tdms")
 TRUTH_NAMES = ("displacement", "velocity", "force")
 _TRUTH_PATTERN = re.compile(r"^(displacement|velocity|force)(_\d+)?$")
 # Relative tolerance on the spread of the time steps: tighter than any
@@ -52,6 +54,10 @@ class Dataset(NamedTuple):
     mask: np.ndarray  # (T, n_channels) bool
     columns: list[str]
     truth: dict[str, np.ndarray]
+    #: column -> :class:`~latentforce.io.units.ChannelUnit` (the unit the numbers were given in,
+    #: the SI unit they now carry, the factor); None when no units were resolved (``load_data``
+    #: on a table format: the numbers are taken as SI)
+    units: dict | None = None
 
 
 # ----- readers: one per format, each a table of named 1-D channels -----------
@@ -260,7 +266,10 @@ def load_data(path: str | Path, columns: list[str], time_column: str | None = "t
 
     With ``sample_rate`` the time axis is ``arange(T) / sample_rate`` and no
     time column is read; otherwise ``time_column`` must exist and be evenly
-    sampled. ``missing="error"`` refuses NaN/inf samples; ``"skip"`` keeps
+    sampled. Vendor files (``.uff``/``.unv``, ``.tdms``) carry each channel's
+    time and unit: they go through :func:`latentforce.io.channels.load_channels`
+    (channels at several rates on one grid, values in SI by the file's unit
+    labels). ``missing="error"`` refuses NaN/inf samples; ``"skip"`` keeps
     them as unobserved (``mask`` False, value NaN).
     """
     path = Path(path)
@@ -274,6 +283,11 @@ def load_data(path: str | Path, columns: list[str], time_column: str | None = "t
         raise _err(path, "the file is empty")
     if not columns:
         raise ValueError("load_data needs at least one column")
+    if path.suffix.lower() in _VENDOR_EXTENSIONS:
+        # Time from each channel (time_column and sample_rate do not apply), units to SI.
+        from latentforce.io.channels import ChannelSpec, load_channels
+
+        return load_channels([ChannelSpec(c) for c in columns], path, missing=missing)
 
     table = _open(path)
     try:

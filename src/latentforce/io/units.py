@@ -1,0 +1,155 @@
+"""Units of measured channels: parsed by pint, checked against the sensor's quantity, scaled to SI.
+
+A channel's unit comes from the sensor's ``unit`` key, else from the data
+file (a UFF record's ordinate units label, a TDMS channel's ``unit_string``,
+a SEP005 record's ``unit_str``), else SI is assumed. The data are multiplied
+by the unit's factor to SI before inference, and so is the sensor's
+``noise_std``, which is given in the channel's unit.
+
+Words the units library reads differently from a vibration engineer:
+``g`` is standard gravity (9.80665 m/s², so ``mg`` is a thousandth of it),
+never the gram, since no sensor here measures a mass; ``strain`` is a
+dimensionless unit (``ustrain``, ``µε`` = 1e-6). The registry holding these
+definitions is private to this module (STYLE.md 7a: importing changes
+nothing global) and is built on first use only, since building it takes a
+second or two.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+from latentforce.errors import LatentForceError
+
+__all__ = ["SI_UNITS", "ChannelUnit", "resolve_unit", "unit_scale"]
+
+#: The unit every quantity is converted to before inference.
+SI_UNITS: dict[str, str] = {
+    "displacement": "m",
+    "velocity": "m/s",
+    "acceleration": "m/s^2",
+    "force": "N",
+    "strain": "m/m",
+}
+
+class _WrongDimension(ValueError):
+    """A unit that parses but measures something else."""
+
+
+#: Labels vendor files use for "no unit given" (pyuff writes "NONE" by default).
+_NO_UNIT = {"", "none", "null", "n/a", "na", "-"}
+
+
+class ChannelUnit(NamedTuple):
+    """How a channel's numbers were turned into SI.
+
+    ``unit``: the unit the numbers were given in (the sensor's ``unit``, the
+    file's label, or the SI unit when neither gives one); ``si``: the SI unit
+    the data now carry; ``scale``: SI per ``unit`` (data and ``noise_std``
+    are multiplied by it); ``source``: ``"sensor"``, ``"file"`` or
+    ``"assumed"``.
+    """
+
+    unit: str
+    si: str
+    scale: float
+    source: str
+
+
+@functools.cache
+def _registry():
+    import pint
+
+    ureg = pint.UnitRegistry()
+    # Vibration usage, see the module docstring: g is the acceleration of gravity.
+    ureg.define("g = standard_gravity")
+    ureg.define("strain = 1 = ε")
+    return ureg
+
+
+def _parse(text: str):
+    """The pint unit of ``text``, or a ValueError saying why not."""
+    import pint
+
+    ureg = _registry()
+    try:
+        quantity = ureg.Quantity(1.0, text.strip())
+    except (pint.errors.PintError, AttributeError, TypeError, ValueError, SyntaxError) as exc:
+        raise ValueError(str(exc) or type(exc).__name__) from None
+    if quantity.magnitude != 1.0:
+        # "1e-3 m" or "2 N": a number inside the unit string
+        raise ValueError("a unit must not hold a number")
+    return quantity
+
+
+def unit_scale(text: str, si: str) -> float:
+    """SI per ``text``: the factor that turns numbers in ``text`` into numbers in ``si``.
+
+    Raises ValueError when ``text`` does not parse or has another dimension.
+    """
+    quantity = _parse(text)
+    target = _parse(si)
+    if quantity.dimensionality != target.dimensionality:
+        raise _WrongDimension(f"dimension {_dimension(quantity)}, not {_dimension(target)}")
+    return float(quantity.to(target.units).magnitude)
+
+
+def _dimension(quantity) -> str:
+    dim = str(quantity.dimensionality)
+    return "dimensionless" if dim in ("", "dimensionless") else dim
+
+
+def _quantity_for(text: str) -> str | None:
+    """The sensor quantity whose SI unit has the dimension of ``text`` (None if none does)."""
+    q = _parse(text)
+    for name, si in SI_UNITS.items():
+        if q.dimensionality == _parse(si).dimensionality:
+            return name
+    return None
+
+
+def resolve_unit(quantity: str | None, sensor_unit: str | None, file_unit: str | None,
+                 *, who: str, where: str) -> ChannelUnit:
+    """The unit of one channel and its factor to SI.
+
+    ``quantity``: the sensor's (``"displacement"``, ``"velocity"``,
+    ``"acceleration"``, ``"force"``, ``"strain"``), or None when it is not
+    known (then it is read off the unit's dimension). ``sensor_unit``
+    overrides ``file_unit``; with neither, SI is assumed. ``who`` names the
+    sensor and ``where`` the file in messages.
+    """
+    if sensor_unit is not None and not sensor_unit.strip():
+        raise LatentForceError(f"{who}: unit is empty; give a unit such as \"m/s^2\", or leave the key out.")
+    given, source = (sensor_unit, "sensor") if sensor_unit is not None else (file_unit, "file")
+    if given is None or (source == "file" and given.strip().lower() in _NO_UNIT):
+        if quantity is None:
+            return ChannelUnit(unit="", si="", scale=1.0, source="assumed")
+        si = SI_UNITS[quantity]
+        return ChannelUnit(unit=si, si=si, scale=1.0, source="assumed")
+    given = given.strip()
+    origin = "its unit key" if source == "sensor" else f"the unit label {given!r} in {where}"
+    try:
+        if quantity is None:
+            quantity = _quantity_for(given)
+            if quantity is None:
+                raise _WrongDimension(f"dimension {_dimension(_parse(given))}, which is none of "
+                                      f"{', '.join(f'{k} ({v})' for k, v in SI_UNITS.items())}")
+        si = SI_UNITS[quantity]
+        scale = unit_scale(given, si)
+    except ValueError as exc:
+        hint = ("" if source == "sensor"
+                else " Give the channel's unit in the sensor's unit key to override the file's label.")
+        if isinstance(exc, _WrongDimension):
+            if quantity is None:
+                need = f"any sensor quantity: it has {exc}"
+            else:
+                article = "an" if quantity[0] in "aeiou" else "a"
+                need = (f"quantity {quantity!r}: it has {exc}; {article} {quantity} channel needs a unit like "
+                        f"{SI_UNITS[quantity]!r}")
+            raise LatentForceError(f"{who}: unit {given!r} (from {origin}) does not fit {need}.{hint}") from None
+        raise LatentForceError(
+            f"{who}: unit {given!r} (from {origin}) is not a unit the units library (pint) knows "
+            f"({exc}); write it like \"m/s^2\", \"g\", \"mm\", \"um\", \"in/s\", \"N\", \"kN\" or "
+            f"\"ustrain\".{hint}") from None
+    return ChannelUnit(unit=given, si=si, scale=scale, source=source)
