@@ -64,6 +64,23 @@ def test_an_inferred_noise_enters_the_likelihood_as_a_known_one_does():
     assert abs(float(ll_other) - float(ll_known)) > 1.0
 
 
+def test_an_inferred_noise_keeps_its_channels_unit():
+    """With the channel in mm/s^2 the data are converted to SI but the noise parameter (and
+    its prior) stay in mm/s^2: R uses noise_std_acc * 1e-3."""
+    from latentforce.io.channels import noise_in_si
+    from latentforce.io.data import Dataset
+    from latentforce.io.units import resolve_unit
+
+    problem = config_from_dict(SDOF)
+    unit = resolve_unit("acceleration", "mm/s^2", None, who="sensor 'acc'", where="")
+    dataset = Dataset(time=np.arange(3) * 0.02, dt=0.02, values=np.zeros((3, 1)), mask=np.ones((3, 1), bool),
+                      columns=["acc"], truth={}, units={"acc": unit})
+    model = noise_in_si(problem, dataset).model
+    assert model.sensors[0].noise_scale == pytest.approx(1e-3)
+    R = np.asarray(model.noise_covariance({"noise_std_acc": 70.0}))
+    assert R[0, 0] == pytest.approx(0.07**2, rel=1e-12)
+
+
 def test_kalman_mcmc_recovers_a_simulated_noise_level():
     problem = config_from_dict(SDOF)
     true_sd = 0.05
