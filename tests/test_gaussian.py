@@ -115,3 +115,64 @@ def test_strong_cubic_term_the_unscented_transform_differs_from_the_tangent():
         sd = np.sqrt(np.asarray(out.covs)[:, pm.nm, pm.nm])
         inside = np.abs(np.asarray(sim.force)[:, 0] - np.asarray(out.means)[:, pm.nm]) < 3 * sd
         assert inside.mean() > 0.9
+
+
+DUFFING_CONFIG = """
+[data]
+path = "data.csv"
+
+[system]
+type = "duffing"
+m = 1.0
+c = {c}
+k = 20.0
+k3 = 200.0
+
+[force]
+kernel = "matern32"
+variance = 4.0
+lengthscale = 0.3
+
+[[sensors]]
+column = "acc"
+quantity = "acceleration"
+noise_std = 0.05
+
+[inference]
+method = "{method}"
+{extra}
+"""
+
+
+def test_ekf_and_ukf_as_methods_write_result_folders(tmp_path, monkeypatch):
+    """Fixed parameters: the smoother's marginals, a deterministic result (converged, no draws);
+    an inferred parameter (the damping of a Duffing system, which pgas cannot infer): random-walk
+    Metropolis on the approximate likelihood, with its verdict and the states mixed over the draws."""
+    import json
+
+    import arviz as az
+    from typer.testing import CliRunner
+
+    from latentforce.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    runner = CliRunner()
+    (tmp_path / "ukf.toml").write_text(DUFFING_CONFIG.format(c=0.5, method="ukf", extra=""))
+    r = runner.invoke(app, ["simulate", "ukf.toml", "--out", "data.csv", "--duration", "4", "--sample-rate", "50"])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["estimate", "ukf.toml", "--out", "fixed", "--strict"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((tmp_path / "fixed" / "summary.json").read_text())
+    assert summary["method"] == "ukf" and summary["converged"] is True and summary["nmse"]["force"] < 60.0
+    tree = az.from_netcdf(tmp_path / "fixed" / "posterior.nc")
+    assert "force_mean" in tree.posterior and "force_sd" in tree.posterior
+    prior = '{ prior = "lognormal", mu = -0.7, sigma = 1.0, init = 1.0 }'
+    (tmp_path / "ekf.toml").write_text(DUFFING_CONFIG.format(c=prior, method="ekf",
+                                                              extra="iterations = 60\nburn_in = 40\nchains = 2"))
+    r = runner.invoke(app, ["estimate", "ekf.toml", "--out", "free"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((tmp_path / "free" / "summary.json").read_text())
+    assert summary["method"] == "ekf" and summary["converged"] is False  # 60 draws: said so
+    assert {"mean", "sd", "r_hat", "ess_bulk"} <= set(summary["parameters"]["c"])
+    tree = az.from_netcdf(tmp_path / "free" / "posterior.nc")
+    assert tree.posterior["c"].shape[0] == 2 and "force" in tree.posterior

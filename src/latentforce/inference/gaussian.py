@@ -117,6 +117,54 @@ def _update(m, P, y_hat, S_h, C, R, y, mask):
     return m_f, P_f, ll
 
 
+def _filter_pass(kind, f, h, Q, R, m1, P1, y, mask):
+    """The forward pass: filtered and predicted moments, cross-covariances, log-likelihood terms."""
+    y = jnp.where(mask, y, 0.0)
+
+    def _filter(carry, inputs):
+        m_p, P_p = carry
+        y_t, mask_t = inputs
+        y_hat, S_h, C = _linearised(kind, h, m_p, P_p)
+        m_f, P_f, ll = _update(m_p, P_p, y_hat, S_h, C, R, y_t, mask_t)
+        m_next, P_fx, C_next = _linearised(kind, f, m_f, P_f)
+        P_next = symmetrise(P_fx + Q)
+        return (m_next, P_next), (m_f, P_f, m_next, P_next, C_next, ll)
+
+    _, out = jax.lax.scan(_filter, (m1, P1), (y, mask))
+    return out
+
+
+def gaussian_log_likelihood(kind: str, pm: smc.ParticleModel, tr: smc.Transition, y, mask,
+                            R=None) -> Float[Array, ""]:
+    """The filter's approximate :math:`\log p(y)` alone (no smoothing pass)."""
+    f, h, Q, m1, P1 = model_functions(pm, tr)
+    R = pm.R if R is None else R
+    lls = _filter_pass(kind, f, h, Q, R, m1, P1, jnp.asarray(y, dtype=float), jnp.asarray(mask, dtype=bool))[-1]
+    return jnp.sum(lls)
+
+
+def for_parameters(kind: str, model, dt: float, discretisation: str = "rk4", initial=None):
+    """``(loglik, smoother)``: ``loglik(params, y, mask)`` and ``smoother(params, y, mask, key=None)``
+    of the ``kind`` filter with every number taken from ``params`` (jittable, differentiable: the
+    samplers' model is built inside, :class:`smc.ParticleModel`); ``initial`` the mechanical
+    states' ``(mean, sd|cov)`` as for ``pgas``."""
+
+    def build(params):
+        pm = smc.ParticleModel(model, params, dt, discretisation, initial)
+        tr = pm.transition(params["force_variance"], params["force_lengthscale"])
+        return pm, tr, model.noise_covariance(params)
+
+    def loglik(params, y, mask):
+        pm, tr, R = build(params)
+        return gaussian_log_likelihood(kind, pm, tr, y, mask, R)
+
+    def smoother(params, y, mask, key=None):
+        pm, tr, R = build(params)
+        return gaussian_smoother(kind, pm, tr, y, mask, R, key)
+
+    return loglik, smoother
+
+
 def gaussian_smoother(kind: str, pm: smc.ParticleModel, tr: smc.Transition, y, mask, R=None,
                       key=None) -> GaussianSmoother:
     """The ``kind`` (``"ekf"`` or ``"ukf"``) filter and RTS-type smoother of the module doc.
@@ -131,18 +179,7 @@ def gaussian_smoother(kind: str, pm: smc.ParticleModel, tr: smc.Transition, y, m
     R = pm.R if R is None else R
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool)
-    y = jnp.where(mask, y, 0.0)
-
-    def _filter(carry, inputs):
-        m_p, P_p = carry
-        y_t, mask_t = inputs
-        y_hat, S_h, C = _linearised(kind, h, m_p, P_p)
-        m_f, P_f, ll = _update(m_p, P_p, y_hat, S_h, C, R, y_t, mask_t)
-        m_next, P_fx, C_next = _linearised(kind, f, m_f, P_f)
-        P_next = symmetrise(P_fx + Q)
-        return (m_next, P_next), (m_f, P_f, m_next, P_next, C_next, ll)
-
-    _, (mf, Pf, mp, Pp, Cs, lls) = jax.lax.scan(_filter, (m1, P1), (y, mask))
+    mf, Pf, mp, Pp, Cs, lls = _filter_pass(kind, f, h, Q, R, m1, P1, y, mask)
     # gains G_t = C_{t,t+1} P_p(t+1)^{-1}, t < T-1 (a relative jitter keeps P_p invertible)
     Pp_n, C_n = Pp[:-1], Cs[:-1]
     G = jax.vmap(lambda pp, c: solve(pp + 1e-12 * jnp.diag(jnp.diagonal(pp)), c.T).T)(Pp_n, C_n)
