@@ -14,7 +14,7 @@ from typing import Callable
 import jax
 import numpy as np
 
-from latentforce.compile import require_x64
+from latentforce.compile import jit, require_x64, shared_jit
 from latentforce.errors import LatentForceError
 from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth, state_moments
 from latentforce.io.channels import channel_units, noise_in_si
@@ -136,15 +136,65 @@ def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callabl
         result = _run_kalman_sampler(key, problem, dataset, y, mask, initial, common, progress, t0, extras)
         return result, extras
 
+    if settings.method in ("ekf", "ukf"):
+        return _run_gaussian(key, problem, dataset, params0, y, mask, common, progress, t0, extras), extras
+
     if settings.method == "pgas":
         return _run_pgas(key, problem, dataset, params0, y, mask, common, progress, t0, channels), extras
 
     raise LatentForceError(f"Unknown inference method {settings.method!r}.")  # config validates this
 
 
+def _mechanical_initial(problem: Problem, params0: dict):
+    """The mechanical states' ``(mean, cov)`` start of the particle sampler's model (``pgas``,
+    ``ekf``, ``ukf``): the user's ``[initial]``; else None for a linear system (the joint
+    stationary start at each parameter value), the model's near-rest default for a nonlinear one."""
+    model = problem.model
+    nm = model.n_mech
+    if problem.initial is not None:
+        mean, cov = problem.initial
+        return np.asarray(mean)[:nm], np.asarray(cov)[:nm, :nm]
+    if model.system.is_linear:
+        return None
+    # one compiled program: op by op its small solves compiled some dozens of programs
+    m0, P0 = shared_jit(model.default_initial)(params0)
+    return np.asarray(m0)[:nm], np.asarray(P0)[:nm, :nm]
+
+
+def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict, progress,
+                  t0: float, extras: dict) -> RunResult:
+    """``ekf`` / ``ukf``: the Gaussian smoother at fixed parameters, or random-walk Metropolis over the
+    inferred ones on its approximate likelihood with the states mixed over the draws."""
+    from latentforce.inference.gaussian import for_parameters
+    from latentforce.inference.kalman_mcmc import state_moments
+
+    model, settings = problem.model, problem.inference
+    loglik, smoother = for_parameters(settings.method, model, dataset.dt, settings.discretisation,
+                                      _mechanical_initial(problem, params0))
+    if problem.free:
+        return _run_kalman_sampler(key, problem, dataset, y, mask, None, common, progress, t0, extras,
+                                   gaussian=(loglik, smoother))
+    y0 = np.where(mask, y, 0.0)
+    sm = jit(smoother)({k: np.asarray(v, dtype=float) for k, v in params0.items()}, y0, mask)
+    if not np.isfinite(float(sm.log_likelihood)):
+        raise LatentForceError(f"The {settings.method.upper()} log-likelihood is not finite for the configured "
+                               f"model in {problem.config_path}: check the parameter values and units.")
+    mom = state_moments(model, sm.means, sm.covs)
+    return RunResult(
+        method=settings.method, state_mean={k: np.asarray(v[0]) for k, v in mom.items()},
+        state_sd={k: np.asarray(v[1]) for k, v in mom.items()}, param_draws={}, path_draws={},
+        sample_stats={}, acceptance=[], log_likelihood=float(sm.log_likelihood),
+        convergence={"converged": True, "exact": False,
+                     "note": f"{settings.method}: a deterministic Gaussian approximation (no sampling error); "
+                             "for a nonlinear system its bands may be too narrow"},
+        diagnostics={"discretisation": settings.discretisation},
+        wall_time_s=_time.perf_counter() - t0, **common)
+
+
 def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initial, common: dict, progress,
-                        t0: float, extras: dict) -> RunResult:
-    """``kalman-mcmc`` or ``kalman-nuts``: parameter draws, then the states mixed over them."""
+                        t0: float, extras: dict, gaussian=None) -> RunResult:
+    """``kalman-mcmc`` or ``kalman-nuts``: parameter draws, then the states mixed over them
+    (``gaussian = (loglik, smoother)``: ``ekf``/``ukf`` with random-walk Metropolis)."""
     from latentforce.inference import convergence
     from latentforce.inference.kalman_nuts import run_kalman_nuts
     from latentforce.inference.mixture import mixture_posterior
@@ -153,17 +203,19 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     settings = problem.inference
     key_mcmc, key_mix = jax.random.split(key)
     free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
-    runner = run_kalman_mcmc if settings.method == "kalman-mcmc" else run_kalman_nuts
+    runner = run_kalman_nuts if settings.method == "kalman-nuts" else run_kalman_mcmc
+    loglik, smoother = gaussian if gaussian is not None else (None, None)
     out = runner(key_mcmc, model, dict(problem.fixed), free, y, mask, dataset.dt,
                  iterations=settings.iterations, burn_in=settings.burn_in, chains=settings.chains,
-                 initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time)
+                 initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time,
+                 **({"loglik": loglik} if loglik is not None else {}))
     pooled = {n: d.reshape(-1) for n, d in out.draws.items()}
     point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
     point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
     # The paper's estimate: the smoother at the CDF median of each parameter.
     median = {n: float(np.median(v)) for n, v in pooled.items()}
     mix = mixture_posterior(key_mix, model, dict(problem.fixed), out.draws, y, mask, dataset.dt,
-                            thin_draws=settings.thin_draws, initial=initial, point=median)
+                            thin_draws=settings.thin_draws, initial=initial, point=median, smoother=smoother)
     mom_median, ll_median = mix.point
     extras["median_smoother"] = mom_median
     n_draws = next(iter(out.draws.values())).shape[1]
@@ -224,15 +276,7 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
     # start from their stationary GP distribution); else for a linear system the joint
     # stationary distribution at the current hyperparameters (smc.ParticleModel), for a
     # nonlinear one the model's near-rest default at the initial hyperparameters.
-    initial = None
-    nm = model.n_mech
-    if problem.initial is not None:
-        mean, cov = problem.initial
-        initial = (np.asarray(mean)[:nm], np.asarray(cov)[:nm, :nm])
-    elif not model.system.is_linear:
-        # one compiled program: op by op its small solves compiled some dozens of programs
-        m0, P0 = shared_jit(model.default_initial)(params0)
-        initial = (np.asarray(m0)[:nm], np.asarray(P0)[:nm, :nm])
+    initial = _mechanical_initial(problem, params0)
     # PGAS needs a conditional resampling scheme; multinomial is the valid one we have.
     out = run_pgas(key, model, params0, free, np.where(mask, y, np.nan), mask, dataset.dt,
                    particles=settings.particles, iterations=settings.iterations, burn_in=settings.burn_in,

@@ -382,8 +382,8 @@ def _to_datatree(result: RunResult) -> xr.DataTree:
     posterior = xr.Dataset(coords=time_coord)
     for name, draws in result.param_draws.items():
         posterior[name] = (("chain", "draw"), _as_chain_draw(name, draws))
-    if result.method == "kalman":
-        # Nothing sampled: the posterior is the smoother's Gaussian marginals.
+    if not result.param_draws and not result.path_draws:
+        # Nothing sampled (kalman; ekf/ukf with every parameter fixed): the smoother's marginals.
         for state in _ordered_states(result.state_mean):
             width = _width(result, state, result.state_mean[state])
             dims = ("time",) if width == 1 else ("time", _component_dim(state))
@@ -635,7 +635,7 @@ def read_results(out_dir: Path) -> RunResult:
         csv_time, state_mean, state_sd = _read_summary_csv(csv_path)
         if time.size == 0:
             time = csv_time
-    elif method == "kalman":
+    else:  # nothing sampled: the smoother's means and sds are in posterior.nc
         for name, v in posterior.data_vars.items():
             m = _COLUMN.match(name)
             if m and m.group("index") is None:

@@ -108,8 +108,12 @@ class MCMCOutput(NamedTuple):
 
 
 def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
-                     dt: float, initial: Initial | None = None, complete: bool = True) -> Callable:
+                     dt: float, initial: Initial | None = None, complete: bool = True,
+                     loglik: Callable | None = None) -> Callable:
     """``logpost(x, y, mask)`` of the unconstrained parameter vector ``x`` (data as arguments).
+
+    ``loglik(params, y, mask)``, when given, replaces the exact Kalman
+    log-likelihood (the ``ekf``/``ukf`` methods' approximate one).
 
     The record is an argument, not a constant of the program, so records of
     one shape share one compiled sampler. ``complete`` (every sample of
@@ -124,8 +128,11 @@ def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...
         return params
 
     def logpost(x, y, mask):
-        lg = linear_gaussian(model, params_of(x), dt, initial)
-        ll = log_likelihood_complete(*lg, y) if complete else log_likelihood(*lg, y, mask)
+        if loglik is not None:
+            ll = loglik(params_of(x), y, mask)
+        else:
+            lg = linear_gaussian(model, params_of(x), dt, initial)
+            ll = log_likelihood_complete(*lg, y) if complete else log_likelihood(*lg, y, mask)
         lp = sum(log_prob_unconstrained(prior, x[i]) for i, prior in enumerate(priors))
         return lp + ll
 
@@ -205,7 +212,8 @@ def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains:
 def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
                     progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
-                    max_time: float = 600.0, use_modes: bool = True, adapt_shape: bool = True) -> MCMCOutput:
+                    max_time: float = 600.0, use_modes: bool = True, adapt_shape: bool = True,
+                    loglik: Callable | None = None) -> MCMCOutput:
     """Random-walk Metropolis over the ``free`` parameters (Algorithm 1, ISMA 2018).
 
     ``free`` maps a parameter name to ``(prior, init)``; ``fixed`` holds the
@@ -224,7 +232,7 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     priors = tuple(free[n][0] for n in names)
     inits = np.array([float(free[n][1]) for n in names])
     complete = bool(np.all(mask))
-    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete)
+    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete, loglik)
     data = (jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask))
     p = len(names)
     target = mcmc.target_acceptance(p)

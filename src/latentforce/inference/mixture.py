@@ -60,7 +60,7 @@ def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int)
     return per_chain, max(paths, 1)
 
 
-def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, with_path: bool,
+def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, smoother, with_path: bool,
          use_steady: bool, key, theta, y, mask):
     """One draw's smoothed means, variances, (path) and log-likelihood; a flag that it is exact."""
     from latentforce.inference.kalman_mcmc import linear_gaussian
@@ -68,6 +68,10 @@ def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial,
     params = dict(fixed)
     for i, n in enumerate(names):
         params[n] = theta[i]
+    if smoother is not None:  # ekf / ukf (inference/gaussian.py)
+        sm = smoother(params, y, mask, key if with_path else None)
+        var = jnp.diagonal(sm.covs, axis1=-2, axis2=-1)
+        return sm.means, var, sm.path if with_path else jnp.zeros(()), sm.log_likelihood, jnp.ones((), bool)
     A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
     if use_steady:
         sm = steady.steady_smoother(A, Q, H, R, m0, P0, y, key if with_path else None)
@@ -80,8 +84,12 @@ def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial,
 
 
 def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y, mask, dt: float, *,
-                      thin_draws: int = 200, initial=None, point: dict | None = None) -> Mixture:
-    """The mixed state posterior over thinned ``draws`` ``{name: (chains, n)}``; see the module doc."""
+                      thin_draws: int = 200, initial=None, point: dict | None = None,
+                      smoother=None) -> Mixture:
+    """The mixed state posterior over thinned ``draws`` ``{name: (chains, n)}``; see the module doc.
+
+    ``smoother(params, y, mask, key)`` replaces the exact Kalman smoother (``ekf``/``ukf``:
+    :func:`latentforce.inference.gaussian.for_parameters`)."""
     names = tuple(draws)
     chains, n_iter = next(iter(draws.values())).shape
     T, n = np.shape(y)[0], model.n_state
@@ -96,12 +104,12 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     is_path[:, path_slots] = True
 
     # A complete long record: covariances in steady state (O(T n) memory per draw), else the full smoother.
-    use_steady = steady.applies(T, bool(np.all(mask)))
+    use_steady = smoother is None and steady.applies(T, bool(np.all(mask)))
     per_draw = T * (4 * n + 2) * 8 if use_steady else T * (4 * n * n + 4 * n) * 8
     batch = int(max(1, min(16, BATCH_BUDGET_BYTES // per_draw)))
     y = jnp.asarray(np.where(mask, y, 0.0))
     mask = jnp.asarray(mask)
-    static = (model, fixed, names, dt, initial)
+    static = (model, fixed, names, dt, initial, smoother)
     programs = {(wp, st): jit(jax.vmap(functools.partial(_one, *static, wp, st), in_axes=(0, 0, None, None)))
                 for wp in (True, False) for st in {use_steady, False}}
 

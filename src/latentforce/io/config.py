@@ -53,7 +53,7 @@ __all__ = [
     "load_config",
 ]
 
-METHODS = ("kalman", "kalman-mcmc", "pgas")
+METHODS = ("kalman", "kalman-mcmc", "kalman-nuts", "pgas", "ekf", "ukf")
 # In the interface but without an implementation yet.
 PLANNED_SYSTEM_TYPES = ("bouc-wen",)
 # Parameters PGAS may infer in this version (Algorithm 4, Vibration 2020,
@@ -61,7 +61,7 @@ PLANNED_SYSTEM_TYPES = ("bouc-wen",)
 PGAS_FREE_OK = ("force_variance", "force_lengthscale")
 #: warm-up iterations per chain when [inference].burn_in is not given: the Kalman
 #: samplers start at the posterior's modes (Laplace), so a short warm-up adapts them
-DEFAULT_BURN_IN = {"kalman": 0, "kalman-mcmc": 500, "kalman-nuts": 300, "pgas": 1000}
+DEFAULT_BURN_IN = {"kalman": 0, "kalman-mcmc": 500, "kalman-nuts": 300, "pgas": 1000, "ekf": 500, "ukf": 500}
 
 
 # ----- the result ------------------------------------------------------------
@@ -195,7 +195,7 @@ class _InitialSection(_Strict):
 
 
 class _InferenceSection(_Strict):
-    method: Literal["kalman", "kalman-mcmc", "kalman-nuts", "pgas"] | None = None
+    method: Literal["kalman", "kalman-mcmc", "kalman-nuts", "pgas", "ekf", "ukf"] | None = None
     particles: int = Field(default=50, ge=2)
     iterations: Annotated[int, Field(ge=1)] | Literal["auto"] = "auto"
     burn_in: int | None = Field(default=None, ge=0)
@@ -597,7 +597,8 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
     method = inf.method or _default_method(system.is_linear, free)
     if method in ("kalman", "kalman-mcmc", "kalman-nuts") and not system.is_linear:
         raise fail("[inference].method", f"method {method!r} needs a linear system but [system].type is "
-                                         f"{cfg.system.type!r}; use method = \"pgas\".")
+                                         f"{cfg.system.type!r}; use method = \"pgas\" (or the Gaussian "
+                                         f"approximations \"ekf\", \"ukf\").")
     if method == "kalman" and free:
         names = ", ".join(_free_key(n) for n in free)
         raise fail("[inference].method", f"method \"kalman\" needs every parameter fixed, but {names} "
@@ -612,7 +613,8 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
             if name not in PGAS_FREE_OK:
                 raise fail(_free_key(name), f"method \"pgas\" can infer only the force variance and "
                                             f"lengthscale in this version; give {name} as a number, or "
-                                            f"use method = \"kalman-mcmc\" for a linear system.")
+                                            f"use method = \"kalman-mcmc\" for a linear system, or "
+                                            f"\"ekf\" / \"ukf\" (Gaussian approximations) for any system.")
     settings = InferenceSettings(
         method=method, particles=inf.particles,
         iterations=None if inf.iterations == "auto" else inf.iterations,
