@@ -265,7 +265,6 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
 def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict,
               progress, t0: float, channels=None) -> RunResult:
     """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
-    from latentforce.compile import shared_jit
     from latentforce.inference import convergence
     from latentforce.inference.pgas import run_pgas
 

@@ -136,7 +136,7 @@ def _filter_pass(kind, f, h, Q, R, m1, P1, y, mask):
 
 def gaussian_log_likelihood(kind: str, pm: smc.ParticleModel, tr: smc.Transition, y, mask,
                             R=None) -> Float[Array, ""]:
-    """The filter's approximate :math:`\log p(y)` alone (no smoothing pass)."""
+    r"""The filter's approximate :math:`\log p(y)` alone (no smoothing pass)."""
     f, h, Q, m1, P1 = model_functions(pm, tr)
     R = pm.R if R is None else R
     lls = _filter_pass(kind, f, h, Q, R, m1, P1, jnp.asarray(y, dtype=float), jnp.asarray(mask, dtype=bool))[-1]
