@@ -176,3 +176,23 @@ def test_ekf_and_ukf_as_methods_write_result_folders(tmp_path, monkeypatch):
     assert {"mean", "sd", "r_hat", "ess_bulk"} <= set(summary["parameters"]["c"])
     tree = az.from_netcdf(tmp_path / "free" / "posterior.nc")
     assert tree.posterior["c"].shape[0] == 2 and "force" in tree.posterior
+
+
+def test_variances_fifteen_orders_apart_keep_the_unscented_smoother_stable():
+    """A short-lengthscale Matérn-3/2 force (derivative variance ~1e5) beside the within-step
+    displacement noise (~1e-10): the sigma points and gains must be taken on the correlation scale
+    (an unscaled square root dropped the displacement's spread and the smoother diverged)."""
+    model = LatentForceModel(Duffing(), Matern(1), [Sensor("acceleration", 0, 0.3), Sensor("displacement", 0, 2e-4)])
+    params = dict(m=1.0, c=2.0, k=400.0, k3=4e5, force_variance=100.0, force_lengthscale=0.05)
+    sim = simulate(jax.random.key(0), model, params, 256, 0.01)
+    y = jnp.asarray(measure(jax.random.key(1), sim, model.sensors))
+    m0, P0 = model.default_initial(params)
+    pm = smc.ParticleModel(model, params, 0.01, initial=(m0[:2], P0[:2, :2]))
+    tr = pm.transition(100.0, 0.05)
+    truth = np.asarray(sim.force)[:, 0]
+    for kind in ("ekf", "ukf"):
+        out = gaussian_smoother(kind, pm, tr, y, jnp.ones(y.shape, bool), key=jax.random.key(2))
+        mean, sd = np.asarray(out.means)[:, pm.nm], np.sqrt(np.asarray(out.covs)[:, pm.nm, pm.nm])
+        assert 100 * np.mean((mean - truth) ** 2) / np.var(truth) < 1.0, kind
+        assert np.mean(np.abs(mean - truth) < 3 * sd) > 0.95, kind
+        assert np.all(np.isfinite(np.asarray(out.path)))
