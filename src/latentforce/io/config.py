@@ -36,6 +36,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError
 
 from latentforce.errors import LatentForceError
+from latentforce.io.channels import check_sensor, validate_outputs
 from latentforce.kernels import KERNELS, kernel_from_name
 from latentforce.models import LatentForceModel, Sensor
 from latentforce.priors import PRIOR_PARAMS, Prior, prior_from_spec
@@ -110,6 +111,7 @@ class Problem(NamedTuple):
     inference: InferenceSettings
     data: DataSettings
     config_path: Path
+    outputs: tuple = ()  # latentforce.outputs.OutputSpec per [[outputs]] table
 
 
 # ----- stage 1: shape, by pydantic -------------------------------------------
@@ -171,9 +173,19 @@ class _ForceSection(_Strict):
 
 class _SensorSection(_Strict):
     column: str
-    quantity: Literal["displacement", "velocity", "acceleration"]
+    quantity: Literal["displacement", "velocity", "acceleration", "strain", "force"]
     dof: int = Field(default=0, ge=0)
     noise_std: float = Field(gt=0)
+    coefficients: list[float] | None = None  # strain: one per DOF
+
+
+class _OutputSection(_Strict):
+    name: str
+    unit: str = ""
+    displacement: list[float] | None = None
+    velocity: list[float] | None = None
+    acceleration: list[float] | None = None
+    force: list[float] | None = None
 
 
 class _InitialSection(_Strict):
@@ -205,6 +217,7 @@ class _ConfigFile(_Strict):
     sensors: list[_SensorSection] = Field(min_length=1)
     initial: _InitialSection | None = None
     inference: _InferenceSection = Field(default_factory=_InferenceSection)
+    outputs: list[_OutputSection] = Field(default_factory=list)
 
 
 _SECTIONS: dict[str, type[BaseModel]] = {
@@ -214,6 +227,7 @@ _SECTIONS: dict[str, type[BaseModel]] = {
     "sensors": _SensorSection,
     "initial": _InitialSection,
     "inference": _InferenceSection,
+    "outputs": _OutputSection,
 }
 
 
@@ -226,7 +240,7 @@ def _key(loc: tuple) -> str:
     # The discriminated union puts its tag after the parameter name.
     if head in ("system", "force") and len(rest) >= 2 and rest[1] in _UNION_TAGS:
         del rest[1]
-    out = "[[sensors]]" if head == "sensors" else f"[{head}]"
+    out = f"[[{head}]]" if head in ("sensors", "outputs") else f"[{head}]"
     for part in rest:
         out += f"[{part}]" if isinstance(part, int) else f".{part}"
     return out
@@ -265,9 +279,9 @@ def _from_validation_error(source: str, exc: ValidationError) -> LatentForceErro
         return LatentForceError(f"{source}: {what} is required but missing.")
     if kind in ("model_type", "dict_type"):
         return LatentForceError(f"{source}: {key} must be a table.")
-    if kind == "list_type" and loc == ("sensors",):
-        return LatentForceError(f"{source}: {key} must be an array of tables: write each sensor "
-                                f"under its own [[sensors]] header.")
+    if kind == "list_type" and loc in (("sensors",), ("outputs",)):
+        return LatentForceError(f"{source}: {key} must be an array of tables: write each one "
+                                f"under its own {key} header.")
     if kind == "too_short" and loc == ("sensors",):
         return LatentForceError(f"{source}: at least one [[sensors]] table is required.")
     shown = "" if isinstance(err.get("input"), (dict, list)) else f" = {err.get('input')!r}"
@@ -520,8 +534,11 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
             raise fail(f"[[sensors]][{i}].column", f"column {sen.column!r} is already used by sensor "
                                                    f"{seen[sen.column]}.")
         seen[sen.column] = i
-        sensors.append(Sensor(sen.quantity, sen.dof, float(sen.noise_std), name=sen.column))
+        check_sensor(fail, i, sen, system)
+        sensors.append(Sensor(sen.quantity, sen.dof, float(sen.noise_std), name=sen.column,
+                              coefficients=None if sen.coefficients is None else tuple(sen.coefficients)))
     model = LatentForceModel(system, kernel, sensors)
+    outputs = validate_outputs(fail, [o.model_dump() for o in cfg.outputs], model)
 
     initial = None
     if cfg.initial is not None:
@@ -569,7 +586,7 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
     data = DataSettings(path=path, time_column=time_column, sample_rate=dat.sample_rate, missing=dat.missing)
 
     return Problem(model=model, fixed=fixed, free=free, columns=[s.name for s in sensors],
-                   initial=initial, inference=settings, data=data, config_path=Path(source))
+                   initial=initial, inference=settings, data=data, config_path=Path(source), outputs=outputs)
 
 
 _TOML_POSITION = re.compile(r"\(at line (\d+), column (\d+)\)")
