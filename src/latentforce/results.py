@@ -679,7 +679,9 @@ def read_results(out_dir: Path) -> RunResult:
         param_summary=summary.get("parameters") or None,
         seed=int(summary.get("seed", attrs.get("seed", 0)) or 0),
         wall_time_s=_float(summary.get("wall_time_s", 0.0)),
-        fixed={k: _float(v) for k, v in (summary.get("fixed") or {}).items()},
+        # MDOF matrices (M, C, K) are lists
+        fixed={k: (np.asarray(v, dtype=float) if isinstance(v, list) else _float(v))
+               for k, v in (summary.get("fixed") or {}).items()},
         convergence=None if method == "kalman" else dict(summary.get("convergence") or {}),
         outputs=outputs,
         force_psd=_read_force_psd(out_dir),

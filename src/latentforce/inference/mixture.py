@@ -62,7 +62,7 @@ def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int)
 
 def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, outputs: tuple,
          with_path: bool, use_steady: bool, key, theta, y, mask):
-    """One draw's smoothed means, variances, (path) and log-likelihood; a flag that it is exact.
+    r"""One draw's smoothed means, variances, (path) and log-likelihood; a flag that it is exact.
 
     With ``outputs`` (:class:`latentforce.outputs.OutputSpec`), the state columns are followed by
     the outputs :math:`G_\theta x`: means :math:`G m_t`, variances

@@ -71,7 +71,7 @@ def _close(a, b, tol=TOL):
 
 def steady_smoother(A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int | None = None,
                     rows=None) -> SteadySmoother:
-    """Smoothed means, variances and log-likelihood of a complete record (module doc).
+    r"""Smoothed means, variances and log-likelihood of a complete record (module doc).
 
     With ``key``, also one trajectory drawn from the smoothing distribution
     (forward filtering, backward sampling; Carter & Kohn 1994). With ``rows``
