@@ -56,8 +56,9 @@ def test_pgas_with_a_load_cell_matches_the_exact_smoother():
         m_ex, s_ex = exact.state_mean[name][:, 0], exact.state_sd[name][:, 0]
         m, s = out.state_mean[name][:, 0], out.state_sd[name][:, 0]
         nmse = np.mean((m - m_ex) ** 2) / np.var(m_ex)
-        assert nmse < 0.01, (name, nmse)
-        assert np.mean(np.abs(s / s_ex - 1.0)) < 0.15, (name, s / s_ex)
+        # measured (seed 3): NMSE 1e-6 to 1e-4, mean |sd ratio - 1| 0.014 to 0.024
+        assert nmse < 1e-3, (name, nmse)
+        assert np.mean(np.abs(s / s_ex - 1.0)) < 0.06, (name, s / s_ex)
     # the outputs are those of the stored paths; the force spectrum from them
     p = out.path_draws
     assert p["spring"].shape == p["displacement"].shape
