@@ -302,3 +302,36 @@ def test_mass_warning_without_a_force_channel():
     (msg,) = warnings_for([acc])
     assert "mass (m)" in msg and "force" in msg
     assert warnings_for([acc, load]) == []
+
+
+def test_outputs_and_mass_warning_through_kalman_mcmc(tmp_path):
+    """kalman-mcmc end to end: the outputs are mixed (in the result, its paths and its files), and a
+    run inferring m with only motion measured warns."""
+    d = {
+        "system": {"type": "linear", "m": {"prior": "lognormal", "mu": 0.0, "sigma": 0.3, "init": 1.0},
+                   "c": 0.4, "k": 10.0},
+        "force": {"kernel": "matern12", "variance": 1.0, "lengthscale": 0.5},
+        "sensors": [{"column": "acc", "quantity": "acceleration", "noise_std": 0.2}],
+        "outputs": [{"name": "acc_model", "unit": "m/s^2", "acceleration": [1.0]}],
+        "inference": {"method": "kalman-mcmc", "iterations": 100, "burn_in": 100, "chains": 2},
+    }
+    problem = config_from_dict(d, source="c.toml")
+    model = problem.model
+    T, dt = 40, 0.05
+    y = simulate_lg(*linear_gaussian(model, dict(m=1.0, c=0.4, k=10.0, force_variance=1.0,
+                                                 force_lengthscale=0.5), dt), T, np.random.default_rng(3))
+    ds = Dataset(np.arange(T) * dt, dt, y, np.ones((T, 1), bool), ["acc"], {})
+    result, _ = estimate.run(problem, ds, seed=0)
+    assert any("no sensor measures the force" in w for w in result.diagnostics["warnings"])
+    p = result.path_draws
+    m_draw = result.param_draws["m"]
+    hand = (p["force"] - 0.4 * p["velocity"] - 10.0 * p["displacement"])[..., 0] / m_draw[:, :, None]
+    np.testing.assert_allclose(p["acc_model"][..., 0], hand, rtol=1e-9, atol=1e-9)
+    assert result.state_sd["acc_model"].shape == (T, 1) and np.all(result.state_sd["acc_model"] > 0)
+    write_results(tmp_path / "o", result, figures=False)
+    import xarray as xr
+    with xr.open_datatree(tmp_path / "o" / "posterior.nc", engine="h5netcdf") as tree:
+        post = tree["posterior"]
+        assert post["acc_model"].dims == ("chain", "draw", "time")
+        np.testing.assert_allclose(post["acc_model_mean"].values, result.state_mean["acc_model"][:, 0])
+        assert post["acc_model_sd"].attrs["units"] == "m/s^2"

@@ -35,6 +35,8 @@ __all__ = ["prior_psd", "welch_psd", "force_psd_table", "kalman_force_samples", 
 
 #: smoothing-distribution draws the ``kalman`` spectrum is estimated from
 PSD_SAMPLES = 64
+#: samples x draws of the ``kalman`` spectrum's backward passes at most (but 16 draws at least)
+PATH_SAMPLE_BUDGET = 2_000_000
 #: Welch segment length at most (scipy's default); shorter records use the whole record
 NPERSEG = 256
 
@@ -121,7 +123,9 @@ def force_spectrum(key, problem, result, params: dict, y, mask, dt: float, initi
     """The ``force_psd.csv`` table of a run (module doc); ``None`` where no force path exists."""
     model = problem.model
     if result.method == "kalman":
-        paths = kalman_force_samples(key, model, params, y, mask, dt, initial)
+        # 64 draws, fewer on long records (each is a backward pass over the record), at least 16
+        n = int(np.clip(PATH_SAMPLE_BUDGET // max(len(y), 1), 16, PSD_SAMPLES))
+        paths = kalman_force_samples(key, model, params, y, mask, dt, initial, n=n)
     else:
         f = result.path_draws.get("force")
         if f is None or np.size(f) == 0:
