@@ -31,7 +31,8 @@ samplers, and a figure ``figures/output_NAME.png``.
 
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -40,7 +41,7 @@ from jaxtyping import Array, Float
 
 from latentforce.models import LatentForceModel
 
-__all__ = ["OutputSpec", "output_matrix", "gaussian_moments", "path_outputs", "sample_moments"]
+__all__ = ["OutputSpec", "gaussian_moments", "output_matrix", "path_outputs", "sample_moments"]
 
 
 class OutputSpec(NamedTuple):

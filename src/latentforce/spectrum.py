@@ -31,7 +31,7 @@ from scipy.signal import welch
 
 from latentforce.kernels import KernelParams
 
-__all__ = ["prior_psd", "welch_psd", "force_psd_table", "kalman_force_samples", "force_spectrum", "PSD_SAMPLES"]
+__all__ = ["PSD_SAMPLES", "force_psd_table", "force_spectrum", "kalman_force_samples", "prior_psd", "welch_psd"]
 
 #: smoothing-distribution draws the ``kalman`` spectrum is estimated from
 PSD_SAMPLES = 64

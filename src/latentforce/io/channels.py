@@ -9,7 +9,7 @@ factory ``fail(key, message)``, so that every problem is a one-paragraph
 from __future__ import annotations
 
 import re
-from typing import Callable
+from collections.abc import Callable
 
 from latentforce.outputs import OutputSpec
 
