@@ -173,7 +173,7 @@ def test_bad_values_name_the_key():
     _bad(_edit(DUFFING, ["system", "m"], "heavy"), "[system].m", "number")
     _bad(_edit(DUFFING, ["system", "k3"], float("nan")), "[system].k3", "finite")
     _bad(_edit(DUFFING, ["sensors", 0, "noise_std"], 0.0), "[[sensors]][0].noise_std", "must be positive")
-    _bad(_edit(DUFFING, ["sensors", 0, "quantity"], "strain"), "[[sensors]][0].quantity", "'acceleration'")
+    _bad(_edit(DUFFING, ["sensors", 0, "quantity"], "jerk"), "[[sensors]][0].quantity", "'acceleration'")
     _bad(_edit(DUFFING, ["sensors", 1, "dof"], 1), "[[sensors]][1].dof", "'disp'", "only DOF 0")
     _bad(_edit(DUFFING, ["sensors", 1, "column"], "acc"), "[[sensors]][1].column", "already used")
     _bad(_edit(DUFFING, ["force", "kernel"], "matern42"), "[force].kernel", "matern12, matern32")

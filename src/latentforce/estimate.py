@@ -20,7 +20,11 @@ from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth, 
 from latentforce.io.channels import channel_units, noise_in_si
 from latentforce.io.config import Problem
 from latentforce.io.data import Dataset
+from latentforce.outputs import gaussian_moments, output_matrix, path_outputs, sample_moments
+from latentforce.outputs import split as split_outputs
+from latentforce.outputs import units as output_units
 from latentforce.results import RunResult, summarise_parameters
+from latentforce.spectrum import force_spectrum
 
 STATES = ("displacement", "velocity", "force")
 #: iterations of a pgas run whose config says "auto" (the default), for now
@@ -115,9 +119,35 @@ def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callabl
     observed = {c: np.where(mask[:, i], y[:, i], np.nan) for i, c in enumerate(dataset.columns)}
     truth = _truth(model, dataset)
     fixed_record = {k: (float(v) if np.ndim(v) == 0 else np.asarray(v).tolist()) for k, v in problem.fixed.items()}
-    extras: dict = {}
     common = dict(time=np.asarray(dataset.time), ndof=model.ndof, nforce=model.nforce, observed=observed,
-                  truth=truth, seed=seed, fixed=fixed_record, units=channel_units(dataset))
+                  truth=truth, seed=seed, fixed=fixed_record, units=channel_units(dataset),
+                  outputs=output_units(problem.outputs))
+    result, extras = _dispatch(key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels)
+    _mass_warning(problem, result)
+    # the force spectrum's draws (kalman) from their own key, apart from the method's
+    key_psd = jax.random.fold_in(key, 0x5D)
+    result.force_psd = force_spectrum(key_psd, problem, result, params0, y, mask, dataset.dt, initial)
+    return result, extras
+
+
+def _mass_warning(problem: Problem, result: RunResult) -> None:
+    """Force and mass trade off (``u/m`` is what motion sensors see): inferring a mass
+    without a load cell leans on its prior alone for the scale of the force."""
+    masses = [n for n in problem.free if n == "m" or (n.startswith("m_") and n[2:].isdigit())]
+    if masses and not any(s.quantity == "force" for s in problem.model.sensors):
+        result.diagnostics.setdefault("warnings", []).append(
+            f"the mass ({', '.join(masses)}) is inferred but no sensor measures the force "
+            "(quantity = \"force\"): with only motion measured, force and mass trade off (a force "
+            "twice as large on a mass twice as large gives much the same response), so the mass and "
+            "the force's scale are set by their priors. Add a load cell channel to identify the mass.")
+
+
+def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, initial, common: dict,
+              progress, t0: float, channels) -> tuple[RunResult, dict]:
+    """The configured method's result (:func:`run` adds what every method shares)."""
+    model = problem.model
+    settings = problem.inference
+    extras: dict = {}
 
     if settings.method == "kalman":
         sm = smooth(model, params0, y, mask, dataset.dt, initial)
@@ -125,9 +155,15 @@ def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callabl
             raise LatentForceError("The Kalman filter's log-likelihood is not finite for the configured "
                                    f"model in {problem.config_path}: check the parameter values and units.")
         mom = state_moments(model, sm.means, sm.covs)
+        state_mean = {k: np.asarray(v[0]) for k, v in mom.items()}
+        state_sd = {k: np.asarray(v[1]) for k, v in mom.items()}
+        if problem.outputs:  # exact: G m_t and diag(G P_t G^T) from the full covariances
+            G = output_matrix(model, problem.outputs, params0)
+            out_mean, out_sd, _ = split_outputs(problem.outputs, *gaussian_moments(G, sm.means, sm.covs))
+            state_mean.update(out_mean)
+            state_sd.update(out_sd)
         result = RunResult(
-            method="kalman", state_mean={k: np.asarray(v[0]) for k, v in mom.items()},
-            state_sd={k: np.asarray(v[1]) for k, v in mom.items()}, param_draws={}, path_draws={},
+            method="kalman", state_mean=state_mean, state_sd=state_sd, param_draws={}, path_draws={},
             sample_stats={}, acceptance=[], log_likelihood=float(sm.log_likelihood),
             wall_time_s=_time.perf_counter() - t0, **common)
         return result, extras
@@ -180,9 +216,15 @@ def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mas
         raise LatentForceError(f"The {settings.method.upper()} log-likelihood is not finite for the configured "
                                f"model in {problem.config_path}: check the parameter values and units.")
     mom = state_moments(model, sm.means, sm.covs)
+    state_mean = {k: np.asarray(v[0]) for k, v in mom.items()}
+    state_sd = {k: np.asarray(v[1]) for k, v in mom.items()}
+    if problem.outputs:  # linear systems only (config): G m_t and diag(G P_t G^T)
+        G = output_matrix(model, problem.outputs, params0)
+        out_mean, out_sd, _ = split_outputs(problem.outputs, *gaussian_moments(G, sm.means, sm.covs))
+        state_mean.update(out_mean)
+        state_sd.update(out_sd)
     return RunResult(
-        method=settings.method, state_mean={k: np.asarray(v[0]) for k, v in mom.items()},
-        state_sd={k: np.asarray(v[1]) for k, v in mom.items()}, param_draws={}, path_draws={},
+        method=settings.method, state_mean=state_mean, state_sd=state_sd, param_draws={}, path_draws={},
         sample_stats={}, acceptance=[], log_likelihood=float(sm.log_likelihood),
         convergence={"converged": True, "exact": False,
                      "note": f"{settings.method}: a deterministic Gaussian approximation (no sampling error); "
@@ -215,7 +257,8 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     # The paper's estimate: the smoother at the CDF median of each parameter.
     median = {n: float(np.median(v)) for n, v in pooled.items()}
     mix = mixture_posterior(key_mix, model, dict(problem.fixed), out.draws, y, mask, dataset.dt,
-                            thin_draws=settings.thin_draws, initial=initial, point=median, smoother=smoother)
+                            thin_draws=settings.thin_draws, initial=initial, point=median,
+                            outputs=problem.outputs, smoother=smoother)
     mom_median, ll_median = mix.point
     extras["median_smoother"] = mom_median
     n_draws = next(iter(out.draws.values())).shape[1]
@@ -227,7 +270,8 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     modes = out.start.get("modes", [])
     record = dict(out.convergence)
     # The states are exact given the parameters: their stored paths' R-hat is information only.
-    states = convergence.state_quantities(mix.paths, convergence.monitored_times(len(dataset.time)),
+    states = convergence.state_quantities({k: mix.paths[k] for k in STATES},
+                                          convergence.monitored_times(len(dataset.time)),
                                           np.asarray(dataset.time))
     if mix.paths["force"].shape[1] >= 4 and settings.chains >= 2:
         record["states"] = convergence.diagnose({}, states, states_decide=False)["states"]
@@ -288,6 +332,15 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
     force_idx = nm + kd * np.arange(model.nforce)
     tr = out.trajectories
     paths = {"displacement": tr[..., :nd], "velocity": tr[..., nd:nm], "force": tr[..., force_idx]}
+    state_mean = {n: np.asarray(v) for n, v in out.state_mean.items()}
+    state_sd = {n: np.asarray(v) for n, v in out.state_sd.items()}
+    if problem.outputs:  # from the stored paths, the acceleration from the equation of motion
+        sampled = path_outputs(model, problem.outputs, params0, paths["displacement"], paths["velocity"],
+                               paths["force"])
+        out_mean, out_sd, out_paths = split_outputs(problem.outputs, *sample_moments(sampled), sampled)
+        state_mean.update(out_mean)
+        state_sd.update(out_sd)
+        paths.update(out_paths)
     # Each stored trajectory came from the sweep of one Gibbs block; pair it with the
     # hyperparameters drawn at the end of that block (conditional on that trajectory).
     k = settings.state_every
@@ -334,9 +387,7 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
             name: coverage(truth[name][:, 0], out.state_mean[name][:, 0], out.state_sd[name][:, 0])
             for name in truth}
     return RunResult(
-        method="pgas",
-        state_mean={n: np.asarray(v) for n, v in out.state_mean.items()},
-        state_sd={n: np.asarray(v) for n, v in out.state_sd.items()},
+        method="pgas", state_mean=state_mean, state_sd=state_sd,
         param_draws=param_draws, path_draws=paths,
         sample_stats={"log_likelihood": ll, "switch_rate": out.switch_rate, "ess_per_particle": out.ess},
         acceptance=[float(a) for a in out.acceptance],

@@ -151,6 +151,17 @@ class Matern(Kernel):
         lam = self.lam(params.lengthscale)
         return self._q_const * params.variance * lam ** (2 * self.p + 1)
 
+    def spectral_density(self, omega, params: KernelParams):
+        r"""Two-sided spectral density in angular frequency, :math:`S(\omega) = q\,(\lambda^2 + \omega^2)^{-(p+1)}`.
+
+        The Fourier transform of :math:`k(\tau)` (Rasmussen & Williams 2006,
+        Eq. 4.15), normalised so that :math:`\int_{-\infty}^{\infty} S(\omega)\,
+        d\omega / 2\pi = k(0) = \sigma_f^2`; ``q`` is :meth:`spectral_density_q`.
+        """
+        lam = self.lam(params.lengthscale)
+        omega = jnp.asarray(omega, dtype=float)
+        return self.spectral_density_q(params) / (lam**2 + omega**2) ** (self.p + 1)
+
     def state_space(self, params: KernelParams) -> StateSpace:
         d = self.dim
         lam = self.lam(params.lengthscale)

@@ -25,7 +25,10 @@ enters with a plus sign, as here. Eq. (23) of ISMA 2018 adds
 
 Sensors measure displacement, velocity or acceleration at a DOF; the
 acceleration row carries the force feed-through of Eq. (23b):
-:math:`\ddot z = M^{-1}(B u - C\dot z - K z)`.
+:math:`\ddot z = M^{-1}(B u - C\dot z - K z)`. A strain gauge reads a linear
+map of the displacements, :math:`y = c^T z` (``coefficients``, one per DOF),
+and a load cell the latent force acting at its DOF, :math:`y = (B u)_i`
+(it may only sit at a DOF some latent force acts on).
 """
 
 from __future__ import annotations
@@ -41,22 +44,25 @@ from latentforce.kernels import Kernel, KernelParams
 from latentforce.linalg import inv, solve_lyapunov, symmetrise, van_loan
 from latentforce.systems import System
 
-QUANTITIES = ("displacement", "velocity", "acceleration")
+QUANTITIES = ("displacement", "velocity", "acceleration", "strain", "force")
 
 
 class Sensor(NamedTuple):
     """One measured channel: ``quantity`` at ``dof`` with Gaussian noise of standard deviation
     ``noise_std``.
 
-    An inferred noise level is a parameter named :attr:`noise_param` in the
-    params dict; ``noise_std`` is then its starting value (and what
-    ``simulate`` uses).
+    ``quantity = "strain"`` reads :math:`c^T z` with ``coefficients`` :math:`c`
+    (one per DOF; ``dof`` is then unused); ``"force"`` reads the latent force
+    acting at ``dof``, :math:`(B u)_{dof}`. An inferred noise level is a
+    parameter named :attr:`noise_param` in the params dict; ``noise_std`` is
+    then its starting value (and what ``simulate`` uses).
     """
 
     quantity: str
     dof: int
     noise_std: float
     name: str = ""
+    coefficients: tuple[float, ...] | None = None
     #: SI per unit of an inferred ``noise_param``: the parameter stays in the channel's
     #: unit (its prior is written in it) while the data are in SI (io/channels.py)
     noise_scale: float = 1.0
@@ -88,6 +94,11 @@ class LatentForceModel:
                 raise ValueError(f"sensor dof {s.dof} outside the system's DOFs 0..{system.ndof - 1}")
             if not s.noise_std > 0:
                 raise ValueError(f"sensor noise_std must be positive, got {s.noise_std}")
+            if s.quantity == "strain" and (s.coefficients is None or len(s.coefficients) != system.ndof):
+                raise ValueError(f"strain sensor {s.name!r} needs coefficients, one per DOF ({system.ndof})")
+            if s.quantity == "force" and s.dof not in system.force_dofs:
+                raise ValueError(f"force sensor {s.name!r} at DOF {s.dof}: no latent force acts there "
+                                 f"(force_dofs = {list(system.force_dofs)})")
         self.ndof = system.ndof
         self.nforce = system.nforce
         self.n_mech = 2 * self.ndof
@@ -160,12 +171,17 @@ class LatentForceModel:
             raise TypeError(f"{self.system!r} is nonlinear: its observation is not linear")
         F, _ = self.continuous(params, linear_part)
         nd = self.ndof
+        BHu = self.system.input_matrix() @ self.force_matrix()  # (B u) = BHu @ x
         rows = []
         for s in self.sensors:
             if s.quantity == "displacement":
                 rows.append(jnp.zeros(self.n_state).at[s.dof].set(1.0))
             elif s.quantity == "velocity":
                 rows.append(jnp.zeros(self.n_state).at[nd + s.dof].set(1.0))
+            elif s.quantity == "strain":
+                rows.append(jnp.zeros(self.n_state).at[:nd].set(jnp.asarray(s.coefficients, dtype=float)))
+            elif s.quantity == "force":
+                rows.append(BHu[s.dof])
             else:  # acceleration: the velocity row of the drift, Eq. (23b)
                 rows.append(F[nd + s.dof])
         H = jnp.stack(rows)
@@ -199,18 +215,27 @@ class LatentForceModel:
         nd, nm = self.ndof, self.n_mech
         _, _, Hf, _ = self.force_state_space(params)
         z, v = x[:nd], x[nd:nm]
-        return self.sensor_readout(z, v, lambda: self.system.acceleration(params, z, v, Hf @ x[nm:]))
+        return self.sensor_readout(z, v, lambda: self.system.acceleration(params, z, v, Hf @ x[nm:]),
+                                   lambda: Hf @ x[nm:])
 
-    def sensor_readout(self, z, v, acceleration):
-        """The sensors' noise-free values from displacement ``z``, velocity ``v`` and
-        ``acceleration()``, a callable evaluated only if an accelerometer is present."""
+    def sensor_readout(self, z, v, acceleration, force=None):
+        """The sensors' noise-free values from displacement ``z``, velocity ``v``,
+        ``acceleration()`` and ``force()`` (the latent forces ``u``), callables evaluated
+        only if an accelerometer or a load cell is present."""
         out = []
         acc = None
+        B = self.system.input_matrix()
         for s in self.sensors:
             if s.quantity == "displacement":
                 out.append(z[s.dof])
             elif s.quantity == "velocity":
                 out.append(v[s.dof])
+            elif s.quantity == "strain":
+                out.append(jnp.asarray(s.coefficients, dtype=float) @ z)
+            elif s.quantity == "force":
+                if force is None:
+                    raise TypeError("sensor_readout: a force sensor needs the latent forces (force=...)")
+                out.append(B[s.dof] @ force())
             else:
                 if acc is None:
                     acc = acceleration()

@@ -4,6 +4,9 @@
 * ``displacement.png``, ``velocity.png``, ``force.png`` -- posterior mean with
   shaded 1, 2 and 3 sd bands and the truth in red when known, one subplot
   per DOF / force;
+* ``output_NAME.png`` -- each virtual sensor (``[[outputs]]``) like a state;
+* ``force_psd.png`` -- the posterior force's PSD (mean, 5-95 % band) with the
+  GP prior's density at the posterior hyperparameters (and the truth's);
 * ``paths.png`` -- a few dozen sampled trajectories per state (cf. Fig. 4,
   Vibration 2020);
 * ``traces.png`` -- parameter traces, one colour per chain;
@@ -54,6 +57,7 @@ FIGURE_NAMES: tuple[str, ...] = (
     "traces.png",
     "histograms.png",
     "joint_hyperparameters.png",
+    "force_psd.png",
 )
 
 DPI = 110
@@ -87,6 +91,11 @@ def draw_figures(result: RunResult, fig_dir: Path) -> list[Path]:
     for state in _STATES:
         if state in result.state_mean:
             written.append(plot_state(result, state, fig_dir / f"{state}.png"))
+    for name in result.outputs:
+        if name in result.state_mean:
+            written.append(plot_state(result, name, fig_dir / f"output_{name}.png"))
+    if result.force_psd:
+        written.append(plot_force_psd(result, fig_dir / "force_psd.png"))
     if result.path_draws:
         written.append(plot_paths(result, fig_dir / "paths.png"))
     if result.param_draws:
@@ -133,14 +142,16 @@ def _columns(array: np.ndarray) -> np.ndarray:
 
 
 def _component_title(state: str, i: int, width: int) -> str:
+    if state not in _STATES:  # a virtual sensor: its own name
+        return state
     if width == 1:
         return state.capitalize()
     where = "DOF" if state in ("displacement", "velocity") else "force"
     return f"{state.capitalize()}, {where} {i}"
 
 
-def _state_label(state: str) -> str:
-    unit = _STATE_UNITS.get(state)
+def _state_label(state: str, result: RunResult | None = None) -> str:
+    unit = (result.outputs.get(state) if result is not None else None) or _STATE_UNITS.get(state)
     return f"{state} [{unit}]" if unit else state
 
 
@@ -206,7 +217,7 @@ def plot_state(result: RunResult, state: str, path: Path) -> Path:
         ax.plot(time, mean[:, i], color=_MEAN_COLOUR, lw=1.0, label="posterior mean")
         if truth is not None:
             ax.plot(time, truth[:, i], color=_TRUTH_COLOUR, lw=0.9, ls="--", label="truth")
-        ax.set_ylabel(_state_label(state))
+        ax.set_ylabel(_state_label(state, result))
         ax.set_title(f"{_component_title(state, i, width)}: posterior ({result.method})")
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize="small", ncol=5)
@@ -236,7 +247,7 @@ def plot_paths(result: RunResult, path: Path, max_paths: int = 30) -> Path:
         ax.plot([], [], color="0.35", lw=0.8, label=f"{paths.shape[0]} sampled paths")
         if state in result.truth:
             ax.plot(time, _columns(result.truth[state])[:, i], color=_TRUTH_COLOUR, lw=0.9, label="truth")
-        ax.set_ylabel(_state_label(state))
+        ax.set_ylabel(_state_label(state, result))
         ax.set_title(f"{_component_title(state, i, width)}: sampled trajectories ({result.method})")
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize="small")
@@ -329,4 +340,32 @@ def plot_joint_hyperparameters(result: RunResult, path: Path) -> Path:
     ax.set_xlabel(_param_label("force_lengthscale"))
     ax.set_ylabel(_param_label("force_variance"))
     ax.set_title("Joint posterior of the force hyperparameters")
+    return _save(fig, path, result)
+
+
+def plot_force_psd(result: RunResult, path: Path) -> Path:
+    """The posterior force's one-sided PSD: mean over posterior paths with the 5-95 % band,
+    the GP prior's density at the posterior hyperparameters, and the truth's when known."""
+    table = result.force_psd
+    freq = np.asarray(table["frequency"], dtype=float)
+    keep = freq > 0  # log axes
+    suffixes = [k[len("psd_mean"):] for k in table if k.startswith("psd_mean")]
+    fig = Figure(figsize=(8, 3.4 * len(suffixes) + 0.6))
+    axes = fig.subplots(len(suffixes), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, sfx in zip(axes, suffixes):
+        ax.fill_between(freq[keep], table[f"psd_q05{sfx}"][keep], table[f"psd_q95{sfx}"][keep],
+                        color=_MEAN_COLOUR, alpha=0.25, lw=0, label="posterior 5-95 %")
+        ax.loglog(freq[keep], table[f"psd_mean{sfx}"][keep], color=_MEAN_COLOUR, lw=1.0, label="posterior mean")
+        if np.all(np.isfinite(table["prior_psd"])):
+            ax.loglog(freq[keep], table["prior_psd"][keep], color="k", lw=1.0, ls="--",
+                      label="GP prior at posterior hyperparameters")
+        if f"truth_psd{sfx}" in table:
+            ax.loglog(freq[keep], table[f"truth_psd{sfx}"][keep], color=_TRUTH_COLOUR, lw=0.9, ls=":",
+                      label="truth (Welch)")
+        ax.set_ylabel("PSD [N$^2$/Hz]")
+        which = "" if not sfx else f", force {sfx[1:]}"
+        ax.set_title(f"Force spectrum{which}: one-sided Welch density ({result.method})")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(loc="lower left", fontsize="small")
+    axes[-1].set_xlabel("frequency [Hz]")
     return _save(fig, path, result)

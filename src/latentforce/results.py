@@ -94,7 +94,7 @@ STATE_NAMES: tuple[str, ...] = ("displacement", "velocity", "force")
 
 #: The files in a result folder that ``write_results`` owns (besides
 #: ``figures/``); with ``overwrite`` only these are replaced.
-RESULT_FILES: tuple[str, ...] = ("posterior.nc", "summary.csv", "summary.json")
+RESULT_FILES: tuple[str, ...] = ("posterior.nc", "summary.csv", "summary.json", "force_psd.csv")
 
 _ENGINE = "h5netcdf"
 _PATH_DRAW = "path_draw"
@@ -137,6 +137,11 @@ class RunResult:
     #: column -> {"unit" (SI, what ``observed`` carries), "original", "scale", "source"}
     #: (:func:`latentforce.io.channels.channel_units`); empty when unknown
     units: dict = field(default_factory=dict)
+    #: Virtual sensors ``{name: unit}``; their means, sds and paths sit in ``state_mean``,
+    #: ``state_sd`` and ``path_draws`` under their names (:mod:`latentforce.outputs`).
+    outputs: dict[str, str] = field(default_factory=dict)
+    #: The ``force_psd.csv`` table (:mod:`latentforce.spectrum`), None where there is none.
+    force_psd: dict | None = None
 
 
 # ---------------------------------------------------------------------------
@@ -354,6 +359,10 @@ def _replace(path: Path, write) -> None:
 
 def _write_summaries(out_dir: Path, result: RunResult) -> None:
     _replace(out_dir / "summary.csv", lambda p: _write_summary_csv(p, result))
+    if result.force_psd:
+        from latentforce.io.extra_results import FORCE_PSD, write_force_psd
+
+        _replace(out_dir / FORCE_PSD, lambda p: write_force_psd(p, result.force_psd))
     text = json.dumps(_summary_json(result), indent=2, allow_nan=False) + "\n"
     _replace(out_dir / "summary.json", lambda p: p.write_text(text, encoding="utf-8"))
 
@@ -364,8 +373,7 @@ def write_figures(out_dir: Path, result: RunResult) -> None:
 
     fig_dir = out_dir / "figures"
     fig_dir.mkdir(exist_ok=True)
-    for name in plots.FIGURE_NAMES:
-        stale = fig_dir / name
+    for stale in [fig_dir / name for name in plots.FIGURE_NAMES] + list(fig_dir.glob("output_*.png")):
         if stale.is_file():
             stale.unlink()
     plots.draw_figures(result, fig_dir)
@@ -392,7 +400,7 @@ def _to_datatree(result: RunResult) -> xr.DataTree:
                 posterior[f"{state}_{kind}"] = (
                     dims,
                     a[:, 0] if width == 1 else a,
-                    {"units": _UNITS.get(state, ""), "description": f"RTS smoother {kind}"},
+                    {"units": _unit(result, state), "description": f"RTS smoother {kind}"},
                 )
     # INTERFACE.md: trajectories share (chain, draw) with the parameters. The
     # inference methods store both at the same iterations; only a result whose
@@ -413,7 +421,13 @@ def _to_datatree(result: RunResult) -> xr.DataTree:
         dims = ("chain", path_dim, "time")
         if width > 1:
             dims += (_component_dim(state),)
-        posterior[state] = (dims, a[..., 0] if width == 1 else a, {"units": _UNITS.get(state, "")})
+        posterior[state] = (dims, a[..., 0] if width == 1 else a, {"units": _unit(result, state)})
+    if result.method != "kalman":  # the virtual sensors' per-time summaries beside their paths
+        for name in result.outputs:
+            for kind, source in (("mean", result.state_mean), ("sd", result.state_sd)):
+                if name in source:
+                    posterior[f"{name}_{kind}"] = ("time", _as_time_width(source[name], T, 1, name)[:, 0],
+                                                   {"units": _unit(result, name)})
     groups["posterior"] = posterior
 
     if result.observed:
@@ -444,7 +458,7 @@ def _to_datatree(result: RunResult) -> xr.DataTree:
             constant[f"true_{state}"] = (
                 dims,
                 a[:, 0] if width == 1 else a,
-                {"units": _UNITS.get(state, "")},
+                {"units": _unit(result, state)},
             )
         groups["constant_data"] = constant
 
@@ -483,6 +497,10 @@ def _sample_stats_dataset(result: RunResult, posterior: xr.Dataset) -> xr.Datase
             draw_dim = f"{name}_draw"
         stats[name] = (("chain", draw_dim), a)
     return stats
+
+
+def _unit(result: RunResult, state: str) -> str:
+    return result.outputs.get(state, _UNITS.get(state, ""))
 
 
 def _fmt(x: float) -> str:
@@ -538,6 +556,8 @@ def _summary_json(result: RunResult) -> dict:
         summary["nmse"] = _nmse_by_state(result)
     if result.units:
         summary["units"] = {"states": dict(_UNITS), "channels": dict(result.units)}
+    if result.outputs:
+        summary["outputs"] = {name: {"unit": unit} for name, unit in result.outputs.items()}
     summary.update(
         {
             "wall_time_s": result.wall_time_s,
@@ -631,8 +651,9 @@ def read_results(out_dir: Path) -> RunResult:
             truth[name[len("true_"):]] = a if a.ndim == 2 else a[:, None]
 
     state_mean, state_sd = {}, {}
+    outputs = {str(k): str((v or {}).get("unit", "")) for k, v in (summary.get("outputs") or {}).items()}
     if csv_path.is_file():
-        csv_time, state_mean, state_sd = _read_summary_csv(csv_path)
+        csv_time, state_mean, state_sd = _read_summary_csv(csv_path, outputs)
         if time.size == 0:
             time = csv_time
     else:  # nothing sampled: the smoother's means and sds are in posterior.nc
@@ -675,10 +696,20 @@ def read_results(out_dir: Path) -> RunResult:
         param_summary=summary.get("parameters") or None,
         seed=int(summary.get("seed", attrs.get("seed", 0)) or 0),
         wall_time_s=_float(summary.get("wall_time_s", 0.0)),
-        fixed={k: _float(v) for k, v in (summary.get("fixed") or {}).items()},
+        # MDOF matrices (M, C, K) are lists
+        fixed={k: (np.asarray(v, dtype=float) if isinstance(v, list) else _float(v))
+               for k, v in (summary.get("fixed") or {}).items()},
         convergence=None if method == "kalman" else dict(summary.get("convergence") or {}),
         units=dict((summary.get("units") or {}).get("channels") or {}),
+        outputs=outputs,
+        force_psd=_read_force_psd(out_dir),
     )
+
+
+def _read_force_psd(out_dir: Path) -> dict | None:
+    from latentforce.io.extra_results import FORCE_PSD, read_force_psd
+
+    return read_force_psd(out_dir / FORCE_PSD)
 
 
 def _float(value: Any) -> float:
@@ -691,7 +722,7 @@ def _group(tree: xr.DataTree, name: str) -> xr.Dataset:
     return xr.Dataset()
 
 
-def _read_summary_csv(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+def _read_summary_csv(path: Path, outputs=()) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
     with open(path, newline="", encoding="utf-8") as f:
         reader = csv.reader(f)
         try:
@@ -702,10 +733,13 @@ def _read_summary_csv(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], di
     table = np.asarray(rows, dtype=float).reshape(len(rows), len(header))
     if not header or header[0] != "time":
         raise LatentForceError(f"{str(path)!r} does not start with a 'time' column.")
+    from latentforce.io.extra_results import split_output_columns
+
+    out_mean, out_sd, used = split_output_columns(header, table, outputs)
     parts: dict[str, dict[str, dict[int, np.ndarray]]] = {}
     for j, column in enumerate(header[1:], start=1):
         m = _COLUMN.match(column)
-        if m is None:
+        if m is None or j in used:
             continue
         index = int(m.group("index")) if m.group("index") is not None else 0
         parts.setdefault(m.group("kind"), {}).setdefault(m.group("state"), {})[index] = table[:, j]
@@ -713,7 +747,7 @@ def _read_summary_csv(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], di
         kind: {s: np.column_stack([c[i] for i in sorted(c)]) for s, c in by_state.items()}
         for kind, by_state in parts.items()
     }
-    return table[:, 0], stacked.get("mean", {}), stacked.get("sd", {})
+    return table[:, 0], {**stacked.get("mean", {}), **out_mean}, {**stacked.get("sd", {}), **out_sd}
 
 
 def redraw(out_dir: Path) -> None:

@@ -31,6 +31,7 @@ class Simulation(NamedTuple):
     velocity: np.ndarray
     acceleration: np.ndarray
     force: np.ndarray
+    force_dofs: tuple[int, ...] = (0,)  # the DOF each latent force acts on (load cells read there)
 
 
 def gp_force(key, model: LatentForceModel, params: dict, n: int, dt: float) -> jnp.ndarray:
@@ -102,11 +103,18 @@ def simulate(key, model: LatentForceModel, params: dict, n_samples: int, dt: flo
         u_fine = jnp.reshape(jnp.asarray(force(t_fine), dtype=float), (n_fine, model.nforce))
     z, v, a = jit(lambda u: integrate(model, params, u, dt_fine, z0, v0))(u_fine)
     pick = lambda x: np.asarray(x[::substeps])
-    return Simulation(np.arange(n_samples) * dt, pick(z), pick(v), pick(a), pick(u_fine))
+    return Simulation(np.arange(n_samples) * dt, pick(z), pick(v), pick(a), pick(u_fine),
+                      tuple(model.system.force_dofs))
 
 
 def clean_signal(sim: Simulation, sensor: Sensor) -> np.ndarray:
-    """The noise-free signal a sensor would see."""
+    """The noise-free signal a sensor would see (a strain gauge: ``displacement @ coefficients``;
+    a load cell: the sum of the latent forces acting at its DOF, :math:`(B u)_{dof}`)."""
+    if sensor.quantity == "strain":
+        return sim.displacement @ np.asarray(sensor.coefficients, dtype=float)
+    if sensor.quantity == "force":
+        at = np.asarray([d == sensor.dof for d in sim.force_dofs], dtype=float)
+        return sim.force @ at
     return getattr(sim, sensor.quantity)[:, sensor.dof]
 
 

@@ -60,41 +60,62 @@ def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int)
     return per_chain, max(paths, 1)
 
 
-def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, smoother, with_path: bool,
-         use_steady: bool, key, theta, y, mask):
-    """One draw's smoothed means, variances, (path) and log-likelihood; a flag that it is exact."""
+def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, outputs: tuple, smoother,
+         with_path: bool, use_steady: bool, key, theta, y, mask):
+    r"""One draw's smoothed means, variances, (path) and log-likelihood; a flag that it is exact.
+
+    With ``outputs`` (:class:`latentforce.outputs.OutputSpec`), the state columns are followed by
+    the outputs :math:`G_\theta x`: means :math:`G m_t`, variances
+    :math:`\operatorname{diag}(G P_t G^T)` from the full covariances, and the path's outputs.
+    ``smoother(params, y, mask, key)`` replaces the exact Kalman smoother (``ekf``/``ukf``).
+    """
     from latentforce.inference.kalman_mcmc import linear_gaussian
+    from latentforce.outputs import output_matrix
 
     params = dict(fixed)
     for i, n in enumerate(names):
         params[n] = theta[i]
+    G = output_matrix(model, outputs, params) if outputs else None
+    extend = (lambda x: x) if G is None else (lambda x: jnp.concatenate([x, x @ G.T], axis=-1))
     if smoother is not None:  # ekf / ukf (inference/gaussian.py)
         sm = smoother(params, y, mask, key if with_path else None)
         var = jnp.diagonal(sm.covs, axis1=-2, axis2=-1)
-        return sm.means, var, sm.path if with_path else jnp.zeros(()), sm.log_likelihood, jnp.ones((), bool)
+        if G is not None:
+            var = jnp.concatenate([var, jnp.einsum("ki,tij,kj->tk", G, sm.covs, G)], axis=-1)
+        path = extend(sm.path) if with_path else jnp.zeros(())
+        return extend(sm.means), var, path, sm.log_likelihood, jnp.ones((), bool)
     A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
     if use_steady:
-        sm = steady.steady_smoother(A, Q, H, R, m0, P0, y, key if with_path else None)
-        return sm.means, sm.variances, sm.path if with_path else jnp.zeros(()), sm.log_likelihood, sm.converged
+        sm = steady.steady_smoother(A, Q, H, R, m0, P0, y, key if with_path else None, rows=G)
+        path = extend(sm.path) if with_path else jnp.zeros(())
+        return extend(sm.means), sm.variances, path, sm.log_likelihood, sm.converged
     filt = kalman_filter(A, Q, H, R, m0, P0, y, mask)
     sm = rts_smoother(A, filt)
     var = jnp.diagonal(sm.covs, axis1=-2, axis2=-1)
-    path = sample_smoothed_trajectory(key, A, Q, filt) if with_path else jnp.zeros(())
-    return sm.means, var, path, filt.log_likelihood, jnp.ones((), bool)
+    if G is not None:
+        var = jnp.concatenate([var, jnp.einsum("ki,tij,kj->tk", G, sm.covs, G)], axis=-1)
+    path = extend(sample_smoothed_trajectory(key, A, Q, filt)) if with_path else jnp.zeros(())
+    return extend(sm.means), var, path, filt.log_likelihood, jnp.ones((), bool)
 
 
 def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y, mask, dt: float, *,
                       thin_draws: int = 200, initial=None, point: dict | None = None,
-                      smoother=None) -> Mixture:
+                      outputs: tuple = (), smoother=None) -> Mixture:
     """The mixed state posterior over thinned ``draws`` ``{name: (chains, n)}``; see the module doc.
 
+    ``outputs`` (virtual sensors, :mod:`latentforce.outputs`) are mixed likewise and returned
+    under their names beside the states, in ``moments`` and ``paths``.
     ``smoother(params, y, mask, key)`` replaces the exact Kalman smoother (``ekf``/``ukf``:
-    :func:`latentforce.inference.gaussian.for_parameters`)."""
+    :func:`latentforce.inference.gaussian.for_parameters`; outputs then need a linear system).
+    """
     names = tuple(draws)
+    outputs = tuple(outputs)
     chains, n_iter = next(iter(draws.values())).shape
     T, n = np.shape(y)[0], model.n_state
     index = {"displacement": model.displacement_index(), "velocity": model.velocity_index(),
              "force": model.force_index()}
+    index.update({o.name: np.array([n + i]) for i, o in enumerate(outputs)})
+    states = STATES + tuple(o.name for o in outputs)
     width = sum(len(ix) for ix in index.values())
     per_chain, n_paths = mixture_size(T, chains, n_iter, thin_draws, width)
     idx = np.linspace(0, n_iter - 1, per_chain).round().astype(int)
@@ -109,7 +130,7 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     batch = int(max(1, min(16, BATCH_BUDGET_BYTES // per_draw)))
     y = jnp.asarray(np.where(mask, y, 0.0))
     mask = jnp.asarray(mask)
-    static = (model, fixed, names, dt, initial, smoother)
+    static = (model, fixed, names, dt, initial, outputs, smoother)
     programs = {(wp, st): jit(jax.vmap(functools.partial(_one, *static, wp, st), in_axes=(0, 0, None, None)))
                 for wp in (True, False) for st in {use_steady, False}}
 
@@ -122,8 +143,8 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
                 target[~exact] = source[~exact]
         return means, var, path, ll
 
-    acc = _Accumulator(T, n)
-    kept = np.concatenate([index[s] for s in STATES])  # the state components a path stores
+    acc = _Accumulator(T, n + len(outputs))
+    kept = np.concatenate([index[s] for s in states])  # the state components a path stores
     paths = np.zeros((chains, n_paths, T, kept.size))
     keys = np.asarray(jax.random.key_data(jax.random.split(key, chains * per_chain)))
     keys = keys.reshape(chains, per_chain, *keys.shape[1:])
@@ -142,8 +163,8 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
                 paths[part[:, 0], slot] = path[:k][..., kept]
     mean, var = acc.result()
     moments = {s: (mean[:, ix], np.sqrt(np.clip(var[:, ix], 0.0, None))) for s, ix in index.items()}
-    offsets = np.cumsum([0] + [len(index[s]) for s in STATES])
-    sampled = {s: paths[..., offsets[i]:offsets[i + 1]] for i, s in enumerate(STATES)}
+    offsets = np.cumsum([0] + [len(index[s]) for s in states])
+    sampled = {s: paths[..., offsets[i]:offsets[i + 1]] for i, s in enumerate(states)}
     point_result = None
     if point is not None:
         th = jnp.repeat(jnp.asarray([[float(point[nm]) for nm in names]]), batch, axis=0)

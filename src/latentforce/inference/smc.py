@@ -438,7 +438,8 @@ class ParticleModel:
         out with the precomputed :math:`M^{-1}` for speed."""
         nd = self.ndof
         z, v = mech[:nd], mech[nd:]
-        return self.model.sensor_readout(z, v, lambda: self.acceleration(z, v, self._hold(xf, 0.0)))
+        return self.model.sensor_readout(z, v, lambda: self.acceleration(z, v, self._hold(xf, 0.0)),
+                                         lambda: self._hold(xf, 0.0))
 
     def offset(self, mech: Float[Array, " nm"]) -> Float[Array, " d"]:
         """:math:`c(\\mathrm{mech})`: the observation with the force states at zero."""

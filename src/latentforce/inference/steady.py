@@ -69,11 +69,15 @@ def _close(a, b, tol=TOL):
     return jnp.all(jnp.abs(a - b) <= tol * d)
 
 
-def steady_smoother(A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int | None = None) -> SteadySmoother:
-    """Smoothed means, variances and log-likelihood of a complete record (module doc).
+def steady_smoother(A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int | None = None,
+                    rows=None) -> SteadySmoother:
+    r"""Smoothed means, variances and log-likelihood of a complete record (module doc).
 
     With ``key``, also one trajectory drawn from the smoothing distribution
-    (forward filtering, backward sampling; Carter & Kohn 1994).
+    (forward filtering, backward sampling; Carter & Kohn 1994). With ``rows``
+    (a ``(k, n)`` matrix :math:`G`), ``variances`` gains ``k`` columns:
+    :math:`\operatorname{diag}(G P^s_t G^T)`, the variances of the linear
+    combinations :math:`G x_t` (virtual sensors), cross-covariances included.
     """
     T, n = y.shape[0], m0.shape[0]
     K = TRANSIENT if K is None else K
@@ -132,13 +136,17 @@ def steady_smoother(A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int
         return P, P
 
     _, head = jax.lax.scan(back_head, P_mid, (Pf, Pp_shift, G_head), reverse=True)
-    diag = lambda P: jnp.diagonal(P, axis1=-2, axis2=-1)
+    if rows is None:
+        diag = lambda P: jnp.diagonal(P, axis1=-2, axis2=-1)
+    else:
+        diag = lambda P: jnp.concatenate([jnp.diagonal(P, axis1=-2, axis2=-1),
+                                          jnp.einsum("ki,...ij,kj->...k", rows, P, rows)], axis=-1)
     # tail[j] is P_s at t = T-2-j; the last step P_s(T-1) = P_f(T-1) = P_f_inf.
     variances = jnp.concatenate([
         diag(head),
-        jnp.broadcast_to(jnp.diagonal(P_mid), (T - 2 * K - 1, n)),
+        jnp.broadcast_to(diag(P_mid), (T - 2 * K - 1, diag(P_mid).shape[-1])),
         diag(tail[::-1]),
-        jnp.diagonal(Pf_inf)[None],
+        diag(Pf_inf)[None],
     ])
 
     def backward(x_last, G_step, late_inputs, head_inputs):

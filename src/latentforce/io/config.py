@@ -37,6 +37,7 @@ from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, Validatio
 
 from latentforce.errors import LatentForceError
 from latentforce.io.carry import carried_prior
+from latentforce.io.sensor_checks import check_sensor, validate_outputs
 from latentforce.kernels import KERNELS, kernel_from_name
 from latentforce.models import LatentForceModel, Sensor
 from latentforce.priors import PRIOR_PARAMS, Prior, prior_from_spec
@@ -119,6 +120,7 @@ class Problem(NamedTuple):
     config_path: Path
     #: priors carried over from earlier result folders, by config key (``prior = "posterior"``)
     carried: dict = {}
+    outputs: tuple = ()  # latentforce.outputs.OutputSpec per [[outputs]] table
 
 
 # ----- stage 1: shape, by pydantic -------------------------------------------
@@ -181,11 +183,21 @@ class _ForceSection(_Strict):
 
 class _SensorSection(_Strict):
     column: str
-    quantity: Literal["displacement", "velocity", "acceleration"]
+    quantity: Literal["displacement", "velocity", "acceleration", "strain", "force"]
     dof: int = Field(default=0, ge=0)
     noise_std: _Param  # a number (known) or a prior table (inferred)
     unit: str | None = None
     path: str | None = None
+    coefficients: list[float] | None = None  # strain: one per DOF
+
+
+class _OutputSection(_Strict):
+    name: str
+    unit: str = ""
+    displacement: list[float] | None = None
+    velocity: list[float] | None = None
+    acceleration: list[float] | None = None
+    force: list[float] | None = None
 
 
 class _InitialSection(_Strict):
@@ -217,6 +229,7 @@ class _ConfigFile(_Strict):
     sensors: list[_SensorSection] = Field(min_length=1)
     initial: _InitialSection | None = None
     inference: _InferenceSection = Field(default_factory=_InferenceSection)
+    outputs: list[_OutputSection] = Field(default_factory=list)
 
 
 _SECTIONS: dict[str, type[BaseModel]] = {
@@ -226,6 +239,7 @@ _SECTIONS: dict[str, type[BaseModel]] = {
     "sensors": _SensorSection,
     "initial": _InitialSection,
     "inference": _InferenceSection,
+    "outputs": _OutputSection,
 }
 
 
@@ -238,7 +252,7 @@ def _key(loc: tuple) -> str:
     # The discriminated union puts its tag after the parameter name.
     if head in ("system", "force") and len(rest) >= 2 and rest[1] in _UNION_TAGS:
         del rest[1]
-    out = "[[sensors]]" if head == "sensors" else f"[{head}]"
+    out = f"[[{head}]]" if head in ("sensors", "outputs") else f"[{head}]"
     for part in rest:
         out += f"[{part}]" if isinstance(part, int) else f".{part}"
     return out
@@ -277,9 +291,9 @@ def _from_validation_error(source: str, exc: ValidationError) -> LatentForceErro
         return LatentForceError(f"{source}: {what} is required but missing.")
     if kind in ("model_type", "dict_type"):
         return LatentForceError(f"{source}: {key} must be a table.")
-    if kind == "list_type" and loc == ("sensors",):
-        return LatentForceError(f"{source}: {key} must be an array of tables: write each sensor "
-                                f"under its own [[sensors]] header.")
+    if kind == "list_type" and loc in (("sensors",), ("outputs",)):
+        return LatentForceError(f"{source}: {key} must be an array of tables: write each one "
+                                f"under its own {key} header.")
     if kind == "too_short" and loc == ("sensors",):
         return LatentForceError(f"{source}: at least one [[sensors]] table is required.")
     shown = "" if isinstance(err.get("input"), (dict, list)) else f" = {err.get('input')!r}"
@@ -506,7 +520,8 @@ def _sensor(fail: _Fail, i: int, sen: _SensorSection, free: dict, noise_names: d
     """A :class:`Sensor` from ``[[sensors]][i]``; an inferred ``noise_std`` joins ``free``
     as ``noise_std_<column>`` (:attr:`Sensor.noise_param`)."""
     key = f"[[sensors]][{i}].noise_std"
-    sensor = Sensor(sen.quantity, sen.dof, 1.0, name=sen.column)
+    sensor = Sensor(sen.quantity, sen.dof, 1.0, name=sen.column,
+                    coefficients=None if sen.coefficients is None else tuple(sen.coefficients))
     if not isinstance(sen.noise_std, _PriorTable):
         if not sen.noise_std > 0:
             raise fail(key, f"the noise standard deviation of column {sen.column!r} must be positive, "
@@ -586,8 +601,10 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
                                                    f"{seen[sen.column]}.")
         seen[sen.column] = i
         _check_sensor_unit(fail, i, sen)
+        check_sensor(fail, i, sen, system)
         sensors.append(_sensor(fail, i, sen, free, noise_names))
     model = LatentForceModel(system, kernel, sensors)
+    outputs = validate_outputs(fail, [o.model_dump() for o in cfg.outputs], model)
 
     initial = None
     if cfg.initial is not None:
@@ -608,6 +625,9 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
         raise fail("[inference].method", f"method \"{method}\" needs at least one inferred parameter "
                                          "(a prior table), but every parameter is fixed; use "
                                          "method = \"kalman\".")
+    if method in ("ekf", "ukf") and outputs and not system.is_linear:
+        raise fail("[[outputs]]", f"method \"{method}\" gives virtual sensors only for linear systems in this "
+                                  "version; use method = \"pgas\" for outputs of a nonlinear system.")
     if method == "pgas":
         for name in free:
             if name not in PGAS_FREE_OK:
@@ -644,7 +664,8 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
                      "softplus_loc": c.prior.loc, "softplus_scale": c.prior.scale}
                for key, c in fail.carried.items()}
     return Problem(model=model, fixed=fixed, free=free, columns=[s.name for s in sensors],
-                   initial=initial, inference=settings, data=data, config_path=Path(source), carried=carried)
+                   initial=initial, inference=settings, data=data, config_path=Path(source), carried=carried,
+                   outputs=outputs)
 
 
 _TOML_POSITION = re.compile(r"\(at line (\d+), column (\d+)\)")
