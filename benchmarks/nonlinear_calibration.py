@@ -102,7 +102,8 @@ def simulate(case: Case, seed: int):
     import jax
 
     from latentforce.io.config import config_from_dict
-    from latentforce.simulate import clean_signal, simulate as run_sim
+    from latentforce.simulate import clean_signal
+    from latentforce.simulate import simulate as run_sim
 
     problem = config_from_dict(case_config(case, "pgas", 1.0))
     model = problem.model
