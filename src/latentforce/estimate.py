@@ -69,7 +69,7 @@ def _check_stable(problem: Problem, params: dict) -> None:
 
 
 def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
-        progress: Callable | None = None, channels=None) -> tuple[RunResult, dict]:
+        progress: Callable | None = None, channels=None, checkpoint=None) -> tuple[RunResult, dict]:
     """Run the configured inference; returns the result and method-specific extras.
 
     ``channels`` (``pgas`` only): ``(quantity, dof)`` pairs through which the
@@ -80,6 +80,11 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
 
     ``extras`` holds what a demo may want beyond the result folder, e.g. the
     smoother at the point estimate for ``kalman-mcmc``.
+
+    ``checkpoint`` (:class:`latentforce.checkpoint.Checkpoint`, sampling
+    methods): the sampler saves its chunk loop there and, where it holds a
+    saved one, continues from it; the result is then the uninterrupted run's
+    (the post-processing is rerun), with ``diagnostics["resumed"]`` added.
     """
     t0 = _time.perf_counter()
     model = problem.model
@@ -114,17 +119,26 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
         return result, extras
 
     if settings.method in ("kalman-mcmc", "kalman-nuts"):
-        result = _run_kalman_sampler(key, problem, dataset, y, mask, initial, common, progress, t0, extras)
-        return result, extras
+        result = _run_kalman_sampler(key, problem, dataset, y, mask, initial, common, progress, t0, extras,
+                                     checkpoint)
+        return _resumed(result, checkpoint), extras
 
     if settings.method == "pgas":
-        return _run_pgas(key, problem, dataset, params0, y, mask, common, progress, t0, channels), extras
+        result = _run_pgas(key, problem, dataset, params0, y, mask, common, progress, t0, channels, checkpoint)
+        return _resumed(result, checkpoint), extras
 
     raise LatentForceError(f"Unknown inference method {settings.method!r}.")  # config validates this
 
 
+def _resumed(result: RunResult, checkpoint) -> RunResult:
+    """Record in the diagnostics where a resumed run took over (its draws are the uninterrupted run's)."""
+    if checkpoint is not None and checkpoint.resumed_from is not None:
+        result.diagnostics["resumed"] = dict(checkpoint.resumed_from)
+    return result
+
+
 def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initial, common: dict, progress,
-                        t0: float, extras: dict) -> RunResult:
+                        t0: float, extras: dict, checkpoint=None) -> RunResult:
     """``kalman-mcmc`` or ``kalman-nuts``: parameter draws, then the states mixed over them."""
     from latentforce.inference import convergence
     from latentforce.inference.kalman_nuts import run_kalman_nuts
@@ -137,7 +151,8 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     runner = run_kalman_mcmc if settings.method == "kalman-mcmc" else run_kalman_nuts
     out = runner(key_mcmc, model, dict(problem.fixed), free, y, mask, dataset.dt,
                  iterations=settings.iterations, burn_in=settings.burn_in, chains=settings.chains,
-                 initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time)
+                 initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time,
+                 checkpoint=checkpoint)
     pooled = {n: d.reshape(-1) for n, d in out.draws.items()}
     point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
     point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
@@ -192,7 +207,7 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
 
 
 def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict,
-              progress, t0: float, channels=None) -> RunResult:
+              progress, t0: float, channels=None, checkpoint=None) -> RunResult:
     """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
     from latentforce.compile import shared_jit
     from latentforce.inference.pgas import run_pgas
@@ -222,7 +237,7 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
                    discretisation=settings.discretisation, proposal=settings.proposal,
                    resampling="multinomial", thin_draws=settings.thin_draws, initial=initial,
                    progress=progress, channels=channels, target_ess=settings.target_ess,
-                   max_time=settings.max_time, max_iterations=PGAS_AUTO_ITERATIONS)
+                   max_time=settings.max_time, max_iterations=PGAS_AUTO_ITERATIONS, checkpoint=checkpoint)
     nd, nm, kd = model.ndof, model.n_mech, model.kernel.dim
     force_idx = nm + kd * np.arange(model.nforce)
     tr = out.trajectories
