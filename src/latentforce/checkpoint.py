@@ -42,9 +42,9 @@ import os
 import tempfile
 import time as _time
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import jax
 import numpy as np
@@ -156,9 +156,9 @@ def file_digest(path: Path) -> str:
 
 def run_identity(config_path: Path, data_path: Path, seed: int, method: str) -> dict:
     """What a checkpoint must share with the run that resumes it (and the versions, recorded)."""
-    from latentforce import __version__
-
     import jaxlib
+
+    from latentforce import __version__
 
     return {"config": str(Path(config_path).resolve()), "config_sha256": config_digest(config_path),
             "config_content": config_content(config_path),
@@ -293,12 +293,6 @@ def read_checkpoint(out_dir: Path) -> tuple[dict, LoopState]:
     state = LoopState(int(meta["done"]), bool(meta["finished"]), arrays, float(meta["elapsed_s"]),
                       dict(meta.get("extra") or {}))
     return meta, state
-
-
-def is_finished(out_dir: Path) -> bool:
-    """A result folder whose results were written and whose checkpoint was removed."""
-    out_dir = Path(out_dir)
-    return (out_dir / "summary.json").is_file() and not (out_dir / CHECKPOINT_NAME).exists()
 
 
 # ---------------------------------------------------------------------------

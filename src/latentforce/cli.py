@@ -173,7 +173,7 @@ def estimate(
     progress = Progress(method)
     try:
         result, _ = estimate_mod.run(problem, dataset, seed=seed, progress=progress, checkpoint=checkpoint)
-    except LatentForceError:
+    except BaseException:
         if checkpoint is not None and checkpoint.created_dir and not any(out.iterdir()):
             out.rmdir()  # a new folder the failed run left empty
         raise
