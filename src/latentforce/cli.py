@@ -73,7 +73,8 @@ def handle_errors(fn):
         except LatentForceError as err:
             _fail(str(err))
         except KeyboardInterrupt:
-            _fail("interrupted; nothing more was written.", 130)
+            _fail("interrupted; nothing more was written (a sampling run that wrote a checkpoint "
+                  "continues with `latentforce estimate CONFIG --resume DIR`).", 130)
         except typer.Exit:
             raise
         except Exception as err:  # an internal error: say so briefly, no traceback
@@ -121,28 +122,75 @@ def estimate(
     force: bool = typer.Option(False, "--force", help="Replace the results in an existing result folder."),
     strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the run did not converge "
                                                          "(the results are written all the same)."),
+    resume: Optional[Path] = typer.Option(
+        None, "--resume", metavar="DIR",
+        help="Continue the interrupted run whose result folder is DIR from its checkpoint "
+             "(DIR/checkpoint.npz, written every [inference].checkpoint_every seconds); the final draws are "
+             "those of an uninterrupted run. CONFIG (and --data, --seed if given) must be the run's own."),
 ):
-    """Estimate the force, states and parameters from measured data (the main job)."""
+    """Estimate the force, states and parameters from measured data (the main job).
+
+    A sampling run writes a checkpoint into its result folder as it goes; if it
+    is killed, `latentforce estimate CONFIG --resume DIR` continues it.
+    """
+    from latentforce import checkpoint as ckpt
     from latentforce import estimate as estimate_mod
     from latentforce.io.channels import load_problem_data
-    from latentforce.io.config import load_config
+    from latentforce.io.config import data_path, load_config
     from latentforce.results import check_out_dir, write_results
 
+    meta = saved = None
+    if resume is not None:
+        if out is not None and out.resolve() != resume.resolve():
+            raise LatentForceError(f"--resume {str(resume)!r} continues the run in that folder; --out "
+                                   f"{str(out)!r} names another. Give only --resume.")
+        if force:
+            raise LatentForceError("--resume continues a run and --force starts one afresh; give one of them.")
+        meta, saved = ckpt.open_resume(resume)
+        out = resume
+        if data is None:  # the run's own data file, wherever the config points now
+            data = Path(meta["identity"]["data"])
+        if seed is None:
+            seed = int(meta["identity"]["seed"])
     problem = load_config(config, data_override=str(data) if data is not None else None)
     out = out if out is not None else Path(f"{config.stem}-results")
-    check_out_dir(out, force)
+    if resume is None:
+        check_out_dir(out, force)
+    source = data_path(problem)
     # [data].path and the sensors' own paths; several rates on one grid; units to SI
     dataset = load_problem_data(problem)
-    progress = Progress(problem.inference.method)
+    method = problem.inference.method
+    checkpoint = None
+    sampling = method in ("kalman-mcmc", "kalman-nuts", "pgas") or (method in ("ekf", "ukf") and problem.free)
+    if sampling or resume is not None:
+        identity = ckpt.run_identity(config, source, problem.inference.seed if seed is None else seed, method)
+        if resume is not None:
+            ckpt.check_same_run(meta, identity, out)
+            message = ckpt.version_warning(meta, identity)
+            if message:
+                typer.echo(f"warning: {message}", err=True)
+            checkpoint = ckpt.Checkpoint(out, identity, problem.inference.checkpoint_every, saved,
+                                         sampler=meta["sampler"])
+        else:
+            checkpoint = ckpt.open_new(out, identity, problem.inference.checkpoint_every)
+    progress = Progress(method)
     try:
-        result, _ = estimate_mod.run(problem, dataset, seed=seed, progress=progress)
+        result, _ = estimate_mod.run(problem, dataset, seed=seed, progress=progress, checkpoint=checkpoint)
+    except BaseException:
+        if checkpoint is not None and checkpoint.created_dir and not any(out.iterdir()):
+            out.rmdir()  # a new folder the failed run left empty
+        raise
     finally:
         progress.close()
-    write_results(out, result, overwrite=force)
+    # the folder was checked (or is this run's own) before the run
+    write_results(out, result, overwrite=force or checkpoint is not None)
+    if checkpoint is not None:
+        checkpoint.remove()
     for warning in result.diagnostics.get("warnings", []):
         typer.echo(f"warning: {warning}", err=True)
     converged = result.method == "kalman" or bool((result.convergence or {}).get("converged", False))
-    typer.echo(f"{problem.inference.method}: results written to {out}/ "
+    resumed = "" if resume is None else " (resumed)"
+    typer.echo(f"{method}: results written to {out}/{resumed} "
                f"(summary.csv, summary.json, posterior.nc, figures/) in {result.wall_time_s:.1f} s"
                + ("" if converged else "; NOT CONVERGED (see the warning above)"))
     if strict and not converged:

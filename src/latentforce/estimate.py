@@ -75,7 +75,7 @@ def _check_stable(problem: Problem, params: dict) -> None:
 
 
 def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
-        progress: Callable | None = None, channels=None) -> tuple[RunResult, dict]:
+        progress: Callable | None = None, channels=None, checkpoint=None) -> tuple[RunResult, dict]:
     """Run the configured inference; returns the result and method-specific extras.
 
     ``channels`` (``pgas`` only): ``(quantity, dof)`` pairs through which the
@@ -86,9 +86,14 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
 
     ``extras`` holds what a demo may want beyond the result folder, e.g. the
     smoother at the point estimate for ``kalman-mcmc``.
+
+    ``checkpoint`` (:class:`latentforce.checkpoint.Checkpoint`, sampling
+    methods): the sampler saves its chunk loop there and, where it holds a
+    saved one, continues from it; the result is then the uninterrupted run's
+    (the post-processing is rerun), with ``diagnostics["resumed"]`` added.
     """
     require_x64("latentforce.estimate.run")
-    result, extras = _run(problem, dataset, seed, progress, channels)
+    result, extras = _run(problem, dataset, seed, progress, channels, checkpoint)
     if problem.carried:
         result.diagnostics["carried_priors"] = problem.carried
         for key, c in problem.carried.items():
@@ -101,7 +106,7 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
 
 
 def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callable | None,
-         channels) -> tuple[RunResult, dict]:
+         channels, checkpoint) -> tuple[RunResult, dict]:
     t0 = _time.perf_counter()
     # The data are in SI (io/channels.py); each sensor's noise_std, in its channel's unit, follows.
     problem = noise_in_si(problem, dataset)
@@ -122,7 +127,8 @@ def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callabl
     common = dict(time=np.asarray(dataset.time), ndof=model.ndof, nforce=model.nforce, observed=observed,
                   truth=truth, seed=seed, fixed=fixed_record, units=channel_units(dataset),
                   outputs=output_units(problem.outputs))
-    result, extras = _dispatch(key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels)
+    result, extras = _dispatch(key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels,
+                               checkpoint)
     _mass_warning(problem, result)
     # the force spectrum's draws (kalman) from their own key, apart from the method's
     key_psd = jax.random.fold_in(key, 0x5D)
@@ -143,7 +149,7 @@ def _mass_warning(problem: Problem, result: RunResult) -> None:
 
 
 def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, initial, common: dict,
-              progress, t0: float, channels) -> tuple[RunResult, dict]:
+              progress, t0: float, channels, checkpoint=None) -> tuple[RunResult, dict]:
     """The configured method's result (:func:`run` adds what every method shares)."""
     model = problem.model
     settings = problem.inference
@@ -169,14 +175,17 @@ def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, i
         return result, extras
 
     if settings.method in ("kalman-mcmc", "kalman-nuts"):
-        result = _run_kalman_sampler(key, problem, dataset, y, mask, initial, common, progress, t0, extras)
-        return result, extras
+        result = _run_kalman_sampler(key, problem, dataset, y, mask, initial, common, progress, t0, extras,
+                                     checkpoint)
+        return _resumed(result, checkpoint), extras
 
     if settings.method in ("ekf", "ukf"):
-        return _run_gaussian(key, problem, dataset, params0, y, mask, common, progress, t0, extras), extras
+        result = _run_gaussian(key, problem, dataset, params0, y, mask, common, progress, t0, extras, checkpoint)
+        return _resumed(result, checkpoint), extras
 
     if settings.method == "pgas":
-        return _run_pgas(key, problem, dataset, params0, y, mask, common, progress, t0, channels), extras
+        result = _run_pgas(key, problem, dataset, params0, y, mask, common, progress, t0, channels, checkpoint)
+        return _resumed(result, checkpoint), extras
 
     raise LatentForceError(f"Unknown inference method {settings.method!r}.")  # config validates this
 
@@ -198,7 +207,7 @@ def _mechanical_initial(problem: Problem, params0: dict):
 
 
 def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict, progress,
-                  t0: float, extras: dict) -> RunResult:
+                  t0: float, extras: dict, checkpoint=None) -> RunResult:
     """``ekf`` / ``ukf``: the Gaussian smoother at fixed parameters, or random-walk Metropolis over the
     inferred ones on its approximate likelihood with the states mixed over the draws."""
     from latentforce.inference.gaussian import for_parameters
@@ -209,7 +218,7 @@ def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mas
                                       _mechanical_initial(problem, params0))
     if problem.free:
         return _run_kalman_sampler(key, problem, dataset, y, mask, None, common, progress, t0, extras,
-                                   gaussian=(loglik, smoother))
+                                   checkpoint, gaussian=(loglik, smoother))
     y0 = np.where(mask, y, 0.0)
     sm = jit(smoother)({k: np.asarray(v, dtype=float) for k, v in params0.items()}, y0, mask)
     if not np.isfinite(float(sm.log_likelihood)):
@@ -233,8 +242,15 @@ def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mas
         wall_time_s=_time.perf_counter() - t0, **common)
 
 
+def _resumed(result: RunResult, checkpoint) -> RunResult:
+    """Record in the diagnostics where a resumed run took over (its draws are the uninterrupted run's)."""
+    if checkpoint is not None and checkpoint.resumed_from is not None:
+        result.diagnostics["resumed"] = dict(checkpoint.resumed_from)
+    return result
+
+
 def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initial, common: dict, progress,
-                        t0: float, extras: dict, gaussian=None) -> RunResult:
+                        t0: float, extras: dict, checkpoint=None, gaussian=None) -> RunResult:
     """``kalman-mcmc`` or ``kalman-nuts``: parameter draws, then the states mixed over them
     (``gaussian = (loglik, smoother)``: ``ekf``/``ukf`` with random-walk Metropolis)."""
     from latentforce.inference import convergence
@@ -250,7 +266,7 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     out = runner(key_mcmc, model, dict(problem.fixed), free, y, mask, dataset.dt,
                  iterations=settings.iterations, burn_in=settings.burn_in, chains=settings.chains,
                  initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time,
-                 **({"loglik": loglik} if loglik is not None else {}))
+                 checkpoint=checkpoint, **({"loglik": loglik} if loglik is not None else {}))
     pooled = {n: d.reshape(-1) for n, d in out.draws.items()}
     point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
     point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
@@ -307,7 +323,7 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
 
 
 def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict,
-              progress, t0: float, channels=None) -> RunResult:
+              progress, t0: float, channels=None, checkpoint=None) -> RunResult:
     """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
     from latentforce.inference import convergence
     from latentforce.inference.pgas import run_pgas
@@ -327,7 +343,7 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
                    discretisation=settings.discretisation, proposal=settings.proposal,
                    resampling="multinomial", thin_draws=settings.thin_draws, initial=initial,
                    progress=progress, channels=channels, target_ess=settings.target_ess,
-                   max_time=settings.max_time, max_iterations=PGAS_AUTO_ITERATIONS)
+                   max_time=settings.max_time, max_iterations=PGAS_AUTO_ITERATIONS, checkpoint=checkpoint)
     nd, nm, kd = model.ndof, model.n_mech, model.kernel.dim
     force_idx = nm + kd * np.arange(model.nforce)
     tr = out.trajectories

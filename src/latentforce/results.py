@@ -339,6 +339,11 @@ def check_out_dir(out_dir: Path, overwrite: bool) -> None:
             "choose another --out."
         )
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+        if (out_dir / "checkpoint.npz").is_file():  # latentforce.checkpoint.CHECKPOINT_NAME
+            raise LatentForceError(
+                f"The result folder {str(out_dir)!r} holds the checkpoint of an interrupted run; nothing "
+                f"was written. Pass --resume {str(out_dir)!r} (with the same config) to continue it, "
+                "--force to start a new run there, or choose another --out.")
         raise LatentForceError(
             f"The result folder {str(out_dir)!r} already exists and is not empty; "
             "nothing was written. Pass --force to replace its results (other files "

@@ -213,7 +213,7 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
                     progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
                     max_time: float = 600.0, use_modes: bool = True, adapt_shape: bool = True,
-                    loglik: Callable | None = None) -> MCMCOutput:
+                    loglik: Callable | None = None, checkpoint=None) -> MCMCOutput:
     """Random-walk Metropolis over the ``free`` parameters (Algorithm 1, ISMA 2018).
 
     ``free`` maps a parameter name to ``(prior, init)``; ``fixed`` holds the
@@ -225,7 +225,9 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     draws per chain, or ``None`` for "auto": chunks of ``chunk`` draws until
     :func:`latentforce.inference.convergence.diagnose` says converged
     (``target_ess``) or ``max_time`` seconds have passed since the start.
-    ``progress(done, total, acceptance)`` is called between chunks.
+    ``progress(done, total, acceptance)`` is called between chunks;
+    ``checkpoint`` (:class:`latentforce.checkpoint.Checkpoint`) saves and
+    restores the chunk loop (:func:`sample_in_chunks`).
     """
     t0 = _time.perf_counter()
     names = tuple(free)
@@ -267,7 +269,8 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
 
     states, xs, stats = sample_in_chunks(key_run, states, run_chunk, names, chains=chains, n_chunk=n_chunk,
                                          burn_total=burn_total, iterations=iterations, target_ess=target_ess,
-                                         max_time=max_time, t0=t0, progress=progress)
+                                         max_time=max_time, t0=t0, progress=progress, checkpoint=checkpoint,
+                                         sampler="kalman-mcmc")
     accepted, lp = stats["accepted"], stats["logdensity"]
     draws, loglik, record = finish(xs, lp, names, priors, target_ess)
     return MCMCOutput(names, draws, accepted, loglik, accepted.mean(axis=1),
@@ -277,7 +280,7 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
 
 def sample_in_chunks(key, states, run_chunk: Callable, names: tuple[str, ...], *, chains: int, n_chunk: int,
                      burn_total: int, iterations: int | None, target_ess: float, max_time: float, t0: float,
-                     progress: Callable | None = None):
+                     progress: Callable | None = None, checkpoint=None, sampler: str = "kalman-mcmc"):
     """Warm-up then sampling, in chunks of ``n_chunk`` iterations of one compiled program.
 
     ``run_chunk(keys, states, start_step, adapt) -> (states, xs (chains, n_chunk, p),
@@ -286,15 +289,44 @@ def sample_in_chunks(key, states, run_chunk: Callable, names: tuple[str, ...], *
     parameters). Fixed ``iterations`` are run (rounded up to whole chunks, the
     surplus dropped); ``None`` runs until converged or ``max_time``.
     Returns the final states, the post-warm-up draws and their stats.
+
+    The chunks' boundaries depend only on the settings and each chunk's keys
+    only on ``key`` and the chunk's first iteration, so ``checkpoint`` (a
+    :class:`latentforce.checkpoint.Checkpoint`, or None) is offered the loop
+    state at every boundary, and a run restored from it continues exactly
+    as the uninterrupted run (``states`` is then only the template of the
+    restored chain states).
     """
+    from latentforce.checkpoint import LoopState, tree_arrays, tree_from_arrays
     from latentforce.inference import convergence
 
     fixed_total = None if iterations is None else burn_total + -(-iterations // n_chunk) * n_chunk
     done = 0
     xs_all: list = []
     stats_all: dict[str, list] = {}
+    finished = False
+    clock0 = t0  # max_time counts from here (moved back by a restored run's sampler time)
+    saved = checkpoint.restore(sampler) if checkpoint is not None else None
+    if saved is not None:
+        done, finished = saved.done, saved.finished
+        states = tree_from_arrays(states, saved.arrays, "state")
+        if "draws" in saved.arrays:
+            xs_all = [saved.arrays["draws"]]
+            stats_all = {k[len("stats/"):]: [v] for k, v in saved.arrays.items() if k.startswith("stats/")}
+        clock0 = _time.perf_counter() - saved.elapsed_s
     run_keys = jax.random.split(key, chains)
-    while True:
+
+    def loop_state() -> LoopState:
+        arrays = tree_arrays("state", states)
+        if xs_all:
+            xs_all[:] = [np.concatenate(xs_all, axis=1)]
+            arrays["draws"] = xs_all[0]
+            for k, v in stats_all.items():
+                v[:] = [np.concatenate(v, axis=1)]
+                arrays[f"stats/{k}"] = v[0]
+        return LoopState(done, finished, arrays, _time.perf_counter() - clock0)
+
+    while not finished:
         adapt = done < burn_total
         keys = jax.vmap(lambda k: jax.random.fold_in(k, done))(run_keys)
         states, xs, stats = run_chunk(keys, states, done, adapt)
@@ -307,18 +339,17 @@ def sample_in_chunks(key, states, run_chunk: Callable, names: tuple[str, ...], *
         if progress is not None:
             progress(done, total, float(np.mean(np.asarray(stats["accepted"]))))
         if adapt:
-            continue
-        if fixed_total is not None:
-            if done >= fixed_total:
-                break
-            continue
-        draws_x = np.concatenate(xs_all, axis=1)
-        quantities = {n: draws_x[..., i] for i, n in enumerate(names)}
-        quantities["log_posterior"] = np.concatenate(stats_all["logdensity"], axis=1)
-        if convergence.diagnose(quantities, target_ess=target_ess)["converged"]:
-            break
-        if _time.perf_counter() - t0 >= max_time:
-            break
+            pass
+        elif fixed_total is not None:
+            finished = done >= fixed_total
+        else:
+            draws_x = np.concatenate(xs_all, axis=1)
+            quantities = {n: draws_x[..., i] for i, n in enumerate(names)}
+            quantities["log_posterior"] = np.concatenate(stats_all["logdensity"], axis=1)
+            finished = (convergence.diagnose(quantities, target_ess=target_ess)["converged"]
+                        or _time.perf_counter() - clock0 >= max_time)
+        if checkpoint is not None:
+            checkpoint.save(sampler, loop_state)
     n_kept = iterations if iterations is not None else done - burn_total
     xs = np.concatenate(xs_all, axis=1)[:, :n_kept]
     return states, xs, {k: np.concatenate(v, axis=1)[:, :n_kept] for k, v in stats_all.items()}

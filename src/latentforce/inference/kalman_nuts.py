@@ -77,7 +77,7 @@ def forward_mode_density(logdensity: Callable) -> Callable:
 def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
                     progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
-                    max_time: float = 600.0) -> MCMCOutput:
+                    max_time: float = 600.0, checkpoint=None) -> MCMCOutput:
     """NUTS over the ``free`` parameters; arguments and output as :func:`~latentforce.inference.kalman_mcmc.run_kalman_mcmc`.
 
     ``MCMCOutput.accepted`` holds NUTS's acceptance statistic per draw,
@@ -139,7 +139,8 @@ def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
 
     states, xs, stats = sample_in_chunks(key_run, states, run_chunk, names, chains=chains, n_chunk=n_chunk,
                                          burn_total=burn_total, iterations=iterations, target_ess=target_ess,
-                                         max_time=max_time, t0=t0, progress=progress)
+                                         max_time=max_time, t0=t0, progress=progress, checkpoint=checkpoint,
+                                         sampler="kalman-nuts")
     draws, loglik, record = finish(xs, stats["logdensity"], names, priors, target_ess)
     step_sizes = np.exp(np.asarray(states.da.log_step_size_avg))
     info = {"mean_integration_steps": float(np.mean(stats["steps"])),

@@ -134,6 +134,7 @@ from latentforce.inference.path_moves import (
     residual_move,
 )
 from latentforce.inference.pgas_start import dispersed_start, extended_kalman_smoother
+from latentforce.inference.resume import pgas_loop_state, pgas_restore
 
 # ---------------------------------------------------------------------------
 # Hyperparameter step (Eq. 23-25)
@@ -465,7 +466,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
              time_points: int = 5, ancestor_sampling: bool = True, interweave: bool = True,
              lowfreq_modes: int = 16, lowfreq_steps: int = 5, residual_modes: int = 16,
              residual_steps: int = 60, channels=None, target_ess: float = 400.0, max_time: float = 600.0,
-             max_iterations: int = 50_000) -> PGASOutput:
+             max_iterations: int = 50_000, checkpoint=None) -> PGASOutput:
     r"""Blocked particle Gibbs (Algorithm 5, Vibration 2020) with the PGAS kernel of :mod:`smc`.
 
     ``params``: every model parameter (free hyperparameters too: their values
@@ -511,6 +512,12 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     programs, and run side by side in one process they compile them once
     (:func:`latentforce.compile.shared_jit`). The programs take the record and
     the noise covariance as arguments, never as constants.
+
+    ``checkpoint`` (:class:`latentforce.checkpoint.Checkpoint`, or None) is
+    offered the loop state after every segment of blocks (the segments are
+    fixed by the settings; each chain carries its own key), and a run
+    restored from it continues exactly as the uninterrupted one
+    (:mod:`latentforce.inference.resume`).
     """
     if channels is not None:
         model, y, mask = observe_through(model, channels, y, mask)
@@ -620,10 +627,19 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         return states, jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), info)  # chains first
 
     infos = []
-    verdict, done = None, 0
+    verdict, done, finished, stopped = None, 0, False, None
+    saved = checkpoint.restore("pgas") if checkpoint is not None else None
+    if saved is not None:
+        states, infos, ref_q, done, finished, stopped = pgas_restore(saved, states, BlockInfo)
+        data = data._replace(ref_q=ref_q)
+        t_start = time.perf_counter() - saved.elapsed_s
     # "auto": the verdict needs some draws; the first check after a tenth of the burn-in's sweeps
     first_check = sched.burn_blocks + max(20, sched.burn_blocks // 10)
     for start, end in segments:
+        if finished:
+            break
+        if end <= done:  # run before the checkpoint this run was restored from
+            continue
         if start in reshape_at:  # new shapes, the adapted scales kept
             lfs, rps = _shapes(od, states.tr, states.reference)
             states = states._replace(rwm_lf=_with_scale_of(lfs, states.rwm_lf),
@@ -636,10 +652,15 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         if progress is not None:
             acc = float(np.mean(infos[-1].accept))
             progress(end * sched.state_every, n_blocks * sched.state_every, acc)
+        finished = end >= n_blocks
         if auto and end >= first_check:
             verdict = _verdict(pm, hyper, infos, sched, mpoints, target_ess)
             if verdict["converged"] or time.perf_counter() - t_start > max_time:
-                break
+                stopped = "converged" if verdict["converged"] else "max_time"
+                finished = True
+        if checkpoint is not None:
+            checkpoint.save("pgas", lambda: pgas_loop_state(states, infos, ref_q, done, finished, stopped,
+                                                            time.perf_counter() - t_start))
     info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)  # the segments tile the blocks
     total = min(sched.total, done * sched.state_every)
     post_sweeps = max(0, done - sched.burn_blocks)
@@ -652,8 +673,8 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         verdict = _verdict(pm, hyper, infos, sched, mpoints, target_ess)
     out.diagnostics["convergence"] = verdict
     if auto:
-        out.diagnostics["stopped"] = ("converged" if verdict["converged"] else
-                                      "max_time" if time.perf_counter() - t_start > max_time else "max_iterations")
+        out.diagnostics["stopped"] = stopped or ("converged" if verdict["converged"] else "max_time"
+                                                 if time.perf_counter() - t_start > max_time else "max_iterations")
     return out
 
 

@@ -89,6 +89,7 @@ class InferenceSettings(NamedTuple):
     thin_draws: int
     target_ess: float = 400.0
     max_time: float = 600.0
+    checkpoint_every: float = 60.0  # seconds between checkpoints (latentforce.checkpoint); 0: every chunk
 
 
 class DataSettings(NamedTuple):
@@ -213,6 +214,7 @@ class _InferenceSection(_Strict):
     burn_in: int | None = Field(default=None, ge=0)
     target_ess: float = Field(default=400.0, gt=0)
     max_time: float = Field(default=600.0, gt=0)
+    checkpoint_every: float = Field(default=60.0, ge=0)
     state_every: int = Field(default=5, ge=1)
     chains: int = Field(default=4, ge=1)
     seed: int = 0
@@ -641,7 +643,8 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
         burn_in=DEFAULT_BURN_IN[method] if inf.burn_in is None else inf.burn_in,
         state_every=inf.state_every, chains=inf.chains, seed=inf.seed, mh_steps=inf.mh_steps,
         discretisation=inf.discretisation, proposal=inf.proposal,
-        thin_draws=inf.thin_draws, target_ess=inf.target_ess, max_time=inf.max_time)
+        thin_draws=inf.thin_draws, target_ess=inf.target_ess, max_time=inf.max_time,
+        checkpoint_every=inf.checkpoint_every)
 
     dat = cfg.data
     if dat.time_column is not None and dat.sample_rate is not None:
