@@ -1,4 +1,4 @@
-"""Command line: ``latentforce demo | estimate | simulate | report``.
+"""Command line: ``latentforce demo | estimate | simulate | batch | report``.
 
 A thin layer (STYLE 7): it reads files, calls the library and writes the
 result folder. Every user error becomes one paragraph on stderr and a
@@ -108,6 +108,31 @@ class Progress:
             self.bar = None
 
 
+def estimate_into(problem, out: Path, *, seed: Optional[int] = None, force: bool = False,
+                  progress: Optional[Progress] = None):
+    """Read the problem's data, run its inference and write the result folder ``out``; returns the
+    :class:`~latentforce.results.RunResult`. The path of ``estimate``, and of each record of ``batch``.
+
+    An existing non-empty ``out`` is refused before any work unless ``force``.
+    """
+    from latentforce import estimate as estimate_mod
+    from latentforce.io.config import data_path
+    from latentforce.io.data import load_data
+    from latentforce.results import check_out_dir, write_results
+
+    check_out_dir(out, force)
+    settings = problem.data
+    dataset = load_data(data_path(problem), problem.columns, time_column=settings.time_column,
+                        sample_rate=settings.sample_rate, missing=settings.missing)
+    try:
+        result, _ = estimate_mod.run(problem, dataset, seed=seed, progress=progress)
+    finally:
+        if progress is not None:
+            progress.close()
+    write_results(out, result, overwrite=force)
+    return result
+
+
 @app.command()
 @handle_errors
 def estimate(
@@ -120,23 +145,11 @@ def estimate(
                                                          "(the results are written all the same)."),
 ):
     """Estimate the force, states and parameters from measured data (the main job)."""
-    from latentforce import estimate as estimate_mod
-    from latentforce.io.config import data_path, load_config
-    from latentforce.io.data import load_data
-    from latentforce.results import check_out_dir, write_results
+    from latentforce.io.config import load_config
 
     problem = load_config(config, data_override=str(data) if data is not None else None)
     out = out if out is not None else Path(f"{config.stem}-results")
-    check_out_dir(out, force)
-    settings = problem.data
-    dataset = load_data(data_path(problem), problem.columns, time_column=settings.time_column,
-                        sample_rate=settings.sample_rate, missing=settings.missing)
-    progress = Progress(problem.inference.method)
-    try:
-        result, _ = estimate_mod.run(problem, dataset, seed=seed, progress=progress)
-    finally:
-        progress.close()
-    write_results(out, result, overwrite=force)
+    result = estimate_into(problem, out, seed=seed, force=force, progress=Progress(problem.inference.method))
     for warning in result.diagnostics.get("warnings", []):
         typer.echo(f"warning: {warning}", err=True)
     converged = result.method == "kalman" or bool((result.convergence or {}).get("converged", False))
@@ -211,6 +224,33 @@ def demo(
     if paper_settings and name == "oma":
         raise LatentForceError("--paper-settings applies to the nonlinear demos (duffing, sine), not to oma.")
     DEMOS[name](out=out, quick=quick, seed=seed, overwrite=force, echo=typer.echo, progress=Progress, **kwargs)
+
+
+@app.command()
+@handle_errors
+def batch(
+    config: Path = typer.Argument(..., help="TOML configuration file, the same for every record."),
+    data: list[str] = typer.Argument(..., help="Data files, folders or glob patterns (quote them: "
+                                               "latentforce expands them itself)."),
+    out: Path = typer.Option(..., "--out", help="Campaign folder: one result folder per record, batch.csv, "
+                                                "trend.png."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler "
+                                            "(e.g. tcp://host:8786); default: a local cluster."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes of the local cluster "
+                                          "(default: the CPU cores, at most one per record)."),
+    force: bool = typer.Option(False, "--force", help="Replace result folders holding another config's or "
+                                                      "data's result."),
+):
+    """Estimate many records with one configuration on Dask (a campaign); reruns skip finished records."""
+    from latentforce.batch import EXIT_SOME_FAILED, run_batch
+
+    outcome = run_batch(config, data, out, scheduler=scheduler, workers=workers, force=force,
+                        echo=lambda line: typer.echo(line, err=True))
+    done, skipped, failed = (outcome.count(s) for s in ("done", "skipped", "failed"))
+    typer.echo(f"batch: {done} done, {skipped} skipped (finished before), {failed} failed; records in "
+               f"{outcome.order} order; table {outcome.table}, trend figure {outcome.trend}")
+    if failed:
+        raise typer.Exit(EXIT_SOME_FAILED)
 
 
 @app.command()
