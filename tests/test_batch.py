@@ -2,14 +2,18 @@
 
 import csv
 import json
-import os
 from datetime import datetime
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from latentforce.batch import EXIT_SOME_FAILED, folder_names, name_timestamp, plan_records
+from latentforce.batch import (
+    EXIT_SOME_FAILED,
+    folder_names,
+    name_timestamp,
+    plan_records,
+)
 from latentforce.cli import app
 from latentforce.errors import LatentForceError
 

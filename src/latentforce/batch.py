@@ -371,6 +371,8 @@ def run_batch(config: Path, patterns: list[str], out: Path, *, scheduler: str | 
         raise LatentForceError(f"--out {str(out)!r} is an existing file, not a folder; nothing was run.")
     if workers is not None and workers < 1:
         raise LatentForceError(f"--workers must be at least 1, not {workers}.")
+    if workers is not None and scheduler:
+        echo("warning: --workers is ignored with --scheduler: the scheduler's workers run the records.")
 
     rows: dict[str, dict] = {}
     to_run: list[tuple[Record, dict]] = []
