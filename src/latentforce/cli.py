@@ -1,4 +1,4 @@
-"""Command line: ``latentforce demo | estimate | simulate | report``.
+"""Command line: ``latentforce demo | estimate | simulate | batch | report``.
 
 A thin layer (STYLE 7): it reads files, calls the library and writes the
 result folder. Every user error becomes one paragraph on stderr and a
@@ -112,6 +112,58 @@ class Progress:
             self.bar = None
 
 
+def estimate_into(problem, out: Path, *, seed: Optional[int] = None, force: bool = False,
+                  progress: Optional[Progress] = None, resume=None):
+    """Read the problem's data, run its inference and write the result folder ``out``; returns the
+    :class:`~latentforce.results.RunResult`. The path of ``estimate``, and of each record of ``batch``.
+
+    An existing non-empty ``out`` is refused before any work unless ``force``. A sampling run
+    checkpoints into ``out`` as it goes (:mod:`latentforce.checkpoint`); ``resume = (meta, saved)``
+    (:func:`latentforce.checkpoint.open_resume` of ``out``) continues an interrupted one.
+    """
+    from latentforce import checkpoint as ckpt
+    from latentforce import estimate as estimate_mod
+    from latentforce.io.channels import load_problem_data
+    from latentforce.io.config import data_path
+    from latentforce.results import check_out_dir, write_results
+
+    if resume is None:
+        check_out_dir(out, force)
+    source = data_path(problem)
+    # [data].path and the sensors' own paths; several rates on one grid; units to SI
+    dataset = load_problem_data(problem)
+    method = problem.inference.method
+    checkpoint = None
+    sampling = method in ("kalman-mcmc", "kalman-nuts", "pgas") or (method in ("ekf", "ukf") and problem.free)
+    if sampling or resume is not None:
+        identity = ckpt.run_identity(problem.config_path, source,
+                                     problem.inference.seed if seed is None else seed, method)
+        if resume is not None:
+            meta, saved = resume
+            ckpt.check_same_run(meta, identity, out)
+            message = ckpt.version_warning(meta, identity)
+            if message:
+                typer.echo(f"warning: {message}", err=True)
+            checkpoint = ckpt.Checkpoint(out, identity, problem.inference.checkpoint_every, saved,
+                                         sampler=meta["sampler"])
+        else:
+            checkpoint = ckpt.open_new(out, identity, problem.inference.checkpoint_every)
+    try:
+        result, _ = estimate_mod.run(problem, dataset, seed=seed, progress=progress, checkpoint=checkpoint)
+    except BaseException:
+        if checkpoint is not None and checkpoint.created_dir and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # a new folder the failed run left empty
+        raise
+    finally:
+        if progress is not None:
+            progress.close()
+    # the folder was checked (or is this run's own) before the run
+    write_results(out, result, overwrite=force or checkpoint is not None)
+    if checkpoint is not None:
+        checkpoint.remove()
+    return result
+
+
 @app.command()
 @handle_errors
 def estimate(
@@ -134,10 +186,7 @@ def estimate(
     is killed, `latentforce estimate CONFIG --resume DIR` continues it.
     """
     from latentforce import checkpoint as ckpt
-    from latentforce import estimate as estimate_mod
-    from latentforce.io.channels import load_problem_data
-    from latentforce.io.config import data_path, load_config
-    from latentforce.results import check_out_dir, write_results
+    from latentforce.io.config import load_config
 
     meta = saved = None
     if resume is not None:
@@ -154,38 +203,9 @@ def estimate(
             seed = int(meta["identity"]["seed"])
     problem = load_config(config, data_override=str(data) if data is not None else None)
     out = out if out is not None else Path(f"{config.stem}-results")
-    if resume is None:
-        check_out_dir(out, force)
-    source = data_path(problem)
-    # [data].path and the sensors' own paths; several rates on one grid; units to SI
-    dataset = load_problem_data(problem)
     method = problem.inference.method
-    checkpoint = None
-    sampling = method in ("kalman-mcmc", "kalman-nuts", "pgas") or (method in ("ekf", "ukf") and problem.free)
-    if sampling or resume is not None:
-        identity = ckpt.run_identity(config, source, problem.inference.seed if seed is None else seed, method)
-        if resume is not None:
-            ckpt.check_same_run(meta, identity, out)
-            message = ckpt.version_warning(meta, identity)
-            if message:
-                typer.echo(f"warning: {message}", err=True)
-            checkpoint = ckpt.Checkpoint(out, identity, problem.inference.checkpoint_every, saved,
-                                         sampler=meta["sampler"])
-        else:
-            checkpoint = ckpt.open_new(out, identity, problem.inference.checkpoint_every)
-    progress = Progress(method)
-    try:
-        result, _ = estimate_mod.run(problem, dataset, seed=seed, progress=progress, checkpoint=checkpoint)
-    except BaseException:
-        if checkpoint is not None and checkpoint.created_dir and not any(out.iterdir()):
-            out.rmdir()  # a new folder the failed run left empty
-        raise
-    finally:
-        progress.close()
-    # the folder was checked (or is this run's own) before the run
-    write_results(out, result, overwrite=force or checkpoint is not None)
-    if checkpoint is not None:
-        checkpoint.remove()
+    result = estimate_into(problem, out, seed=seed, force=force, progress=Progress(method),
+                           resume=None if resume is None else (meta, saved))
     for warning in result.diagnostics.get("warnings", []):
         typer.echo(f"warning: {warning}", err=True)
     converged = result.method == "kalman" or bool((result.convergence or {}).get("converged", False))
@@ -266,6 +286,33 @@ def demo(
     if paper_settings and name == "oma":
         raise LatentForceError("--paper-settings applies to the nonlinear demos (duffing, sine), not to oma.")
     DEMOS[name](out=out, quick=quick, seed=seed, overwrite=force, echo=typer.echo, progress=Progress, **kwargs)
+
+
+@app.command()
+@handle_errors
+def batch(
+    config: Path = typer.Argument(..., help="TOML configuration file, the same for every record."),
+    data: list[str] = typer.Argument(..., help="Data files, folders or glob patterns (quote them: "
+                                               "latentforce expands them itself)."),
+    out: Path = typer.Option(..., "--out", help="Campaign folder: one result folder per record, batch.csv, "
+                                                "trend.png."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler "
+                                            "(e.g. tcp://host:8786); default: a local cluster."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes of the local cluster "
+                                          "(default: the CPU cores, at most one per record)."),
+    force: bool = typer.Option(False, "--force", help="Replace result folders holding another config's or "
+                                                      "data's result."),
+):
+    """Estimate many records with one configuration on Dask (a campaign); reruns skip finished records."""
+    from latentforce.batch import EXIT_SOME_FAILED, run_batch
+
+    outcome = run_batch(config, data, out, scheduler=scheduler, workers=workers, force=force,
+                        echo=lambda line: typer.echo(line, err=True))
+    done, skipped, failed = (outcome.count(s) for s in ("done", "skipped", "failed"))
+    typer.echo(f"batch: {done} done, {skipped} skipped (finished before), {failed} failed; records in "
+               f"{outcome.order} order; table {outcome.table}, trend figure {outcome.trend}")
+    if failed:
+        raise typer.Exit(EXIT_SOME_FAILED)
 
 
 @app.command()
