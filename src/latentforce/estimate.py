@@ -101,7 +101,7 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
                   truth=truth, seed=seed, fixed=fixed_record)
 
     if settings.method == "kalman":
-        sm = smooth(model, params0, y, mask, dataset.dt, initial)
+        sm = smooth(model, params0, y, mask, dataset.dt, initial, kalman=settings.kalman)
         if not np.isfinite(float(sm.log_likelihood)):
             raise LatentForceError("The Kalman filter's log-likelihood is not finite for the configured "
                                    f"model in {problem.config_path}: check the parameter values and units.")
@@ -137,14 +137,15 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     runner = run_kalman_mcmc if settings.method == "kalman-mcmc" else run_kalman_nuts
     out = runner(key_mcmc, model, dict(problem.fixed), free, y, mask, dataset.dt,
                  iterations=settings.iterations, burn_in=settings.burn_in, chains=settings.chains,
-                 initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time)
+                 initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time,
+                 kalman=settings.kalman)
     pooled = {n: d.reshape(-1) for n, d in out.draws.items()}
     point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
     point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
     # The paper's estimate: the smoother at the CDF median of each parameter.
     median = {n: float(np.median(v)) for n, v in pooled.items()}
     mix = mixture_posterior(key_mix, model, dict(problem.fixed), out.draws, y, mask, dataset.dt,
-                            thin_draws=settings.thin_draws, initial=initial, point=median)
+                            thin_draws=settings.thin_draws, initial=initial, point=median, kalman=settings.kalman)
     mom_median, ll_median = mix.point
     extras["median_smoother"] = mom_median
     n_draws = next(iter(out.draws.values())).shape[1]

@@ -35,12 +35,13 @@ import numpy as np
 
 from latentforce.compile import jit
 from latentforce.inference import mcmc
-from latentforce.inference.kalman import (
-    kalman_filter,
-    log_likelihood,
-    log_likelihood_complete,
-    rts_smoother,
+from latentforce.inference.kalman import log_likelihood, log_likelihood_complete
+from latentforce.inference.kalman_choice import (
+    kalman_filter_for,
+    rts_smoother_for,
+    use_parallel,
 )
+from latentforce.inference.parallel_kalman import parallel_log_likelihood
 from latentforce.models import LatentForceModel
 from latentforce.priors import Prior, log_prob_unconstrained, softplus, softplus_inverse
 
@@ -67,11 +68,15 @@ def linear_gaussian(model: LatentForceModel, params: dict, dt: float, initial: I
     return A, Q, H, R, m0, P0
 
 
-def smooth(model: LatentForceModel, params: dict, y, mask, dt: float, initial: Initial | None = None):
-    """Exact smoothed moments and log-likelihood at fixed ``params`` (method ``kalman``)."""
+def smooth(model: LatentForceModel, params: dict, y, mask, dt: float, initial: Initial | None = None,
+           kalman: str = "auto"):
+    """Exact smoothed moments and log-likelihood at fixed ``params`` (method ``kalman``).
+
+    ``kalman``: which recursion (:mod:`latentforce.inference.kalman_choice`)."""
     A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
-    filt = kalman_filter(A, Q, H, R, m0, P0, jnp.asarray(y), jnp.asarray(mask))
-    return rts_smoother(A, filt)
+    T = np.shape(y)[0]
+    filt = kalman_filter_for(kalman, T)(A, Q, H, R, m0, P0, jnp.asarray(y), jnp.asarray(mask))
+    return rts_smoother_for(kalman, T)(A, filt)
 
 
 def state_moments(model: LatentForceModel, means, covs):
@@ -108,13 +113,16 @@ class MCMCOutput(NamedTuple):
 
 
 def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
-                     dt: float, initial: Initial | None = None, complete: bool = True) -> Callable:
+                     dt: float, initial: Initial | None = None, complete: bool = True,
+                     kalman: str = "auto") -> Callable:
     """``logpost(x, y, mask)`` of the unconstrained parameter vector ``x`` (data as arguments).
 
     The record is an argument, not a constant of the program, so records of
     one shape share one compiled sampler. ``complete`` (every sample of
     every channel observed) selects the exact steady-state shortcut of
-    :func:`~latentforce.inference.kalman.log_likelihood_complete`.
+    :func:`~latentforce.inference.kalman.log_likelihood_complete`, unless
+    ``kalman`` (:mod:`latentforce.inference.kalman_choice`) picks the parallel
+    scan for the record's length, which serves every record.
     """
 
     def params_of(x):
@@ -125,7 +133,10 @@ def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...
 
     def logpost(x, y, mask):
         lg = linear_gaussian(model, params_of(x), dt, initial)
-        ll = log_likelihood_complete(*lg, y) if complete else log_likelihood(*lg, y, mask)
+        if use_parallel(kalman, y.shape[0]):  # decided at trace time, from the record's static length
+            ll = parallel_log_likelihood(*lg, y, mask)
+        else:
+            ll = log_likelihood_complete(*lg, y) if complete else log_likelihood(*lg, y, mask)
         lp = sum(log_prob_unconstrained(prior, x[i]) for i, prior in enumerate(priors))
         return lp + ll
 
@@ -133,12 +144,13 @@ def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...
 
 
 def make_log_posterior(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
-                       y, mask, dt: float, initial: Initial | None = None) -> tuple[Callable, Callable]:
+                       y, mask, dt: float, initial: Initial | None = None,
+                       kalman: str = "auto") -> tuple[Callable, Callable]:
     """Log posterior of the unconstrained parameter vector, and its log-likelihood part (data fixed)."""
     complete = bool(np.all(mask))
     y = jnp.asarray(np.where(mask, y, 0.0))
     mask = jnp.asarray(mask)
-    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete)
+    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete, kalman)
 
     def loglik(x):
         return logpost(x, y, mask) - sum(log_prob_unconstrained(p, x[i]) for i, p in enumerate(priors))
@@ -205,7 +217,8 @@ def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains:
 def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
                     progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
-                    max_time: float = 600.0, use_modes: bool = True, adapt_shape: bool = True) -> MCMCOutput:
+                    max_time: float = 600.0, use_modes: bool = True, adapt_shape: bool = True,
+                    kalman: str = "auto") -> MCMCOutput:
     """Random-walk Metropolis over the ``free`` parameters (Algorithm 1, ISMA 2018).
 
     ``free`` maps a parameter name to ``(prior, init)``; ``fixed`` holds the
@@ -218,13 +231,15 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     :func:`latentforce.inference.convergence.diagnose` says converged
     (``target_ess``) or ``max_time`` seconds have passed since the start.
     ``progress(done, total, acceptance)`` is called between chunks.
+    ``kalman``: which recursion computes the likelihood
+    (:mod:`latentforce.inference.kalman_choice`).
     """
     t0 = _time.perf_counter()
     names = tuple(free)
     priors = tuple(free[n][0] for n in names)
     inits = np.array([float(free[n][1]) for n in names])
     complete = bool(np.all(mask))
-    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete)
+    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete, kalman)
     data = (jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask))
     p = len(names)
     target = mcmc.target_acceptance(p)

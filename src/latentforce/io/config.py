@@ -87,6 +87,7 @@ class InferenceSettings(NamedTuple):
     thin_draws: int
     target_ess: float = 400.0
     max_time: float = 600.0
+    kalman: str = "auto"    # "auto" | "sequential" | "parallel" (latentforce.inference.kalman_choice)
 
 
 class DataSettings(NamedTuple):
@@ -196,6 +197,7 @@ class _InferenceSection(_Strict):
     discretisation: Literal["rk4", "euler"] = "rk4"
     proposal: Literal["optimal", "bootstrap"] = "optimal"
     thin_draws: int = Field(default=200, ge=1)
+    kalman: Literal["auto", "sequential", "parallel"] = "auto"
 
 
 class _ConfigFile(_Strict):
@@ -553,7 +555,7 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
         burn_in=DEFAULT_BURN_IN[method] if inf.burn_in is None else inf.burn_in,
         state_every=inf.state_every, chains=inf.chains, seed=inf.seed, mh_steps=inf.mh_steps,
         discretisation=inf.discretisation, proposal=inf.proposal,
-        thin_draws=inf.thin_draws, target_ess=inf.target_ess, max_time=inf.max_time)
+        thin_draws=inf.thin_draws, target_ess=inf.target_ess, max_time=inf.max_time, kalman=inf.kalman)
 
     dat = cfg.data
     if dat.time_column is not None and dat.sample_rate is not None:
