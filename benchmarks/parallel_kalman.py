@@ -109,7 +109,9 @@ def programs(model, params, names, priors, choice: str):
     }
 
 
-def measure(T_list, repeats: int) -> dict:
+def measure(T_list, repeats: int, save=None) -> dict:
+    """Time every (T, evaluation, choice); ``save(partial_result)`` after each T (a long run
+    that is stopped keeps what it measured)."""
     import jax
     import jax.numpy as jnp
 
@@ -148,6 +150,8 @@ def measure(T_list, repeats: int) -> dict:
                 sd = np.sqrt(np.diagonal(np.asarray(a[1]), axis1=1, axis2=2))
                 if not np.max(np.abs(np.asarray(a[0]) - np.asarray(b[0])) / sd) < 1e-8:
                     raise SystemExit(f"T={T}: the parallel smoother's means differ from the sequential ones")
+        if save is not None:
+            save({"rows": rows, "machine": machine(), "date": datetime.datetime.now().isoformat(timespec="seconds")})
     return {"rows": rows, "machine": machine(), "date": datetime.datetime.now().isoformat(timespec="seconds")}
 
 
@@ -189,26 +193,27 @@ def table(results: dict, quick: bool) -> str:
         return "pending" if s is None or p is None else f"{s / p:.2g}"
 
     lines = [f"# Sequential vs parallel-in-time Kalman{' (quick)' if quick else ''}", "",
-             "Seconds per evaluation (median of repeats, compile time apart), SDOF + Matérn-3/2 force, one "
-             "accelerometer, 50 Hz, 1 % of samples missing at random; `benchmarks/parallel_kalman.py`. "
-             "*speed-up* = sequential / parallel (above 1: the parallel scan is faster).", ""]
+             ("Seconds per evaluation (median of repeats, compile time apart), SDOF + Matérn-3/2 force, one "
+              "accelerometer, 50 Hz, 1 % of samples missing at random; `benchmarks/parallel_kalman.py`. "
+              "*speed-up* = sequential / parallel (above 1: the parallel scan is faster). Compile times "
+              "depend strongly on the machine's load (given below)."), ""]
     for b in BACKENDS:
         info = results.get(b)
         lines.append(f"- {b.upper()}: " + (f"{info['date']}; {info['machine']}" if info else
                                            "pending (run `benchmarks/parallel_kalman_gpu.sh` on a GPU machine)"))
-    lines += ["", "| T | evaluation | CPU sequential s | CPU parallel s | CPU speed-up | GPU sequential s | "
-              "GPU parallel s | GPU speed-up | compile s CPU (seq / par) |",
+    lines += ["", ("| T | evaluation | CPU sequential s | CPU parallel s | CPU speed-up | GPU sequential s | "
+                   "GPU parallel s | GPU speed-up | compile s CPU (seq / par) |"),
               "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for T, op in keys:
         comp = f"{fmt(cell('cpu', T, op, 'sequential', 'compile_s'))} / {fmt(cell('cpu', T, op, 'parallel', 'compile_s'))}"
         lines.append(f"| {T:,} | {op} | {fmt(cell('cpu', T, op, 'sequential'))} | {fmt(cell('cpu', T, op, 'parallel'))} "
                      f"| {ratio('cpu', T, op)} | {fmt(cell('gpu', T, op, 'sequential'))} | "
                      f"{fmt(cell('gpu', T, op, 'parallel'))} | {ratio('gpu', T, op)} | {comp} |")
-    lines += ["", "*log-likelihood*: the samplers' log posterior (discretisation, priors, exact Kalman "
-              "log-likelihood) at one parameter vector. *+ gradient*: with its gradient in the four "
-              "unconstrained parameters by `jax.jacfwd` (what `kalman-nuts` evaluates). *smoother*: filter + "
-              "RTS smoother, means and covariances (method `kalman`). Both recursions agree to 1e-9 relative "
-              "in the log-likelihood on every row (checked by the script before timing).", ""]
+    lines += ["", ("*log-likelihood*: the samplers' log posterior (discretisation, priors, exact Kalman "
+                   "log-likelihood) at one parameter vector. *+ gradient*: with its gradient in the four "
+                   "unconstrained parameters by `jax.jacfwd` (what `kalman-nuts` evaluates). *smoother*: filter + "
+                   "RTS smoother, means and covariances (method `kalman`). Both recursions agree to 1e-9 "
+                   "relative in the log-likelihood on every row (checked by the script before timing)."), ""]
     return "\n".join(lines)
 
 
@@ -217,6 +222,8 @@ def main(argv=None) -> None:
     parser.add_argument("--quick", action="store_true", help="T = 1e3 and 1e4 only")
     parser.add_argument("--T", default=None, help="comma-separated record lengths")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--table-only", action="store_true",
+                        help="rebuild the Markdown table from the JSON files already there; measure nothing")
     args = parser.parse_args(argv)
 
     import latentforce  # noqa: F401  (float64)
@@ -225,17 +232,22 @@ def main(argv=None) -> None:
                                                                        else [1000, 10000, 100000])
     stem = "parallel_kalman_quick" if args.quick else "parallel_kalman"
     RESULTS_DIR.mkdir(exist_ok=True)
-    backend = backend_name()
-    measured = measure(T_list, args.repeats)
-    (RESULTS_DIR / f"{stem}_{backend}.json").write_text(json.dumps(measured, indent=1) + "\n")
-    results = {}
-    for b in BACKENDS:
-        path = RESULTS_DIR / f"{stem}_{b}.json"
-        if path.exists():
-            results[b] = json.loads(path.read_text())
-    text = table(results, args.quick)
-    (RESULTS_DIR / f"{stem}.md").write_text(text)
-    print(text)
+
+    def save(measured=None):
+        if measured is not None:
+            (RESULTS_DIR / f"{stem}_{backend_name()}.json").write_text(json.dumps(measured, indent=1) + "\n")
+        results = {}
+        for b in BACKENDS:
+            path = RESULTS_DIR / f"{stem}_{b}.json"
+            if path.exists():
+                results[b] = json.loads(path.read_text())
+        text = table(results, args.quick)
+        (RESULTS_DIR / f"{stem}.md").write_text(text)
+        return text
+
+    if not args.table_only:
+        measure(T_list, args.repeats, save)
+    print(save())
 
 
 if __name__ == "__main__":
