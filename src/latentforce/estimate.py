@@ -156,7 +156,7 @@ def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, i
     extras: dict = {}
 
     if settings.method == "kalman":
-        sm = smooth(model, params0, y, mask, dataset.dt, initial)
+        sm = smooth(model, params0, y, mask, dataset.dt, initial, kalman=settings.kalman)
         if not np.isfinite(float(sm.log_likelihood)):
             raise LatentForceError("The Kalman filter's log-likelihood is not finite for the configured "
                                    f"model in {problem.config_path}: check the parameter values and units.")
@@ -266,7 +266,8 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     out = runner(key_mcmc, model, dict(problem.fixed), free, y, mask, dataset.dt,
                  iterations=settings.iterations, burn_in=settings.burn_in, chains=settings.chains,
                  initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time,
-                 checkpoint=checkpoint, **({"loglik": loglik} if loglik is not None else {}))
+                 checkpoint=checkpoint, kalman=settings.kalman,
+                 **({"loglik": loglik} if loglik is not None else {}))
     pooled = {n: d.reshape(-1) for n, d in out.draws.items()}
     point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
     point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
@@ -274,7 +275,7 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     median = {n: float(np.median(v)) for n, v in pooled.items()}
     mix = mixture_posterior(key_mix, model, dict(problem.fixed), out.draws, y, mask, dataset.dt,
                             thin_draws=settings.thin_draws, initial=initial, point=median,
-                            outputs=problem.outputs, smoother=smoother)
+                            outputs=problem.outputs, smoother=smoother, kalman=settings.kalman)
     mom_median, ll_median = mix.point
     extras["median_smoother"] = mom_median
     n_draws = next(iter(out.draws.values())).shape[1]

@@ -35,12 +35,13 @@ import numpy as np
 
 from latentforce.compile import jit
 from latentforce.inference import mcmc
-from latentforce.inference.kalman import (
-    kalman_filter,
-    log_likelihood,
-    log_likelihood_complete,
-    rts_smoother,
+from latentforce.inference.kalman import log_likelihood, log_likelihood_complete
+from latentforce.inference.kalman_choice import (
+    kalman_filter_for,
+    rts_smoother_for,
+    use_parallel,
 )
+from latentforce.inference.parallel_kalman import parallel_log_likelihood
 from latentforce.models import LatentForceModel
 from latentforce.priors import Prior, log_prob_unconstrained, softplus, softplus_inverse
 
@@ -67,11 +68,15 @@ def linear_gaussian(model: LatentForceModel, params: dict, dt: float, initial: I
     return A, Q, H, R, m0, P0
 
 
-def smooth(model: LatentForceModel, params: dict, y, mask, dt: float, initial: Initial | None = None):
-    """Exact smoothed moments and log-likelihood at fixed ``params`` (method ``kalman``)."""
+def smooth(model: LatentForceModel, params: dict, y, mask, dt: float, initial: Initial | None = None,
+           kalman: str = "auto"):
+    """Exact smoothed moments and log-likelihood at fixed ``params`` (method ``kalman``).
+
+    ``kalman``: which recursion (:mod:`latentforce.inference.kalman_choice`)."""
     A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
-    filt = kalman_filter(A, Q, H, R, m0, P0, jnp.asarray(y), jnp.asarray(mask))
-    return rts_smoother(A, filt)
+    T = np.shape(y)[0]
+    filt = kalman_filter_for(kalman, T)(A, Q, H, R, m0, P0, jnp.asarray(y), jnp.asarray(mask))
+    return rts_smoother_for(kalman, T)(A, filt)
 
 
 def state_moments(model: LatentForceModel, means, covs):
@@ -109,7 +114,7 @@ class MCMCOutput(NamedTuple):
 
 def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
                      dt: float, initial: Initial | None = None, complete: bool = True,
-                     loglik: Callable | None = None) -> Callable:
+                     loglik: Callable | None = None, kalman: str = "auto") -> Callable:
     """``logpost(x, y, mask)`` of the unconstrained parameter vector ``x`` (data as arguments).
 
     ``loglik(params, y, mask)``, when given, replaces the exact Kalman
@@ -118,7 +123,9 @@ def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...
     The record is an argument, not a constant of the program, so records of
     one shape share one compiled sampler. ``complete`` (every sample of
     every channel observed) selects the exact steady-state shortcut of
-    :func:`~latentforce.inference.kalman.log_likelihood_complete`.
+    :func:`~latentforce.inference.kalman.log_likelihood_complete`, unless
+    ``kalman`` (:mod:`latentforce.inference.kalman_choice`) picks the parallel
+    scan for the record's length, which serves every record.
     """
 
     def params_of(x):
@@ -130,6 +137,9 @@ def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...
     def logpost(x, y, mask):
         if loglik is not None:
             ll = loglik(params_of(x), y, mask)
+        elif use_parallel(kalman, y.shape[0]):  # decided at trace time, from the record's static length
+            lg = linear_gaussian(model, params_of(x), dt, initial)
+            ll = parallel_log_likelihood(*lg, y, mask)
         else:
             lg = linear_gaussian(model, params_of(x), dt, initial)
             ll = log_likelihood_complete(*lg, y) if complete else log_likelihood(*lg, y, mask)
@@ -140,12 +150,13 @@ def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...
 
 
 def make_log_posterior(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
-                       y, mask, dt: float, initial: Initial | None = None) -> tuple[Callable, Callable]:
+                       y, mask, dt: float, initial: Initial | None = None,
+                       kalman: str = "auto") -> tuple[Callable, Callable]:
     """Log posterior of the unconstrained parameter vector, and its log-likelihood part (data fixed)."""
     complete = bool(np.all(mask))
     y = jnp.asarray(np.where(mask, y, 0.0))
     mask = jnp.asarray(mask)
-    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete)
+    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete, kalman=kalman)
 
     def loglik(x):
         return logpost(x, y, mask) - sum(log_prob_unconstrained(p, x[i]) for i, p in enumerate(priors))
@@ -213,7 +224,7 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
                     progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
                     max_time: float = 600.0, use_modes: bool = True, adapt_shape: bool = True,
-                    loglik: Callable | None = None, checkpoint=None) -> MCMCOutput:
+                    loglik: Callable | None = None, checkpoint=None, kalman: str = "auto") -> MCMCOutput:
     """Random-walk Metropolis over the ``free`` parameters (Algorithm 1, ISMA 2018).
 
     ``free`` maps a parameter name to ``(prior, init)``; ``fixed`` holds the
@@ -228,13 +239,15 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     ``progress(done, total, acceptance)`` is called between chunks;
     ``checkpoint`` (:class:`latentforce.checkpoint.Checkpoint`) saves and
     restores the chunk loop (:func:`sample_in_chunks`).
+    ``kalman``: which recursion computes the likelihood
+    (:mod:`latentforce.inference.kalman_choice`).
     """
     t0 = _time.perf_counter()
     names = tuple(free)
     priors = tuple(free[n][0] for n in names)
     inits = np.array([float(free[n][1]) for n in names])
     complete = bool(np.all(mask))
-    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete, loglik)
+    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete, loglik, kalman)
     data = (jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask))
     p = len(names)
     target = mcmc.target_acceptance(p)

@@ -77,7 +77,7 @@ def forward_mode_density(logdensity: Callable) -> Callable:
 def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
                     progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
-                    max_time: float = 600.0, checkpoint=None) -> MCMCOutput:
+                    max_time: float = 600.0, checkpoint=None, kalman: str = "auto") -> MCMCOutput:
     """NUTS over the ``free`` parameters; arguments and output as :func:`~latentforce.inference.kalman_mcmc.run_kalman_mcmc`.
 
     ``MCMCOutput.accepted`` holds NUTS's acceptance statistic per draw,
@@ -91,7 +91,7 @@ def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     names = tuple(free)
     priors = tuple(free[n][0] for n in names)
     inits = np.array([float(free[n][1]) for n in names])
-    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, bool(np.all(mask)))
+    logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, bool(np.all(mask)), kalman=kalman)
     data = (jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask))
     key_start, key_run = jax.random.split(key)
     x0, covs, start = start_chains(key_start, logpost, data, inits, chains)

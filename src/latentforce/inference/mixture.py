@@ -26,7 +26,12 @@ import numpy as np
 
 from latentforce.compile import jit
 from latentforce.inference import steady
-from latentforce.inference.kalman import kalman_filter, rts_smoother, sample_smoothed_trajectory
+from latentforce.inference.kalman_choice import (
+    kalman_filter_for,
+    rts_smoother_for,
+    sample_smoothed_trajectory_for,
+    use_parallel,
+)
 from latentforce.models import LatentForceModel
 
 #: bytes of stored trajectories (``posterior.nc``'s paths) at most
@@ -60,7 +65,7 @@ def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int)
     return per_chain, max(paths, 1)
 
 
-def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, outputs: tuple, smoother,
+def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, outputs: tuple, smoother, kalman: str,
          with_path: bool, use_steady: bool, key, theta, y, mask):
     r"""One draw's smoothed means, variances, (path) and log-likelihood; a flag that it is exact.
 
@@ -89,24 +94,30 @@ def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial,
         sm = steady.steady_smoother(A, Q, H, R, m0, P0, y, key if with_path else None, rows=G)
         path = extend(sm.path) if with_path else jnp.zeros(())
         return extend(sm.means), sm.variances, path, sm.log_likelihood, sm.converged
-    filt = kalman_filter(A, Q, H, R, m0, P0, y, mask)
-    sm = rts_smoother(A, filt)
+    T = y.shape[0]
+    filt = kalman_filter_for(kalman, T)(A, Q, H, R, m0, P0, y, mask)
+    sm = rts_smoother_for(kalman, T)(A, filt)
     var = jnp.diagonal(sm.covs, axis1=-2, axis2=-1)
     if G is not None:
         var = jnp.concatenate([var, jnp.einsum("ki,tij,kj->tk", G, sm.covs, G)], axis=-1)
-    path = extend(sample_smoothed_trajectory(key, A, Q, filt)) if with_path else jnp.zeros(())
+    path = extend(sample_smoothed_trajectory_for(kalman, T)(key, A, Q, filt)) if with_path else jnp.zeros(())
     return extend(sm.means), var, path, filt.log_likelihood, jnp.ones((), bool)
 
 
 def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y, mask, dt: float, *,
                       thin_draws: int = 200, initial=None, point: dict | None = None,
-                      outputs: tuple = (), smoother=None) -> Mixture:
+                      outputs: tuple = (), smoother=None, kalman: str = "auto") -> Mixture:
     """The mixed state posterior over thinned ``draws`` ``{name: (chains, n)}``; see the module doc.
 
     ``outputs`` (virtual sensors, :mod:`latentforce.outputs`) are mixed likewise and returned
     under their names beside the states, in ``moments`` and ``paths``.
     ``smoother(params, y, mask, key)`` replaces the exact Kalman smoother (``ekf``/``ukf``:
     :func:`latentforce.inference.gaussian.for_parameters`; outputs then need a linear system).
+
+    ``kalman`` (:mod:`latentforce.inference.kalman_choice`): where it picks the
+    parallel scan, every draw gets the full parallel filter and smoother (the
+    steady-state smoother is a sequential scan) and batches are sized for the
+    scan's larger working memory.
     """
     names = tuple(draws)
     outputs = tuple(outputs)
@@ -125,12 +136,14 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     is_path[:, path_slots] = True
 
     # A complete long record: covariances in steady state (O(T n) memory per draw), else the full smoother.
-    use_steady = smoother is None and steady.applies(T, bool(np.all(mask)))
-    per_draw = T * (4 * n + 2) * 8 if use_steady else T * (4 * n * n + 4 * n) * 8
+    parallel = use_parallel(kalman, T)
+    use_steady = smoother is None and steady.applies(T, bool(np.all(mask))) and not parallel
+    # the associative scans hold about three times the sequential smoother's arrays
+    per_draw = T * (4 * n + 2) * 8 if use_steady else T * ((12 if parallel else 4) * n * n + 4 * n) * 8
     batch = int(max(1, min(16, BATCH_BUDGET_BYTES // per_draw)))
     y = jnp.asarray(np.where(mask, y, 0.0))
     mask = jnp.asarray(mask)
-    static = (model, fixed, names, dt, initial, outputs, smoother)
+    static = (model, fixed, names, dt, initial, outputs, smoother, kalman)
     programs = {(wp, st): jit(jax.vmap(functools.partial(_one, *static, wp, st), in_axes=(0, 0, None, None)))
                 for wp in (True, False) for st in {use_steady, False}}
 

@@ -90,6 +90,7 @@ class InferenceSettings(NamedTuple):
     target_ess: float = 400.0
     max_time: float = 600.0
     checkpoint_every: float = 60.0  # seconds between checkpoints (latentforce.checkpoint); 0: every chunk
+    kalman: str = "auto"    # "auto" | "sequential" | "parallel" (latentforce.inference.kalman_choice)
 
 
 class DataSettings(NamedTuple):
@@ -222,6 +223,7 @@ class _InferenceSection(_Strict):
     discretisation: Literal["rk4", "euler"] = "rk4"
     proposal: Literal["optimal", "bootstrap"] = "optimal"
     thin_draws: int = Field(default=200, ge=1)
+    kalman: Literal["auto", "sequential", "parallel"] = "auto"
 
 
 class _ConfigFile(_Strict):
@@ -644,7 +646,7 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
         state_every=inf.state_every, chains=inf.chains, seed=inf.seed, mh_steps=inf.mh_steps,
         discretisation=inf.discretisation, proposal=inf.proposal,
         thin_draws=inf.thin_draws, target_ess=inf.target_ess, max_time=inf.max_time,
-        checkpoint_every=inf.checkpoint_every)
+        checkpoint_every=inf.checkpoint_every, kalman=inf.kalman)
 
     dat = cfg.data
     if dat.time_column is not None and dat.sample_rate is not None:
