@@ -1,0 +1,550 @@
+"""The result folder: :func:`write_results` turns a :class:`~latentforce.results.RunResult`
+into the result folder of INTERFACE.md and :func:`read_results` reads one back
+(``latentforce report DIR``); figures are drawn by :mod:`latentforce.plots`.
+
+Result folder layout
+--------------------
+``posterior.nc``
+    An :class:`xarray.DataTree` written with h5netcdf, readable by both
+    ``arviz.from_netcdf`` and ``xarray.open_datatree``. Groups:
+
+    ``posterior``
+        Sampled scalar parameters under their config names (``k``, ``c``,
+        ``force_variance``, ``force_lengthscale``, ...) with dims
+        ``(chain, draw)``. Sampled trajectories ``displacement``,
+        ``velocity`` and ``force`` with dims ``(chain, path_draw, time)``:
+        the trajectories are thinned (a few hundred per chain at most) while
+        the parameters are not, so they live on their own draw dimension
+        ``path_draw`` and the parameters keep ``draw``. MDOF systems add a
+        trailing ``dof`` dim to displacement and velocity; several latent
+        forces add a trailing ``force_index`` dim to force.
+        For ``method = "kalman"`` nothing is sampled: the group holds the
+        smoother's ``displacement_mean``, ``displacement_sd``,
+        ``velocity_mean``, ... with dims ``(time[, dof|force_index])``.
+    ``observed_data``
+        The measured channels by column name, dim ``time``; NaN where a
+        sample was missing. Where the units are known, each carries
+        ``units`` (SI), ``original_units``, ``scale_to_si`` and
+        ``units_source`` attributes.
+    ``sample_stats``
+        The sampler statistics (``accepted``, ``log_likelihood``, ...) with
+        dims ``(chain, draw)``.
+    ``constant_data``
+        Only when the truth is known: ``true_displacement``,
+        ``true_velocity``, ``true_force`` with the same trailing dims as the
+        posterior trajectories.
+
+    Root attributes record ``method``, ``ndof``, ``nforce``, ``seed`` and
+    ``latentforce_version``.
+``summary.csv``
+    One row per time step: ``time`` then ``NAME_mean``, ``NAME_sd`` for
+    displacement, velocity and force (``displacement_0_mean``, ... for MDOF;
+    ``force_0_mean``, ... for several forces), written at full (round-trip)
+    precision.
+``summary.json``
+    The layout of INTERFACE.md, plus ``point_estimate``, ``fixed``,
+    ``diagnostics`` and, where known, ``units`` (``states``: the SI unit
+    of each state; ``channels``: per column its SI unit, original unit,
+    factor and source). Non-finite numbers are written as ``null``.
+``figures/``
+    PNG plots drawn by :mod:`latentforce.plots`.
+
+I/O never does inference numerics (STYLE.md, item 7); the only numbers
+computed here are posterior summaries (mean, quantiles, R-hat, ESS) and the
+error measures :func:`nmse` and :func:`coverage`.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import re
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from latentforce.errors import LatentForceError
+from latentforce.results import (
+    _ENGINE,
+    _PATH_DRAW,
+    _UNITS,
+    RunResult,
+    _as_chain_draw,
+    _as_time_width,
+    _component_dim,
+    _component_label,
+    _ordered_states,
+    _width,
+    nmse,
+    summarise_parameters,
+    summary_columns,
+)
+
+# ---------------------------------------------------------------------------
+# Writing
+# ---------------------------------------------------------------------------
+
+
+# held while drawing figures (here and by the demos' own figures)
+FIGURE_LOCK = threading.Lock()
+
+
+def write_results(
+    out_dir: Path, result: RunResult, *, overwrite: bool = False, figures: bool = True
+) -> None:
+    """Write ``result`` as the result folder ``out_dir`` (see module docstring).
+
+    An existing, non-empty folder is refused unless ``overwrite``; then only
+    ``posterior.nc``, ``summary.csv``, ``summary.json`` and the figures this
+    module draws are replaced, and any other file in the folder is kept.
+    """
+    out_dir = Path(out_dir)
+    check_out_dir(out_dir, overwrite)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tree = _to_datatree(result)
+    _replace(out_dir / "posterior.nc", lambda p: tree.to_netcdf(p, engine=_ENGINE))
+    _write_summaries(out_dir, result)
+    if figures:
+        # matplotlib's state (pyplot, the mathtext parser) is not thread-safe, and the
+        # demos write their cases from two threads
+        with FIGURE_LOCK:
+            write_figures(out_dir, result)
+
+
+def check_out_dir(out_dir: Path, overwrite: bool) -> None:
+    """Refuse an existing non-empty result folder unless ``overwrite`` (run before any work)."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise LatentForceError(
+            f"The result folder {str(out_dir)!r} is an existing file, not a folder; "
+            "choose another --out."
+        )
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+        if (out_dir / "checkpoint.npz").is_file():  # latentforce.checkpoint.CHECKPOINT_NAME
+            raise LatentForceError(
+                f"The result folder {str(out_dir)!r} holds the checkpoint of an interrupted run; nothing "
+                f"was written. Pass --resume {str(out_dir)!r} (with the same config) to continue it, "
+                "--force to start a new run there, or choose another --out.")
+        raise LatentForceError(
+            f"The result folder {str(out_dir)!r} already exists and is not empty; "
+            "nothing was written. Pass --force to replace its results (other files "
+            "in it are kept) or choose another --out."
+        )
+
+
+def _replace(path: Path, write) -> None:
+    """Write through a temporary file so a failed write leaves no half file."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _write_summaries(out_dir: Path, result: RunResult) -> None:
+    _replace(out_dir / "summary.csv", lambda p: _write_summary_csv(p, result))
+    if result.force_psd:
+        from latentforce.io.extra_results import FORCE_PSD, write_force_psd
+
+        _replace(out_dir / FORCE_PSD, lambda p: write_force_psd(p, result.force_psd))
+    text = json.dumps(_summary_json(result), indent=2, allow_nan=False) + "\n"
+    _replace(out_dir / "summary.json", lambda p: p.write_text(text, encoding="utf-8"))
+
+
+def write_figures(out_dir: Path, result: RunResult) -> None:
+    """Draw ``result``'s figures into ``out_dir/figures`` (the stale ones removed first)."""
+    from latentforce import plots
+
+    fig_dir = out_dir / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    for stale in [fig_dir / name for name in plots.FIGURE_NAMES] + list(fig_dir.glob("output_*.png")):
+        if stale.is_file():
+            stale.unlink()
+    plots.draw_figures(result, fig_dir)
+
+
+def _to_datatree(result: RunResult) -> xr.DataTree:
+    from latentforce import __version__
+
+    time = np.asarray(result.time, dtype=float)
+    T = time.size
+    time_coord = {"time": ("time", time, {"units": "s"})}
+    groups: dict[str, xr.Dataset] = {}
+
+    posterior = xr.Dataset(coords=time_coord)
+    for name, draws in result.param_draws.items():
+        posterior[name] = (("chain", "draw"), _as_chain_draw(name, draws))
+    if not result.param_draws and not result.path_draws:
+        # Nothing sampled (kalman; ekf/ukf with every parameter fixed): the smoother's marginals.
+        for state in _ordered_states(result.state_mean):
+            width = _width(result, state, result.state_mean[state])
+            dims = ("time",) if width == 1 else ("time", _component_dim(state))
+            for kind, source in (("mean", result.state_mean), ("sd", result.state_sd)):
+                a = _as_time_width(source[state], T, width, f"state_{kind}[{state!r}]")
+                posterior[f"{state}_{kind}"] = (
+                    dims,
+                    a[:, 0] if width == 1 else a,
+                    {"units": _unit(result, state), "description": f"RTS smoother {kind}"},
+                )
+    # INTERFACE.md: trajectories share (chain, draw) with the parameters. The
+    # inference methods store both at the same iterations; only a result whose
+    # counts differ falls back to a separate ``path_draw`` dimension.
+    n_param = next((np.shape(v)[-1] for v in result.param_draws.values()), None)
+    n_path = next((np.shape(v)[1] for v in result.path_draws.values()), None)
+    path_dim = "draw" if n_param is None or n_param == n_path else _PATH_DRAW
+    for state in _ordered_states(result.path_draws):
+        a = np.asarray(result.path_draws[state], dtype=float)
+        width = _width(result, state, a)
+        if a.ndim == 3:
+            a = a[..., None]
+        if a.ndim != 4 or a.shape[2] != T or a.shape[3] != width:
+            raise ValueError(
+                f"path_draws[{state!r}] must be (chains, path_draws, {T}, {width}), "
+                f"got {np.shape(result.path_draws[state])}"
+            )
+        dims = ("chain", path_dim, "time")
+        if width > 1:
+            dims += (_component_dim(state),)
+        posterior[state] = (dims, a[..., 0] if width == 1 else a, {"units": _unit(result, state)})
+    if result.method != "kalman":  # the virtual sensors' per-time summaries beside their paths
+        for name in result.outputs:
+            for kind, source in (("mean", result.state_mean), ("sd", result.state_sd)):
+                if name in source:
+                    posterior[f"{name}_{kind}"] = ("time", _as_time_width(source[name], T, 1, name)[:, 0],
+                                                   {"units": _unit(result, name)})
+    groups["posterior"] = posterior
+
+    if result.observed:
+        observed = xr.Dataset(coords=time_coord)
+        for column, values in result.observed.items():
+            v = np.asarray(values, dtype=float).ravel()
+            if v.size != T:
+                raise ValueError(f"observed[{column!r}] has {v.size} samples, time has {T}")
+            unit = result.units.get(column)
+            attrs = {} if not unit else {"units": unit["unit"], "original_units": unit["original"],
+                                         "scale_to_si": unit["scale"], "units_source": unit["source"]}
+            # "/" separates groups in a DataTree: a TDMS "group/channel" or HDF5 path is stored as
+            # "group|channel" with its column name in the attrs.
+            if "/" in column:
+                attrs["column"] = column
+            observed[column.replace("/", "|")] = ("time", v, attrs)
+        groups["observed_data"] = observed
+
+    if result.sample_stats:
+        groups["sample_stats"] = _sample_stats_dataset(result, posterior)
+
+    if result.truth:
+        constant = xr.Dataset(coords=time_coord)
+        for state in _ordered_states(result.truth):
+            width = _width(result, state, result.truth[state])
+            a = _as_time_width(result.truth[state], T, width, f"truth[{state!r}]")
+            dims = ("time",) if width == 1 else ("time", _component_dim(state))
+            constant[f"true_{state}"] = (
+                dims,
+                a[:, 0] if width == 1 else a,
+                {"units": _unit(result, state)},
+            )
+        groups["constant_data"] = constant
+
+    tree = xr.DataTree.from_dict(groups)
+    tree.attrs.update(
+        {
+            "method": result.method,
+            "ndof": int(result.ndof),
+            "nforce": int(result.nforce),
+            "seed": int(result.seed),
+            "latentforce_version": __version__,
+        }
+    )
+    return tree
+
+
+def _sample_stats_dataset(result: RunResult, posterior: xr.Dataset) -> xr.Dataset:
+    """Sample stats on (chain, draw); a length that fits neither the parameter
+    nor the trajectory draws gets a draw dimension of its own."""
+    draw_size = posterior.sizes.get("draw")
+    path_size = posterior.sizes.get(_PATH_DRAW)
+    stats = xr.Dataset()
+    for name, values in result.sample_stats.items():
+        a = np.asarray(values)
+        if a.ndim == 1:
+            stats[name] = (("chain",), a)
+            continue
+        if a.ndim != 2:
+            raise ValueError(f"sample_stats[{name!r}] must be (chains, draws), got {a.shape}")
+        if draw_size is None or a.shape[1] == draw_size:
+            draw_dim = "draw"
+            draw_size = a.shape[1]
+        elif a.shape[1] == path_size:
+            draw_dim = _PATH_DRAW
+        else:
+            draw_dim = f"{name}_draw"
+        stats[name] = (("chain", draw_dim), a)
+    return stats
+
+
+def _unit(result: RunResult, state: str) -> str:
+    return result.outputs.get(state, _UNITS.get(state, ""))
+
+
+def _fmt(x: float) -> str:
+    # repr gives the shortest string that round-trips a float64 exactly.
+    return repr(float(x))
+
+
+def _write_summary_csv(path: Path, result: RunResult) -> None:
+    time = np.asarray(result.time, dtype=float)
+    T = time.size
+    columns = [time]
+    for state in _ordered_states(result.state_mean):
+        width = _width(result, state, result.state_mean[state])
+        mean = _as_time_width(result.state_mean[state], T, width, f"state_mean[{state!r}]")
+        sd = _as_time_width(result.state_sd[state], T, width, f"state_sd[{state!r}]")
+        for i in range(width):
+            columns += [mean[:, i], sd[:, i]]
+    table = np.column_stack(columns)
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        writer.writerow(summary_columns(result))
+        writer.writerows([_fmt(x) for x in row] for row in table.tolist())
+
+
+def _nmse_by_state(result: RunResult) -> dict[str, float]:
+    T = np.asarray(result.time).size
+    scores = {}
+    for state in _ordered_states(result.truth):
+        if state not in result.state_mean:
+            continue
+        width = _width(result, state, result.truth[state])
+        x = _as_time_width(result.truth[state], T, width, f"truth[{state!r}]")
+        xhat = _as_time_width(result.state_mean[state], T, width, f"state_mean[{state!r}]")
+        for i in range(width):
+            scores[_component_label(state, i, width)] = nmse(x[:, i], xhat[:, i])
+    return scores
+
+
+def _summary_json(result: RunResult) -> dict:
+    from latentforce import __version__
+
+    summary: dict[str, Any] = {
+        "method": result.method,
+        "log_likelihood": result.log_likelihood,
+        "parameters": (result.param_summary if result.param_summary is not None
+                       else summarise_parameters(result.param_draws)),
+        "acceptance": [float(a) for a in result.acceptance],
+        # kalman is exact (no sampling error); a sampler is converged only by its record
+        "converged": result.method == "kalman" or bool((result.convergence or {}).get("converged", False)),
+        "convergence": {"exact": True} if result.method == "kalman" else (result.convergence or {}),
+    }
+    if result.truth:
+        summary["nmse"] = _nmse_by_state(result)
+    if result.units:
+        summary["units"] = {"states": dict(_UNITS), "channels": dict(result.units)}
+    if result.outputs:
+        summary["outputs"] = {name: {"unit": unit} for name, unit in result.outputs.items()}
+    summary.update(
+        {
+            "wall_time_s": result.wall_time_s,
+            "seed": int(result.seed),
+            "version": __version__,
+            "point_estimate": dict(result.point_estimate),
+            "fixed": dict(result.fixed),
+            "diagnostics": dict(result.diagnostics),
+        }
+    )
+    return _jsonable(summary)
+
+
+def _jsonable(value: Any) -> Any:
+    """Plain JSON types; NaN and infinities become ``None`` (JSON ``null``)."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if value is None or isinstance(value, str):
+        return value
+    if isinstance(value, Path):
+        return str(value)
+    return str(value)
+
+
+# ---------------------------------------------------------------------------
+# Reading
+# ---------------------------------------------------------------------------
+
+_COLUMN = re.compile(r"^(?P<state>.+?)(?:_(?P<index>\d+))?_(?P<kind>mean|sd)$")
+
+
+def read_results(out_dir: Path) -> RunResult:
+    """Read a result folder back into a :class:`RunResult`.
+
+    Parameter and trajectory draws, sample stats, observed channels and
+    truth come from ``posterior.nc``; state means and sds from
+    ``summary.csv``; the scalars (log-likelihood, acceptance, seed, ...)
+    from ``summary.json``. Enough to redraw every figure.
+    """
+    out_dir = Path(out_dir)
+    nc_path, json_path, csv_path = (out_dir / n for n in ("posterior.nc", "summary.json", "summary.csv"))
+    missing = [p.name for p in (nc_path, json_path) if not p.is_file()]
+    if missing:
+        raise LatentForceError(
+            f"{str(out_dir)!r} is not a latentforce result folder: it has no "
+            f"{' or '.join(missing)}. Give the --out folder of an `estimate` or `demo` run."
+        )
+    try:
+        summary = json.loads(json_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        raise LatentForceError(f"Cannot read {str(json_path)!r}: {err}.") from err
+    try:
+        with xr.open_datatree(nc_path, engine=_ENGINE) as tree:
+            tree = tree.load()
+    except (OSError, ValueError) as err:
+        raise LatentForceError(f"Cannot read {str(nc_path)!r} as netCDF: {err}.") from err
+
+    attrs = tree.attrs
+    posterior = _group(tree, "posterior")
+    time = np.asarray(posterior["time"].values if "time" in posterior.coords else [], dtype=float)
+    method = str(summary.get("method", attrs.get("method", "")))
+
+    param_draws, path_draws = {}, {}
+    for name, var in posterior.data_vars.items():
+        if var.dims == ("chain", "draw"):
+            param_draws[name] = np.asarray(var.values, dtype=float)
+        elif var.dims[:2] in (("chain", _PATH_DRAW), ("chain", "draw")) and "time" in var.dims:
+            a = np.asarray(var.values, dtype=float)
+            path_draws[name] = a if a.ndim == 4 else a[..., None]
+
+    sample_stats = {name: np.asarray(v.values) for name, v in _group(tree, "sample_stats").data_vars.items()}
+    observed_ds = _group(tree, "observed_data")
+    observed = {str(v.attrs.get("column", name)): np.asarray(v.values, dtype=float)
+                for name, v in observed_ds.data_vars.items()}
+    if time.size == 0 and "time" in observed_ds.coords:
+        time = np.asarray(observed_ds["time"].values, dtype=float)
+    truth = {}
+    for name, v in _group(tree, "constant_data").data_vars.items():
+        if name.startswith("true_"):
+            a = np.asarray(v.values, dtype=float)
+            truth[name[len("true_"):]] = a if a.ndim == 2 else a[:, None]
+
+    state_mean, state_sd = {}, {}
+    outputs = {str(k): str((v or {}).get("unit", "")) for k, v in (summary.get("outputs") or {}).items()}
+    if csv_path.is_file():
+        csv_time, state_mean, state_sd = _read_summary_csv(csv_path, outputs)
+        if time.size == 0:
+            time = csv_time
+    else:  # nothing sampled: the smoother's means and sds are in posterior.nc
+        for name, v in posterior.data_vars.items():
+            m = _COLUMN.match(name)
+            if m and m.group("index") is None:
+                a = np.asarray(v.values, dtype=float)
+                target = state_mean if m.group("kind") == "mean" else state_sd
+                target[m.group("state")] = a if a.ndim == 2 else a[:, None]
+
+    def width_of(state: str, default: int) -> int:
+        for source in (state_mean, truth):
+            if state in source:
+                return int(source[state].shape[1])
+        if state in path_draws:
+            return int(path_draws[state].shape[-1])
+        return default
+
+    ndof = int(attrs.get("ndof", width_of("displacement", 1)))
+    nforce = int(attrs.get("nforce", width_of("force", 1)))
+
+    return RunResult(
+        method=method,
+        time=time,
+        ndof=ndof,
+        nforce=nforce,
+        state_mean=state_mean,
+        state_sd=state_sd,
+        param_draws=param_draws,
+        path_draws=path_draws,
+        sample_stats=sample_stats,
+        acceptance=[float(a) if a is not None else float("nan") for a in summary.get("acceptance", [])],
+        log_likelihood=_float(summary.get("log_likelihood")),
+        observed=observed,
+        truth=truth,
+        point_estimate={k: _float(v) for k, v in (summary.get("point_estimate") or {}).items()},
+        diagnostics=dict(summary.get("diagnostics") or {}),
+        # posterior.nc may hold only the draws aligned with the trajectories:
+        # keep the full-chain summary that was written with the run.
+        param_summary=summary.get("parameters") or None,
+        seed=int(summary.get("seed", attrs.get("seed", 0)) or 0),
+        wall_time_s=_float(summary.get("wall_time_s", 0.0)),
+        # MDOF matrices (M, C, K) are lists
+        fixed={k: (np.asarray(v, dtype=float) if isinstance(v, list) else _float(v))
+               for k, v in (summary.get("fixed") or {}).items()},
+        convergence=None if method == "kalman" else dict(summary.get("convergence") or {}),
+        units=dict((summary.get("units") or {}).get("channels") or {}),
+        outputs=outputs,
+        force_psd=_read_force_psd(out_dir),
+    )
+
+
+def _read_force_psd(out_dir: Path) -> dict | None:
+    from latentforce.io.extra_results import FORCE_PSD, read_force_psd
+
+    return read_force_psd(out_dir / FORCE_PSD)
+
+
+def _float(value: Any) -> float:
+    return float("nan") if value is None else float(value)
+
+
+def _group(tree: xr.DataTree, name: str) -> xr.Dataset:
+    if name in tree.children:
+        return tree[name].to_dataset()
+    return xr.Dataset()
+
+
+def _read_summary_csv(path: Path, outputs=()) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    with open(path, newline="", encoding="utf-8") as f:
+        reader = csv.reader(f)
+        try:
+            header = next(reader)
+        except StopIteration:
+            raise LatentForceError(f"{str(path)!r} is empty; expected a summary table.") from None
+        rows = [[float(x) for x in row] for row in reader if row]
+    table = np.asarray(rows, dtype=float).reshape(len(rows), len(header))
+    if not header or header[0] != "time":
+        raise LatentForceError(f"{str(path)!r} does not start with a 'time' column.")
+    from latentforce.io.extra_results import split_output_columns
+
+    out_mean, out_sd, used = split_output_columns(header, table, outputs)
+    parts: dict[str, dict[str, dict[int, np.ndarray]]] = {}
+    for j, column in enumerate(header[1:], start=1):
+        m = _COLUMN.match(column)
+        if m is None or j in used:
+            continue
+        index = int(m.group("index")) if m.group("index") is not None else 0
+        parts.setdefault(m.group("kind"), {}).setdefault(m.group("state"), {})[index] = table[:, j]
+    stacked = {
+        kind: {s: np.column_stack([c[i] for i in sorted(c)]) for s, c in by_state.items()}
+        for kind, by_state in parts.items()
+    }
+    return table[:, 0], {**stacked.get("mean", {}), **out_mean}, {**stacked.get("sd", {}), **out_sd}
+
+
+def redraw(out_dir: Path) -> None:
+    """Redraw ``figures/`` and rewrite ``summary.json`` and ``summary.csv``
+    from what is on disk (``latentforce report DIR``); ``posterior.nc`` is
+    left as it is."""
+    out_dir = Path(out_dir)
+    result = read_results(out_dir)
+    _write_summaries(out_dir, result)
+    write_figures(out_dir, result)
