@@ -140,7 +140,8 @@ def main() -> None:
 
     runs = [("1 worker, empty cache", "1", "c1", "camp1"), ("2 workers, empty cache", "2", "c2", "camp2")]
     if not args.quick:
-        runs += [("2 workers, cache of run 2", "2", "c2", "camp3"), ("rerun of run 3 (all skipped)", "2", "c2", "camp3")]
+        runs += [("2 workers, cache of run 2", "2", "c2", "camp3"),
+                 ("rerun of run 3 (all skipped)", "2", "c2", "camp3")]
     table = []
     for label, workers, cache, out in runs:
         wall, code, text = cli("batch", str(work / "campaign.toml"), str(records / "*.csv"), "--out",
@@ -168,7 +169,8 @@ def main() -> None:
     for label, wall, rows in table:
         times = [float(r["wall_time_s"]) for r in rows]
         later = sorted(times[1:])
-        median = later[len(later) // 2] if len(later) % 2 else 0.5 * (later[len(later) // 2 - 1] + later[len(later) // 2])
+        mid = len(later) // 2
+        median = later[mid] if len(later) % 2 else 0.5 * (later[mid - 1] + later[mid])
         statuses = {r["status"] for r in rows}
         lines.append(f"| {label} ({'/'.join(sorted(statuses))}) | {wall:.1f} | {times[0]:.1f} | "
                      f"{median:.1f} ({later[0]:.1f}-{later[-1]:.1f}) | "

@@ -205,8 +205,10 @@ def table(results: dict, quick: bool) -> str:
                    "GPU parallel s | GPU speed-up | compile s CPU (seq / par) |"),
               "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for T, op in keys:
-        comp = f"{fmt(cell('cpu', T, op, 'sequential', 'compile_s'))} / {fmt(cell('cpu', T, op, 'parallel', 'compile_s'))}"
-        lines.append(f"| {T:,} | {op} | {fmt(cell('cpu', T, op, 'sequential'))} | {fmt(cell('cpu', T, op, 'parallel'))} "
+        comp = (f"{fmt(cell('cpu', T, op, 'sequential', 'compile_s'))} / "
+                f"{fmt(cell('cpu', T, op, 'parallel', 'compile_s'))}")
+        lines.append(f"| {T:,} | {op} | {fmt(cell('cpu', T, op, 'sequential'))} "
+                     f"| {fmt(cell('cpu', T, op, 'parallel'))} "
                      f"| {ratio('cpu', T, op)} | {fmt(cell('gpu', T, op, 'sequential'))} | "
                      f"{fmt(cell('gpu', T, op, 'parallel'))} | {ratio('gpu', T, op)} | {comp} |")
     lines += ["", ("*log-likelihood*: the samplers' log posterior (discretisation, priors, exact Kalman "

@@ -171,7 +171,8 @@ class NumpySweep:
             eta[t] = C.T @ self.Rinv @ e
             if t < T - 1:
                 J = np.stack([np.array(self.phi(z + eps, v, u)) - np.array(self.phi(z - eps, v, u)),
-                              np.array(self.phi(z, v + eps, u)) - np.array(self.phi(z, v - eps, u))], axis=1) / (2 * eps)
+                              np.array(self.phi(z, v + eps, u)) - np.array(self.phi(z, v - eps, u))],
+                             axis=1) / (2 * eps)
                 Lam[t] += J.T @ Lam[t + 1] @ J
                 eta[t] += J.T @ eta[t + 1]
         S = self.Q * np.outer(D, D) + R

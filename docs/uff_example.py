@@ -66,9 +66,10 @@ def write_uff(folder: Path, seed: int = 0) -> None:
     import latentforce
 
     latentforce.enable_x64()
+    import tomllib
+
     from latentforce.io.config import config_from_dict, initial_params
     from latentforce.simulate import simulate
-    import tomllib
 
     problem = config_from_dict(tomllib.loads(CONFIG), base_dir=folder)
     model = problem.model

@@ -290,9 +290,10 @@ def test_persistent_cache_serves_a_new_process_and_restores_the_settings(tmp_pat
 _IMPORT_PROBE = """
 import json, os, sys
 import jax
-before = (dict(os.environ), {k: getattr(jax.config, k) for k in ("jax_enable_x64", "jax_compilation_cache_dir", "jax_default_matmul_precision")})
+KEYS = ("jax_enable_x64", "jax_compilation_cache_dir", "jax_default_matmul_precision")
+before = (dict(os.environ), {k: getattr(jax.config, k) for k in KEYS})
 import latentforce, latentforce.cli, latentforce.estimate, latentforce.results, latentforce.inference.pgas
-after = (dict(os.environ), {k: getattr(jax.config, k) for k in ("jax_enable_x64", "jax_compilation_cache_dir", "jax_default_matmul_precision")})
+after = (dict(os.environ), {k: getattr(jax.config, k) for k in KEYS})
 print(json.dumps(before == after))
 if sys.argv[1] == "enable":
     latentforce.enable_x64()

@@ -76,7 +76,8 @@ def test_general_solve_pivots():
     rng = np.random.default_rng(3)
     # a zero leading pivot and a tiny one: without row exchanges these fail or lose all accuracy
     for A in (np.array([[0.0, 1.0], [1.0, 0.0]]), np.array([[1e-18, 1.0], [1.0, 1.0]]),
-              rng.normal(size=(9, 9)), np.kron(rng.normal(size=(3, 3)), np.eye(3)) + np.kron(np.eye(3), rng.normal(size=(3, 3)))):
+              rng.normal(size=(9, 9)),
+              np.kron(rng.normal(size=(3, 3)), np.eye(3)) + np.kron(np.eye(3), rng.normal(size=(3, 3)))):
         n = A.shape[0]
         for B in (rng.normal(size=n), rng.normal(size=(n, 4))):
             X = np.asarray(linalg.solve(jnp.asarray(A), jnp.asarray(B)))
@@ -93,7 +94,8 @@ def test_derivatives_match_jax_linalg():
 
     def ours(t):
         A = A0 + t * (dA + dA.T)
-        return jnp.sum(linalg.cholesky(A)) + jnp.sum(linalg.solve(A, B)) + jnp.sum(linalg.cho_solve(linalg.cholesky(A), B))
+        return (jnp.sum(linalg.cholesky(A)) + jnp.sum(linalg.solve(A, B))
+                + jnp.sum(linalg.cho_solve(linalg.cholesky(A), B)))
 
     def theirs(t):
         A = A0 + t * (dA + dA.T)

@@ -216,7 +216,8 @@ class Gamma(Prior):
 
 @_register
 class SoftplusNormal(Prior):
-    r"""Normal in the samplers' space: :math:`x = \operatorname{softplus}^{-1}(\theta) \sim N(\text{loc}, \text{scale}^2)`.
+    r"""Normal in the samplers' space:
+    :math:`x = \operatorname{softplus}^{-1}(\theta) \sim N(\text{loc}, \text{scale}^2)`.
 
     The density of :math:`\theta` carries the Jacobian
     :math:`dx/d\theta = 1/(1 - e^{-\theta})`. This is the form a parameter

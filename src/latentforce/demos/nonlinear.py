@@ -163,7 +163,8 @@ def _report(title: str, folder: Path, result, force: str, echo) -> None:
     d = result.diagnostics
     conv = result.convergence or {}
     if conv.get("converged") is not None:
-        echo(f"{'converged' if conv['converged'] else 'NOT CONVERGED'}: max R-hat {conv.get('max_r_hat', float('nan')):.3f}, "
+        echo(f"{'converged' if conv['converged'] else 'NOT CONVERGED'}: "
+             f"max R-hat {conv.get('max_r_hat', float('nan')):.3f}, "
              f"min bulk ESS {conv.get('min_ess_bulk', float('nan')):.0f} after {d.get('iterations', '?')} iterations "
              f"per chain")
     echo("per chain: MH acceptance " + ", ".join(f"{a:.2f}" for a in result.acceptance)

@@ -48,7 +48,8 @@ def _stats(draws: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         warnings.simplefilter("ignore")  # constant columns give NaN with a RuntimeWarning
         rhat = np.asarray(array_stats.rhat(a, chain_axis=-2, draw_axis=-1, method="rank"), dtype=float)
         bulk = np.asarray(array_stats.ess(a, chain_axis=-2, draw_axis=-1, method="bulk"), dtype=float)
-        tail = np.asarray(array_stats.ess(a, chain_axis=-2, draw_axis=-1, method="tail", prob=(0.05, 0.95)), dtype=float)
+        tail = np.asarray(array_stats.ess(a, chain_axis=-2, draw_axis=-1, method="tail", prob=(0.05, 0.95)),
+                          dtype=float)
     return rhat.reshape(-1), bulk.reshape(-1), tail.reshape(-1)
 
 

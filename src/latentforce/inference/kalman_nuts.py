@@ -78,7 +78,8 @@ def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
                     progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
                     max_time: float = 600.0, checkpoint=None, kalman: str = "auto") -> MCMCOutput:
-    """NUTS over the ``free`` parameters; arguments and output as :func:`~latentforce.inference.kalman_mcmc.run_kalman_mcmc`.
+    """NUTS over the ``free`` parameters; arguments and output as
+    :func:`~latentforce.inference.kalman_mcmc.run_kalman_mcmc`.
 
     ``MCMCOutput.accepted`` holds NUTS's acceptance statistic per draw,
     ``proposal_scale`` the step sizes, ``sampler_info`` the mean number of

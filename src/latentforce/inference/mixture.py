@@ -11,7 +11,8 @@ The sums are accumulated batch by batch (Chan et al.'s pairwise update of
 mean and sum of squared deviations, stable in float64), so memory is a
 batch of smoothers plus three ``(T, n)`` accumulators, whatever the number
 of draws (and on a long complete record each smoother keeps its
-covariances in steady state, :mod:`latentforce.inference.steady`); backward-sampled trajectories (Carter & Kohn) are kept for a
+covariances in steady state, :mod:`latentforce.inference.steady`); backward-sampled
+trajectories (Carter & Kohn) are kept for a
 bounded number of draws only, within :data:`PATH_BUDGET_BYTES`.
 """
 
