@@ -137,11 +137,11 @@ def test_particle_gibbs_programs_call_no_lapack(monkeypatch):
     """Every program of a nonlinear PGAS run (free hyperparameters, so the theta steps, the
     low-frequency and the residual-preserving moves all run; chains vmapped, which is what
     batches the factorisations) is free of LAPACK custom calls."""
-    from latentforce.inference import pgas, smc
+    from latentforce.inference import particle_model, pgas
 
     texts = []
     monkeypatch.setattr(pgas, "shared_jit", _recording(texts, lf_compile.shared_jit))
-    monkeypatch.setattr(smc, "shared_jit", _recording(texts, lf_compile.shared_jit))
+    monkeypatch.setattr(particle_model, "shared_jit", _recording(texts, lf_compile.shared_jit))
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
     params = dict(m=1.0, c=0.5, k=10.0, k3=1000.0, force_variance=1.0, force_lengthscale=0.5)
     free = {"force_variance": (LogNormal(0.0, 1.0), 1.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 0.5)}

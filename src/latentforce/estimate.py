@@ -334,7 +334,7 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
     free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
     # The initial state: the user's [initial] for the mechanical states (the force states
     # start from their stationary GP distribution); else for a linear system the joint
-    # stationary distribution at the current hyperparameters (smc.ParticleModel), for a
+    # stationary distribution at the current hyperparameters (particle_model.ParticleModel), for a
     # nonlinear one the model's near-rest default at the initial hyperparameters.
     initial = _mechanical_initial(problem, params0)
     # PGAS needs a conditional resampling scheme; multinomial is the valid one we have.

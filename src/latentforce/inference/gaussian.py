@@ -3,7 +3,7 @@ r"""Gaussian filters and smoothers on the nonlinear model: ``ekf`` and ``ukf``.
 The fast answers engineers know, beside the particle sampler: an extended and
 an unscented Kalman filter with their Rauch-Tung-Striebel-type smoothers, on
 the particle sampler's own discrete model of the state :math:`x = (\mathrm{mech},
-x_f)` (:mod:`latentforce.inference.smc`; :meth:`~smc.ParticleModel.linear_discrete`),
+x_f)` (:mod:`latentforce.inference.particle_model`; :meth:`~particle_model.ParticleModel.linear_discrete`),
 
 .. math::
     x_t = f(x_{t-1}) + q_t,\quad q_t \sim N(0, Q), \qquad
@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from latentforce.inference import smc
+from latentforce.inference import particle_model
 from latentforce.linalg import cho_solve, cholesky, psd_sqrt, solve, symmetrise
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -60,7 +60,7 @@ class GaussianSmoother(NamedTuple):
     path: Float[Array, "T n"]  # zeros unless a key was given
 
 
-def model_functions(pm: smc.ParticleModel, tr: smc.Transition):
+def model_functions(pm: particle_model.ParticleModel, tr: particle_model.Transition):
     """``(f, h, Q, m_1, P_1)`` of the sampler's discrete model (module doc) at the transition ``tr``."""
     nm, nfx = pm.nm, pm.nfx
     _, Q, _, m1, P1 = pm.linear_discrete(tr)
@@ -152,7 +152,7 @@ def _filter_pass(kind, f, h, Q, R, m1, P1, y, mask):
     return out
 
 
-def gaussian_log_likelihood(kind: str, pm: smc.ParticleModel, tr: smc.Transition, y, mask,
+def gaussian_log_likelihood(kind: str, pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask,
                             R=None) -> Float[Array, ""]:
     r"""The filter's approximate :math:`\log p(y)` alone (no smoothing pass)."""
     f, h, Q, m1, P1 = model_functions(pm, tr)
@@ -164,11 +164,11 @@ def gaussian_log_likelihood(kind: str, pm: smc.ParticleModel, tr: smc.Transition
 def for_parameters(kind: str, model, dt: float, discretisation: str = "rk4", initial=None):
     """``(loglik, smoother)``: ``loglik(params, y, mask)`` and ``smoother(params, y, mask, key=None)``
     of the ``kind`` filter with every number taken from ``params`` (jittable, differentiable: the
-    samplers' model is built inside, :class:`smc.ParticleModel`); ``initial`` the mechanical
+    samplers' model is built inside, :class:`particle_model.ParticleModel`); ``initial`` the mechanical
     states' ``(mean, sd|cov)`` as for ``pgas``."""
 
     def build(params):
-        pm = smc.ParticleModel(model, params, dt, discretisation, initial)
+        pm = particle_model.ParticleModel(model, params, dt, discretisation, initial)
         tr = pm.transition(params["force_variance"], params["force_lengthscale"])
         return pm, tr, model.noise_covariance(params)
 
@@ -183,7 +183,7 @@ def for_parameters(kind: str, model, dt: float, discretisation: str = "rk4", ini
     return loglik, smoother
 
 
-def gaussian_smoother(kind: str, pm: smc.ParticleModel, tr: smc.Transition, y, mask, R=None,
+def gaussian_smoother(kind: str, pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None,
                       key=None) -> GaussianSmoother:
     """The ``kind`` (``"ekf"`` or ``"ukf"``) filter and RTS-type smoother of the module doc.
 

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from latentforce.inference import mcmc, smc
+from latentforce.inference import mcmc, particle_model
 from latentforce.inference.latent import (
     ObservationDensity,
     colour,
@@ -25,10 +25,10 @@ _RESHAPE_AT = (0.05, 0.1, 0.2, 0.4, 0.7)
 HYPERPARAMETERS = ("force_variance", "force_lengthscale")
 
 
-def gp_path_log_density(pm: smc.ParticleModel, variance, lengthscale,
+def gp_path_log_density(pm: particle_model.ParticleModel, variance, lengthscale,
                         g: Float[Array, "T nl"]) -> Float[Array, ""]:
     r""":math:`\log p(g_{1:T} \mid \theta)` of the latent path (force states and within-step
-    mechanical noise, :mod:`smc`), vectorised over time (no scan)."""
+    mechanical noise, :mod:`particle_model`), vectorised over time (no scan)."""
     return latent_log_density(pm.transition(variance, lengthscale), g)
 
 
@@ -80,12 +80,12 @@ class Hyper:
         return self.log_target_and_transition(pm, x, g)[0]
 
     def log_target_and_transition(self, pm, x: Float[Array, " p"], g: Float[Array, "T nl"]
-                                  ) -> tuple[Float[Array, ""], smc.Transition]:
+                                  ) -> tuple[Float[Array, ""], particle_model.Transition]:
         """:meth:`log_target` and the latent's transition at ``x`` (which the sampler carries)."""
         tr = pm.transition(*self.values(x))
         return self.log_target_given(tr, x, g), tr
 
-    def log_target_given(self, tr: smc.Transition, x: Float[Array, " p"], g: Float[Array, "T nl"]
+    def log_target_given(self, tr: particle_model.Transition, x: Float[Array, " p"], g: Float[Array, "T nl"]
                          ) -> Float[Array, ""]:
         """:meth:`log_target` when ``tr``, the transition at ``x``, is already known."""
         return self.log_prior(x) + latent_log_density(tr, g)
@@ -125,9 +125,9 @@ def proposal_covariance(state: mcmc.RWMState) -> Float[Array, "p p"]:
     return jnp.exp(2.0 * state.log_scale) * state.chol @ state.chol.T
 
 
-def noncentred_log_target(hyper: Hyper, pm: smc.ParticleModel, od: ObservationDensity,
+def noncentred_log_target(hyper: Hyper, pm: particle_model.ParticleModel, od: ObservationDensity,
                           x: Float[Array, " p"], eps: Float[Array, "T nl"]
-                          ) -> tuple[Float[Array, ""], tuple[Float[Array, "T nl"], Float[Array, "T n"], smc.Transition]
+                          ) -> tuple[Float[Array, ""], tuple[Float[Array, "T nl"], Float[Array, "T n"], particle_model.Transition]
                                      ]:
     r"""Target of :math:`x = \log\theta` given the latent's innovations; the rebuilt latent, path and transition.
 

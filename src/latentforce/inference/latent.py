@@ -1,5 +1,5 @@
 r"""The particle sampler's latent path :math:`g = (x_f, w)` (force states and the mechanical
-states' within-step noise, :mod:`latentforce.inference.smc`): its Gaussian density, whitening and
+states' within-step noise, :mod:`latentforce.inference.particle_model`): its Gaussian density, whitening and
 colouring, and the observation density of a state path."""
 
 from __future__ import annotations
@@ -11,28 +11,28 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from latentforce.inference import smc
+from latentforce.inference import particle_model
 from latentforce.linalg import cho_solve, cholesky, solve_lower, symmetrise
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
-def latent_log_density(tr: smc.Transition, g: Float[Array, "T nl"]) -> Float[Array, ""]:
+def latent_log_density(tr: particle_model.Transition, g: Float[Array, "T nl"]) -> Float[Array, ""]:
     """:func:`gp_path_log_density` given the transition at :math:`\theta`."""
     T, nl = g.shape
-    cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
+    cP, cQ = particle_model._chol(tr.Pinf), particle_model._chol(tr.Q)
     eps = _whiten(tr, g, cP, cQ)
     logdetQ = 2.0 * jnp.sum(jnp.log(jnp.diag(cQ)))
     logdetP = 2.0 * jnp.sum(jnp.log(jnp.diag(cP)))
     return -0.5 * jnp.sum(eps**2) - 0.5 * ((T - 1) * logdetQ + logdetP) - 0.5 * T * nl * _LOG_2PI
 
 
-def whiten(tr: smc.Transition, g: Float[Array, "T nl"]) -> Float[Array, "T nl"]:
+def whiten(tr: particle_model.Transition, g: Float[Array, "T nl"]) -> Float[Array, "T nl"]:
     r"""Innovations :math:`\varepsilon_1 = L_\infty^{-1} g_1`, :math:`\varepsilon_t = L_Q^{-1}(g_t - A g_{t-1})`."""
-    return _whiten(tr, g, smc._chol(tr.Pinf), smc._chol(tr.Q))
+    return _whiten(tr, g, particle_model._chol(tr.Pinf), particle_model._chol(tr.Q))
 
 
-def _whiten(tr: smc.Transition, g, cP, cQ):
+def _whiten(tr: particle_model.Transition, g, cP, cQ):
     # one small triangular inverse applied as a matrix product: XLA's CPU triangular
     # solve with T right-hand sides cost ~1 ms at T = 1024, the product ~10 us
     e1 = solve_lower(cP, g[0])
@@ -41,10 +41,10 @@ def _whiten(tr: smc.Transition, g, cP, cQ):
     return jnp.concatenate([e1[None], resid @ cQ_inv.T])
 
 
-def colour(tr: smc.Transition, eps: Float[Array, "T nl"]) -> Float[Array, "T nl"]:
+def colour(tr: particle_model.Transition, eps: Float[Array, "T nl"]) -> Float[Array, "T nl"]:
     """The latent path with innovations ``eps`` (inverse of :func:`whiten`)."""
-    g1 = smc._chol(tr.Pinf) @ eps[0]
-    noise = eps[1:] @ smc._chol(tr.Q).T
+    g1 = particle_model._chol(tr.Pinf) @ eps[0]
+    noise = eps[1:] @ particle_model._chol(tr.Q).T
 
     def _step(g, q):
         nxt = tr.A @ g + q
@@ -63,7 +63,7 @@ class ObservationDensity(NamedTuple):
     const: Float[Array, " T"]
 
 
-def observation_density(pm: smc.ParticleModel, y, mask, R=None) -> ObservationDensity:
+def observation_density(pm: particle_model.ParticleModel, y, mask, R=None) -> ObservationDensity:
     """Precompute :math:`R_t^{-1}` and normalising constants of the observed channels (``R``
     default ``pm.R``)."""
     R = pm.R if R is None else R
@@ -81,19 +81,19 @@ def observation_density(pm: smc.ParticleModel, y, mask, R=None) -> ObservationDe
     return ObservationDensity(yz, maskf, Rinv, const)
 
 
-def predicted_observations(pm: smc.ParticleModel, path: Float[Array, "T n"]) -> Float[Array, "T d"]:
+def predicted_observations(pm: particle_model.ParticleModel, path: Float[Array, "T n"]) -> Float[Array, "T d"]:
     r"""Noise-free observations :math:`c(\mathrm{mech}_t) + D x_{f,t}` of a path."""
     return jax.vmap(pm.offset)(path[:, :pm.nm]) + path[:, pm.nm:] @ pm.D.T
 
 
-def observation_log_likelihood(pm: smc.ParticleModel, od: ObservationDensity,
+def observation_log_likelihood(pm: particle_model.ParticleModel, od: ObservationDensity,
                                path: Float[Array, "T n"]) -> Float[Array, ""]:
     r""":math:`\sum_t \log N(y_t; c(\mathrm{mech}_t) + D x_{f,t}, R)` over the observed channels."""
     r = (od.y - predicted_observations(pm, path)) * od.maskf
     return jnp.sum(od.const) - 0.5 * jnp.einsum("ti,tij,tj->", r, od.Rinv, r)
 
 
-def gp_prior_path(key: Array, tr: smc.Transition, T: int) -> Float[Array, "T nl"]:
+def gp_prior_path(key: Array, tr: particle_model.Transition, T: int) -> Float[Array, "T nl"]:
     """One draw of the latent path from its prior."""
     return colour(tr, jax.random.normal(key, (T, tr.A.shape[0])))
 

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from latentforce.inference import mcmc, smc
+from latentforce.inference import mcmc, particle_model
 from latentforce.inference.hyper_moves import mh_step
 from latentforce.inference.latent import (
     ObservationDensity,
@@ -58,11 +58,11 @@ class LowFrequencyFrame(NamedTuple):
     :math:`w = \mathrm{vec}\,W`.
     """
 
-    tr: smc.Transition
+    tr: particle_model.Transition
     basis: Float[Array, "T K"]
 
 
-def lowfreq_coordinates(pm: smc.ParticleModel, frame: LowFrequencyFrame,
+def lowfreq_coordinates(pm: particle_model.ParticleModel, frame: LowFrequencyFrame,
                         path: Float[Array, "T n"]) -> tuple[Float[Array, " q"], Float[Array, "T nl"]]:
     """``(w, eps_perp)`` of a path (inverse of :func:`lowfreq_path`)."""
     eps = whiten(frame.tr, pm.latent(path))
@@ -70,14 +70,14 @@ def lowfreq_coordinates(pm: smc.ParticleModel, frame: LowFrequencyFrame,
     return W.ravel(), eps - frame.basis @ W
 
 
-def lowfreq_path(pm: smc.ParticleModel, frame: LowFrequencyFrame, eps_perp: Float[Array, "T nl"],
+def lowfreq_path(pm: particle_model.ParticleModel, frame: LowFrequencyFrame, eps_perp: Float[Array, "T nl"],
                  w: Float[Array, " q"]) -> Float[Array, "T n"]:
-    """The full path with low-frequency coordinates ``w`` (``colour`` then :meth:`~smc.ParticleModel.path`)."""
+    """The full path with low-frequency coordinates ``w`` (``colour`` then :meth:`~particle_model.ParticleModel.path`)."""
     W = jnp.reshape(w, (frame.basis.shape[1], pm.nl))
     return pm.path(colour(frame.tr, eps_perp + frame.basis @ W))
 
 
-def lowfreq_log_target(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
+def lowfreq_log_target(pm: particle_model.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
                        eps_perp: Float[Array, "T nf"], w: Float[Array, " q"]
                        ) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
     r""":math:`\log N(w; 0, I) + \log p(y \mid x_{1:T}(w, \varepsilon_\perp))` up to a constant, and the path.
@@ -92,7 +92,7 @@ def lowfreq_log_target(pm: smc.ParticleModel, od: ObservationDensity, frame: Low
     return -0.5 * jnp.sum(w**2) + observation_log_likelihood(pm, od, path), path
 
 
-def lowfreq_init(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
+def lowfreq_init(pm: particle_model.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
                  path: Float[Array, "T n"]) -> mcmc.RWMState:
     r"""Adaptation state of the low-frequency walk, its shape from a Gauss-Newton precision at ``path``.
 
@@ -117,7 +117,7 @@ def lowfreq_init(pm: smc.ParticleModel, od: ObservationDensity, frame: LowFreque
     return mcmc.RWMState(w, jnp.zeros(()), jnp.zeros(()), chol, w, cov, jnp.zeros(()))
 
 
-def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: smc.ParticleModel, od: ObservationDensity,
+def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: particle_model.ParticleModel, od: ObservationDensity,
                  frame: LowFrequencyFrame, path: Float[Array, "T n"], n_steps: int, *, adapt: Array,
                  step0: Array, reshape_steps: Array, target: float = 0.25
                  ) -> tuple[mcmc.RWMState, Float[Array, "T n"], Float[Array, " n_steps"]]:
@@ -193,7 +193,7 @@ class ResidualMove:
     several states.
     """
 
-    def __init__(self, pm: smc.ParticleModel, T: int, K: int, noise_sd: Float[Array, " nm"]):
+    def __init__(self, pm: particle_model.ParticleModel, T: int, K: int, noise_sd: Float[Array, " nm"]):
         D = np.asarray(pm.D)
         self.cols = np.flatnonzero(np.any(D != 0.0, axis=0))
         self.applies = len(self.cols) == pm.nforce and pm.nforce > 0
@@ -219,7 +219,7 @@ class ResidualMove:
         C = jnp.reshape(c, (self.K + 1, -1))
         return ((self.basis @ C[: self.K]) * self.scale_w).at[0].set(C[self.K] * self.scale_0)
 
-    def builder(self, pm: smc.ParticleModel, od: ObservationDensity, path: Float[Array, "T n"]):
+    def builder(self, pm: particle_model.ParticleModel, od: ObservationDensity, path: Float[Array, "T n"]):
         """``c -> (latent, path)``: the path with noise ``w + delta_w(c)`` and the residuals of ``path`` kept."""
         nm = pm.nm
         rows, cols = self.rows, self.cols
@@ -236,8 +236,8 @@ class ResidualMove:
         def _force(mech, target_t, xf0_t):
             # products as broadcast-multiply-sums: XLA fuses them (a dot per step,
             # batched over chains, cost ten times the whole step on CPU)
-            u = smc._mv1(self.Dinv, target_t - pm.offset(mech)[rows])
-            return xf0_t * keep + smc._mv1(scatter, u)
+            u = particle_model._mv1(self.Dinv, target_t - pm.offset(mech)[rows])
+            return xf0_t * keep + particle_model._mv1(scatter, u)
 
         def build(c):
             w = w0 + self.delta_w(c)
@@ -257,7 +257,7 @@ class ResidualMove:
         return build
 
 
-def residual_log_target(tr: smc.Transition, pm: smc.ParticleModel, od: ObservationDensity, build,
+def residual_log_target(tr: particle_model.Transition, pm: particle_model.ParticleModel, od: ObservationDensity, build,
                         c: Float[Array, " q"], cP=None, cQ=None) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
     r"""Log target of the residual-preserving move up to a constant, and the path.
 
@@ -265,13 +265,13 @@ def residual_log_target(tr: smc.Transition, pm: smc.ParticleModel, od: Observati
     the latent's whitened innovations (its prior density up to a constant);
     the map's Jacobian is constant (:class:`ResidualMove`).
     """
-    cP = smc._chol(tr.Pinf) if cP is None else cP
-    cQ = smc._chol(tr.Q) if cQ is None else cQ
+    cP = particle_model._chol(tr.Pinf) if cP is None else cP
+    cQ = particle_model._chol(tr.Q) if cQ is None else cQ
     g, path = build(c)
     return -0.5 * jnp.sum(_whiten(tr, g, cP, cQ) ** 2) + observation_log_likelihood(pm, od, path), path
 
 
-def residual_init(rm: ResidualMove, pm: smc.ParticleModel, od: ObservationDensity, tr: smc.Transition,
+def residual_init(rm: ResidualMove, pm: particle_model.ParticleModel, od: ObservationDensity, tr: particle_model.Transition,
                   path: Float[Array, "T n"]) -> mcmc.RWMState:
     r"""Adaptation state of the residual-preserving walk, its shape a Gauss-Newton covariance at ``path``.
 
@@ -282,7 +282,7 @@ def residual_init(rm: ResidualMove, pm: smc.ParticleModel, od: ObservationDensit
     """
     build = rm.builder(pm, od, path)
     q = rm.dim
-    cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
+    cP, cQ = particle_model._chol(tr.Pinf), particle_model._chol(tr.Q)
 
     def features(c):
         g, x = build(c)
@@ -295,8 +295,8 @@ def residual_init(rm: ResidualMove, pm: smc.ParticleModel, od: ObservationDensit
     return mcmc.RWMState(jnp.zeros(q), jnp.zeros(()), jnp.zeros(()), chol, jnp.zeros(q), cov, jnp.zeros(()))
 
 
-def residual_move(key: Array, rwm: mcmc.RWMState, rm: ResidualMove, pm: smc.ParticleModel,
-                  od: ObservationDensity, tr: smc.Transition, path: Float[Array, "T n"], n_steps: int, *,
+def residual_move(key: Array, rwm: mcmc.RWMState, rm: ResidualMove, pm: particle_model.ParticleModel,
+                  od: ObservationDensity, tr: particle_model.Transition, path: Float[Array, "T n"], n_steps: int, *,
                   adapt: Array, target: float = 0.25
                   ) -> tuple[mcmc.RWMState, Float[Array, "T n"], Float[Array, " n_steps"]]:
     r"""``n_steps`` residual-preserving Metropolis steps (:class:`ResidualMove`) at fixed :math:`\theta`.
@@ -309,7 +309,7 @@ def residual_move(key: Array, rwm: mcmc.RWMState, rm: ResidualMove, pm: smc.Part
     the acceptances.
     """
     build = rm.builder(pm, od, path)
-    cP, cQ = smc._chol(tr.Pinf), smc._chol(tr.Q)
+    cP, cQ = particle_model._chol(tr.Pinf), particle_model._chol(tr.Q)
 
     def log_target(c):
         return residual_log_target(tr, pm, od, build, c, cP, cQ)

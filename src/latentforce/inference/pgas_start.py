@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from latentforce.inference import mcmc, smc
+from latentforce.inference import mcmc, particle_model
 from latentforce.inference.kalman import _update
 from latentforce.inference.path_moves import (
     LowFrequencyFrame,
@@ -17,12 +17,12 @@ from latentforce.inference.path_moves import (
 from latentforce.linalg import cholesky, solve, symmetrise
 
 
-def extended_kalman_smoother(pm: smc.ParticleModel, tr: smc.Transition, y, mask, R=None) -> Float[Array, "T n"]:
+def extended_kalman_smoother(pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None) -> Float[Array, "T n"]:
     r"""Smoothed means of the sampler's state-space model in ``(mech, x_f)``.
 
     The transition is :math:`x_t = (\Phi(\mathrm{mech}_{t-1}, x_{f,t-1}) + E x_{f,t-1},
     A_f x_{f,t-1}) + q_t` with the latent's joint noise :math:`q_t`
-    (:meth:`~smc.ParticleModel.linear_discrete`). Extended Kalman filter
+    (:meth:`~particle_model.ParticleModel.linear_discrete`). Extended Kalman filter
     (Jacobians by ``jax.jacfwd``) with the Kalman update of
     :mod:`latentforce.inference.kalman` applied to the linearised
     observation, then an RTS pass with the per-step Jacobians (Särkkä 2013,
@@ -68,7 +68,7 @@ def extended_kalman_smoother(pm: smc.ParticleModel, tr: smc.Transition, y, mask,
     return jnp.concatenate([msm, ms[-1:]])
 
 
-def dispersed_start(key: Array, pm: smc.ParticleModel, frame: LowFrequencyFrame, rwm_lf: mcmc.RWMState,
+def dispersed_start(key: Array, pm: particle_model.ParticleModel, frame: LowFrequencyFrame, rwm_lf: mcmc.RWMState,
                     path: Float[Array, "T n"], spread: float = 2.0) -> Float[Array, "T n"]:
     r"""A chain's starting path: ``path`` (the smoother's) moved by ``spread`` times its
     Gauss-Newton posterior sd in the low-frequency coordinates (``rwm_lf.cov``, :func:`lowfreq_init`).

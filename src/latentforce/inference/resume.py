@@ -19,8 +19,8 @@ def pgas_loop_state(states, infos: list, ref_q, done: int, finished: bool, stopp
                     elapsed_s: float) -> LoopState:
     """:func:`latentforce.inference.pgas.run_pgas`'s loop after its segment ending at block ``done``.
 
-    ``states``: the chains' :class:`~latentforce.inference.pgas.ChainState`;
-    ``infos``: the segments' :class:`~latentforce.inference.pgas.BlockInfo`
+    ``states``: the chains' :class:`~latentforce.inference.pgas_block.ChainState`;
+    ``infos``: the segments' :class:`~latentforce.inference.pgas_block.BlockInfo`
     records, chains first (merged into one here, in place, so that later
     checkpoints do not concatenate them again); ``ref_q``: the centring of
     the running sums; ``stopped``: why an ``"auto"`` run stopped, if it did.

@@ -1,0 +1,128 @@
+"""What a PGAS run returns: its :class:`PGASOutput`, assembled from the chains and blocks, and its convergence verdict.
+
+:func:`_assemble` pools the chains' running sums into the posterior mean and sd of the
+states, keeps the post-burn-in hyperparameters, paths and per-sweep diagnostics;
+:func:`_verdict` is the convergence record (R-hat, bulk ESS) over the hyperparameters and
+the monitored states, and :func:`convergence_diagnostics` the R-hat and ESS of the
+hyperparameters and the force at the recorded time points.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from latentforce.inference import convergence, particle_model
+from latentforce.inference.hyper_moves import Hyper, proposal_covariance
+from latentforce.inference.pgas_block import BlockInfo, ChainState, Schedule
+
+
+class PGASOutput(NamedTuple):
+    """What :func:`~latentforce.inference.pgas.run_pgas` returns (NumPy arrays; ``chains`` leading)."""
+
+    names: tuple  # free hyperparameter names
+    theta: dict  # name -> (chains, iterations), post burn-in
+    theta_burn: dict  # name -> (chains, burn_in)
+    trajectories: np.ndarray  # (chains, draws, T, n_state), thinned, post burn-in
+    state_mean: dict  # "displacement" | "velocity" | "force" -> (T, ndof|nforce), all post-burn-in sweeps
+    state_sd: dict
+    acceptance: np.ndarray  # (chains,), post burn-in MH acceptance rate
+    switch_rate: np.ndarray  # (chains, sweeps) post burn-in AS switch fraction per sweep
+    ess: np.ndarray  # (chains, sweeps) mean ESS/N of the filter per sweep
+    log_likelihood: np.ndarray  # (chains, sweeps) PF estimate log p(y | theta) per sweep
+    force_points: np.ndarray  # (chains, sweeps, P, nforce) force at `time_points`
+    time_points: np.ndarray
+    diagnostics: dict
+    mh_scale: np.ndarray  # (chains, p) frozen random-walk proposal sd per parameter (log space)
+
+
+
+
+def _verdict(pm: particle_model.ParticleModel, hyper: Hyper, infos: list, sched: Schedule, mpoints, target_ess: float) -> dict:
+    """The convergence record over the post-burn-in draws so far (hyperparameters per
+    iteration, the monitored displacement, velocity and force per sweep)."""
+    info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)
+    chains, blocks = info.accept.shape[:2]
+    theta = np.reshape(info.theta, (chains, blocks * sched.state_every, -1))[:, sched.burn_in:sched.total]
+    params = {n: theta[:, :, i] for i, n in enumerate(hyper.names)}
+    mon = info.monitored[:, sched.burn_blocks:]  # (chains, sweeps, M, q)
+    nd, nf = pm.ndof, pm.nforce
+    columns = {"displacement": range(0, nd), "velocity": range(nd, 2 * nd), "force": range(2 * nd, 2 * nd + nf)}
+    states = {}
+    for name, cols in columns.items():
+        for j, k in enumerate(cols):
+            label = name if len(cols) == 1 else f"{name}_{j}"
+            for i, t in enumerate(mpoints):
+                states[f"{label}[t={int(t)}]"] = mon[:, :, i, k]
+    return convergence.diagnose(params, states, target_ess=target_ess)
+
+
+def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, total, burn_blocks,
+              n_draws, tpoints) -> PGASOutput:
+    chains = info.accept.shape[0]
+    theta = np.reshape(info.theta, (chains, info.accept.shape[1] * info.accept.shape[2], len(hyper.names)))[:, :total]
+    accept = np.reshape(info.accept, (chains, -1))[:, :total]
+    th_post = {n: theta[:, burn_in:, i] for i, n in enumerate(hyper.names)}
+    th_burn = {n: theta[:, :burn_in, i] for i, n in enumerate(hyper.names)}
+    count = np.asarray(states.count)[:, None, None]
+    s1 = np.asarray(states.sum1)
+    s2 = np.asarray(states.sum2)
+    # pool the chains: mean and sd over every post-burn-in state sample
+    n_all = count.sum()
+    mean_c = s1.sum(0) / n_all
+    var = np.maximum(s2.sum(0) / n_all - mean_c**2, 0.0)
+    mean = mean_c + np.asarray(ref_q)
+    sd = np.sqrt(var)
+    nd, nf = pm.ndof, pm.nforce
+    sl = {"displacement": slice(0, nd), "velocity": slice(nd, 2 * nd), "force": slice(2 * nd, 2 * nd + nf)}
+    state_mean = {k: mean[:, v] for k, v in sl.items()}
+    state_sd = {k: sd[:, v] for k, v in sl.items()}
+    cov = np.asarray(jax.vmap(proposal_covariance)(states.rwm))
+    mh_sd = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    mh_corr = cov / np.maximum(mh_sd[:, :, None] * mh_sd[:, None, :], 1e-300)
+    post = slice(burn_blocks, None)
+    switch = info.switch_rate[:, post]
+    ess = info.ess[:, post]
+    fp = info.force_points[:, post]
+    diag = {
+        "acceptance": accept[:, burn_in:].mean(axis=1).tolist() if hyper.names else [],
+        "switch_rate": switch.mean(axis=1).tolist(),
+        "ess_per_particle": ess.mean(axis=1).tolist(),
+        "nonfinite_log_likelihood": int(np.sum(~np.isfinite(info.log_likelihood))),
+        "mh_proposal_sd": mh_sd.tolist(),
+        "mh_proposal_corr": mh_corr.tolist(),
+        "mh_sampling_space": "log",
+        "acceptance_noncentred": np.reshape(info.accept_noncentred, (chains, -1))[:, burn_in:total].mean(axis=1).tolist()
+        if hyper.names else [],
+        "acceptance_lowfreq": info.accept_lowfreq[:, burn_blocks:].mean(axis=1).tolist(),
+        "acceptance_residual": info.accept_residual[:, burn_blocks:].mean(axis=1).tolist(),
+    }
+    diag.update(convergence_diagnostics(th_post, fp, tpoints))
+    return PGASOutput(hyper.names, th_post, th_burn, np.asarray(states.draws)[:, :n_draws], state_mean, state_sd,
+                      accept[:, burn_in:].mean(axis=1) if hyper.names else np.zeros(chains), switch, ess,
+                      info.log_likelihood[:, post], fp, tpoints, diag, mh_sd)
+
+
+def convergence_diagnostics(theta: dict, force_points: np.ndarray, tpoints) -> dict:
+    """R-hat and bulk ESS (arviz) of the hyperparameters and of the force at the recorded time points."""
+    import warnings
+
+    import arviz as az
+
+    out = {"rhat": {}, "ess_bulk": {}}
+    series = dict(theta)
+    for j, t in enumerate(tpoints):
+        for f in range(force_points.shape[-1]):
+            series[f"force[{int(t)}]" + (f"[{f}]" if force_points.shape[-1] > 1 else "")] = force_points[:, :, j, f]
+    for name, arr in series.items():
+        if arr.shape[1] < 4:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out["rhat"][name] = float(az.rhat(np.asarray(arr)))
+            out["ess_bulk"][name] = float(az.ess(np.asarray(arr)))
+    return out
+
+
