@@ -127,7 +127,8 @@ def proposal_covariance(state: mcmc.RWMState) -> Float[Array, "p p"]:
 
 def noncentred_log_target(hyper: Hyper, pm: particle_model.ParticleModel, od: ObservationDensity,
                           x: Float[Array, " p"], eps: Float[Array, "T nl"]
-                          ) -> tuple[Float[Array, ""], tuple[Float[Array, "T nl"], Float[Array, "T n"], particle_model.Transition]
+                          ) -> tuple[Float[Array, ""],
+                                     tuple[Float[Array, "T nl"], Float[Array, "T n"], particle_model.Transition]
                                      ]:
     r"""Target of :math:`x = \log\theta` given the latent's innovations; the rebuilt latent, path and transition.
 

@@ -72,7 +72,8 @@ def lowfreq_coordinates(pm: particle_model.ParticleModel, frame: LowFrequencyFra
 
 def lowfreq_path(pm: particle_model.ParticleModel, frame: LowFrequencyFrame, eps_perp: Float[Array, "T nl"],
                  w: Float[Array, " q"]) -> Float[Array, "T n"]:
-    """The full path with low-frequency coordinates ``w`` (``colour`` then :meth:`~particle_model.ParticleModel.path`)."""
+    """The full path with low-frequency coordinates ``w`` (``colour`` then
+    :meth:`~particle_model.ParticleModel.path`)."""
     W = jnp.reshape(w, (frame.basis.shape[1], pm.nl))
     return pm.path(colour(frame.tr, eps_perp + frame.basis @ W))
 
@@ -271,7 +272,8 @@ def residual_log_target(tr: particle_model.Transition, pm: particle_model.Partic
     return -0.5 * jnp.sum(_whiten(tr, g, cP, cQ) ** 2) + observation_log_likelihood(pm, od, path), path
 
 
-def residual_init(rm: ResidualMove, pm: particle_model.ParticleModel, od: ObservationDensity, tr: particle_model.Transition,
+def residual_init(rm: ResidualMove, pm: particle_model.ParticleModel, od: ObservationDensity,
+                  tr: particle_model.Transition,
                   path: Float[Array, "T n"]) -> mcmc.RWMState:
     r"""Adaptation state of the residual-preserving walk, its shape a Gauss-Newton covariance at ``path``.
 

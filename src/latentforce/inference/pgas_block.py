@@ -228,7 +228,8 @@ def _with_scale_of(fresh: mcmc.RWMState, adapted: mcmc.RWMState) -> mcmc.RWMStat
     return fresh._replace(log_scale=adapted.log_scale, count=adapted.count)
 
 
-def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, rm: ResidualMove, basis, tpoints, mpoints, *,
+def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, rm: ResidualMove, basis,
+               tpoints, mpoints, *,
                particles: int = 50, proposal: str = "optimal", resampling: str = "multinomial",
                ancestor_sampling: bool = True, unroll: int = 1, interweave: bool = True,
                lowfreq_steps: int = 5, residual_steps: int = 60) -> Callable:

@@ -40,7 +40,8 @@ class PGASOutput(NamedTuple):
 
 
 
-def _verdict(pm: particle_model.ParticleModel, hyper: Hyper, infos: list, sched: Schedule, mpoints, target_ess: float) -> dict:
+def _verdict(pm: particle_model.ParticleModel, hyper: Hyper, infos: list, sched: Schedule, mpoints,
+             target_ess: float) -> dict:
     """The convergence record over the post-burn-in draws so far (hyperparameters per
     iteration, the monitored displacement, velocity and force per sweep)."""
     info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)
@@ -94,7 +95,8 @@ def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, to
         "mh_proposal_sd": mh_sd.tolist(),
         "mh_proposal_corr": mh_corr.tolist(),
         "mh_sampling_space": "log",
-        "acceptance_noncentred": np.reshape(info.accept_noncentred, (chains, -1))[:, burn_in:total].mean(axis=1).tolist()
+        "acceptance_noncentred":
+            np.reshape(info.accept_noncentred, (chains, -1))[:, burn_in:total].mean(axis=1).tolist()
         if hyper.names else [],
         "acceptance_lowfreq": info.accept_lowfreq[:, burn_blocks:].mean(axis=1).tolist(),
         "acceptance_residual": info.accept_residual[:, burn_blocks:].mean(axis=1).tolist(),

@@ -17,7 +17,8 @@ from latentforce.inference.path_moves import (
 from latentforce.linalg import cholesky, solve, symmetrise
 
 
-def extended_kalman_smoother(pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None) -> Float[Array, "T n"]:
+def extended_kalman_smoother(pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask,
+                             R=None) -> Float[Array, "T n"]:
     r"""Smoothed means of the sampler's state-space model in ``(mech, x_f)``.
 
     The transition is :math:`x_t = (\Phi(\mathrm{mech}_{t-1}, x_{f,t-1}) + E x_{f,t-1},
