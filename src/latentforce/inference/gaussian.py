@@ -75,21 +75,27 @@ def model_functions(pm: particle_model.ParticleModel, tr: particle_model.Transit
     return f, h, Q, m1, P1
 
 
-def _root(P):
-    """``L`` with ``L L^T = P`` (semi-definite ``P``): the square root of ``P`` scaled to unit
-    diagonal. The variances span ~15 orders here (the force's highest derivative against the
-    within-step displacement noise); unscaled, ``linalg.psd_sqrt``'s threshold relative to the
-    largest pivot dropped the displacement's spread altogether, and the UKF smoother diverged
-    (force NMSE 1e24 on a Duffing case)."""
-    P = symmetrise(P)
+def _unit_diagonal(P):
+    """``(d, P / d d^T)``: the standard deviations and the correlation matrix of ``P``. The
+    variances here span ~15 orders (the force's highest derivative against the within-step
+    displacement noise), so square roots and solves are taken on this scale: unscaled,
+    ``linalg.psd_sqrt``'s threshold relative to the largest pivot dropped the displacement's
+    spread altogether, and the UKF smoother diverged (force NMSE 1e24 on a Duffing case)."""
     d = jnp.sqrt(jnp.clip(jnp.diagonal(P), jnp.finfo(P.dtype).tiny, None))
-    return d[:, None] * psd_sqrt(P / jnp.outer(d, d))
+    return d, P / jnp.outer(d, d)
+
+
+def _root(P):
+    """``L`` with ``L L^T = P`` (semi-definite ``P``), taken on the correlation scale."""
+    d, corr = _unit_diagonal(symmetrise(P))
+    return d[:, None] * psd_sqrt(corr)
 
 
 def _sigma_points(m, P):
     """The :math:`2n` cubature points of :math:`N(m, P)` (module doc), rows."""
     n = m.shape[0]
-    offsets = math.sqrt(n) * jnp.concatenate([_root(P).T, -_root(P).T])
+    L = _root(P)
+    offsets = math.sqrt(n) * jnp.concatenate([L.T, -L.T])
     return m[None, :] + offsets
 
 
@@ -128,10 +134,10 @@ def _update(m, P, y_hat, S_h, C, R, y, mask):
 
 
 def _smoother_gain(P_p, C):
-    """:math:`G = C^T P_p^{-1}` (``C`` = Cov[x_t, x_{t+1}]) with ``P_p`` scaled to unit diagonal and
-    a relative jitter of 1e-12 on it."""
-    d = jnp.sqrt(jnp.clip(jnp.diagonal(P_p), jnp.finfo(P_p.dtype).tiny, None))
-    corr = P_p / jnp.outer(d, d) + 1e-12 * jnp.eye(P_p.shape[0])
+    """:math:`G = C P_p^{-1}` (``C`` = Cov[x_t, x_{t+1}]), solved on the correlation scale of
+    ``P_p`` (:func:`_unit_diagonal`) with a relative jitter of 1e-12."""
+    d, corr = _unit_diagonal(P_p)
+    corr = corr + 1e-12 * jnp.eye(P_p.shape[0])
     return (solve(corr, (C / d[None, :]).T) / d[:, None]).T
 
 
