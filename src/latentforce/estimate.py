@@ -160,14 +160,7 @@ def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, i
         if not np.isfinite(float(sm.log_likelihood)):
             raise LatentForceError("The Kalman filter's log-likelihood is not finite for the configured "
                                    f"model in {problem.config_path}: check the parameter values and units.")
-        mom = state_moments(model, sm.means, sm.covs)
-        state_mean = {k: np.asarray(v[0]) for k, v in mom.items()}
-        state_sd = {k: np.asarray(v[1]) for k, v in mom.items()}
-        if problem.outputs:  # exact: G m_t and diag(G P_t G^T) from the full covariances
-            G = output_matrix(model, problem.outputs, params0)
-            out_mean, out_sd, _ = split_outputs(problem.outputs, *gaussian_moments(G, sm.means, sm.covs))
-            state_mean.update(out_mean)
-            state_sd.update(out_sd)
+        state_mean, state_sd = _smoothed_moments(problem, params0, sm.means, sm.covs)
         result = RunResult(
             method="kalman", state_mean=state_mean, state_sd=state_sd, param_draws={}, path_draws={},
             sample_stats={}, acceptance=[], log_likelihood=float(sm.log_likelihood),
@@ -188,6 +181,21 @@ def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, i
         return _resumed(result, checkpoint), extras
 
     raise LatentForceError(f"Unknown inference method {settings.method!r}.")  # config validates this
+
+
+def _smoothed_moments(problem: Problem, params: dict, means, covs) -> tuple[dict, dict]:
+    r"""Per-state posterior means and sds of a Gaussian smoother (``kalman``, ``ekf``, ``ukf`` at fixed
+    parameters), the ``[[outputs]]`` included: :math:`G m_t` and :math:`\operatorname{diag}(G P_t G^T)`
+    from the full covariances (outputs under ``ekf``/``ukf``: linear systems only, by the config)."""
+    mom = state_moments(problem.model, means, covs)
+    state_mean = {k: np.asarray(v[0]) for k, v in mom.items()}
+    state_sd = {k: np.asarray(v[1]) for k, v in mom.items()}
+    if problem.outputs:
+        G = output_matrix(problem.model, problem.outputs, params)
+        out_mean, out_sd, _ = split_outputs(problem.outputs, *gaussian_moments(G, means, covs))
+        state_mean.update(out_mean)
+        state_sd.update(out_sd)
+    return state_mean, state_sd
 
 
 def _mechanical_initial(problem: Problem, params0: dict):
@@ -211,7 +219,6 @@ def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mas
     """``ekf`` / ``ukf``: the Gaussian smoother at fixed parameters, or random-walk Metropolis over the
     inferred ones on its approximate likelihood with the states mixed over the draws."""
     from latentforce.inference.gaussian import for_parameters
-    from latentforce.inference.kalman_mcmc import state_moments
 
     model, settings = problem.model, problem.inference
     loglik, smoother = for_parameters(settings.method, model, dataset.dt, settings.discretisation,
@@ -224,14 +231,7 @@ def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mas
     if not np.isfinite(float(sm.log_likelihood)):
         raise LatentForceError(f"The {settings.method.upper()} log-likelihood is not finite for the configured "
                                f"model in {problem.config_path}: check the parameter values and units.")
-    mom = state_moments(model, sm.means, sm.covs)
-    state_mean = {k: np.asarray(v[0]) for k, v in mom.items()}
-    state_sd = {k: np.asarray(v[1]) for k, v in mom.items()}
-    if problem.outputs:  # linear systems only (config): G m_t and diag(G P_t G^T)
-        G = output_matrix(model, problem.outputs, params0)
-        out_mean, out_sd, _ = split_outputs(problem.outputs, *gaussian_moments(G, sm.means, sm.covs))
-        state_mean.update(out_mean)
-        state_sd.update(out_sd)
+    state_mean, state_sd = _smoothed_moments(problem, params0, sm.means, sm.covs)
     return RunResult(
         method=settings.method, state_mean=state_mean, state_sd=state_sd, param_draws={}, path_draws={},
         sample_stats={}, acceptance=[], log_likelihood=float(sm.log_likelihood),
