@@ -9,6 +9,7 @@ level; a carried prior reproduces the calibration run's marginal posterior
 import copy
 import json
 
+import arviz as az
 import jax
 import numpy as np
 import pytest
@@ -178,18 +179,25 @@ def test_a_carried_prior_is_the_calibration_marginal(calibration):
     with xr.open_datatree(calibration / "calib" / "posterior.nc") as tree:
         post = tree["posterior"].to_dataset()
         draws = {n: np.asarray(post[n].values).ravel() for n in ("c", "k")}
+        ess = {n: float(az.ess(np.asarray(post[n].values))) for n in ("c", "k")}
     for name in ("c", "k"):
         prior = problem.free[name].prior
         sample = np.asarray(prior.sample(jax.random.key(1), (4000,)))
         # the calibration's draws are autocorrelated: compare at their ESS, not their count
+        # (the two-sample KS critical value at the 0.1 % level, c = 1.95)
         ks = stats.ks_2samp(sample, draws[name])
-        assert ks.statistic < 0.08, (name, ks)
-        assert np.median(sample) == pytest.approx(np.median(draws[name]), rel=0.02)
+        n, m = sample.size, min(ess[name], draws[name].size)
+        assert ks.statistic < 1.95 * np.sqrt((n + m) / (n * m)), (name, ks, ess[name])
+        # medians agree up to the draws' skewness in the softplus space, where the fit is Gaussian
+        # (median - mean ~ skewness x sd / 6; c's skewness there is about -0.8 on this record)
+        x_draws, x_sample = np.log(np.expm1(draws[name])), np.log(np.expm1(sample))
+        assert abs(np.median(x_sample) - np.median(x_draws)) < 0.25 * np.std(x_draws), name
         # its density integrates to one over the positive reals
         grid = np.linspace(1e-6, np.max(draws[name]) * 3, 20001)
         mass = np.trapezoid(np.exp(np.asarray(prior.log_prob(grid))), grid)
         assert mass == pytest.approx(1.0, abs=2e-3)
-        assert problem.free[name].init == pytest.approx(np.median(draws[name]), rel=0.05)
+        x_init = np.log(np.expm1(problem.free[name].init))
+        assert abs(x_init - np.median(x_draws)) < 0.25 * np.std(x_draws), name
     assert set(problem.carried) == {"[system].c", "[system].k"}
     assert problem.carried["[system].k"]["converged"] is not None
 

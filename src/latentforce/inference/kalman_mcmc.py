@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from latentforce.compile import jit
-from latentforce.inference import mcmc
+from latentforce.inference import independence, mcmc
 from latentforce.inference.kalman import log_likelihood, log_likelihood_complete
 from latentforce.inference.kalman_choice import (
     kalman_filter_for,
@@ -165,8 +165,8 @@ def make_log_posterior(model: LatentForceModel, fixed: dict, names: tuple[str, .
 
 
 def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains: int, *,
-                 use_modes: bool = True) -> tuple[np.ndarray, list[np.ndarray], dict]:
-    r"""Chain starts ``(chains, p)``, each chain's proposal covariance, and a record.
+                 use_modes: bool = True) -> tuple[np.ndarray, list[np.ndarray], dict, list]:
+    r"""Chain starts ``(chains, p)``, each chain's proposal covariance, a record, and the modes.
 
     With ``use_modes`` (the default): the posterior's modes from L-BFGS
     started at ``init`` and at :data:`N_DISPERSED_STARTS` points dispersed around it
@@ -177,7 +177,7 @@ def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains:
     :data:`EXPLORE_WINDOW` samples and only the optima found there are
     refined on the whole record.
     Without (or where the optimiser finds nothing finite), the paper's start:
-    ``init`` times ``exp(0.3 z)`` and a 10 % diagonal step.
+    ``init`` times ``exp(0.3 z)`` and a 10 % diagonal step, and no modes.
     """
     from latentforce.inference import laplace
 
@@ -210,21 +210,22 @@ def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains:
                                  "laplace_ok": m.laplace_ok, "sd": np.sqrt(np.diag(m.cov)).tolist()}
                                 for m in modes],
                       "chain_mode": which.tolist()}
-            return x0, [modes[w].cov for w in which], record
+            return x0, [modes[w].cov for w in which], record, modes
         record = {"method": "init", "optimiser": opt, "note": "the optimiser found no finite optimum"}
     z = np.asarray(jax.random.normal(key_old, (chains, p)))
     theta0 = inits[None, :] * np.exp(0.3 * z) if chains > 1 else inits[None, :]
     x0 = np.asarray(softplus_inverse(jnp.asarray(theta0)))
     # A 10 % step in the physical value (or 0.1 in x where the value is below one).
     sd0 = 0.1 * np.maximum(1.0, theta0)
-    return x0, [np.diag(s**2) for s in sd0], record
+    return x0, [np.diag(s**2) for s in sd0], record, []
 
 
 def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
                     progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
                     max_time: float = 600.0, use_modes: bool = True, adapt_shape: bool = True,
-                    loglik: Callable | None = None, checkpoint=None, kalman: str = "auto") -> MCMCOutput:
+                    loglik: Callable | None = None, checkpoint=None, kalman: str = "auto",
+                    independent: bool = True) -> MCMCOutput:
     """Random-walk Metropolis over the ``free`` parameters (Algorithm 1, ISMA 2018).
 
     ``free`` maps a parameter name to ``(prior, init)``; ``fixed`` holds the
@@ -232,7 +233,9 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     each chain's Laplace covariance scaled by :math:`2.38/\\sqrt p`, its
     scale adapted towards the optimal acceptance and its shape re-estimated
     from the chain (:mod:`latentforce.inference.mcmc`) during the
-    ``burn_in`` warm-up only, then frozen. ``iterations``: a number of
+    ``burn_in`` warm-up only, then frozen. With ``independent`` (the
+    default) and a mode found, independence steps from the modes' Laplace
+    fit are mixed in (:mod:`latentforce.inference.independence`). ``iterations``: a number of
     draws per chain, or ``None`` for "auto": chunks of ``chunk`` draws until
     :func:`latentforce.inference.convergence.diagnose` says converged
     (``target_ess``) or ``max_time`` seconds have passed since the start.
@@ -253,14 +256,17 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     target = mcmc.target_acceptance(p)
 
     key_start, key_run = jax.random.split(key)
-    x0, covs, start = start_chains(key_start, logpost, data, inits, chains, use_modes=use_modes)
+    x0, covs, start, modes = start_chains(key_start, logpost, data, inits, chains, use_modes=use_modes)
+    # Independence steps from the modes' Laplace fit (module doc), where the optimiser found a mode.
+    proposal = independence.from_modes(modes) if (modes and independent) else None
 
     # The start's log density is left at -inf: the first proposal is then accepted
     # whatever it is (a warm-up step), which spares compiling a program just for it.
     covs = np.stack(covs)
     chols = np.stack([np.linalg.cholesky(c) for c in covs]) * (2.38 / np.sqrt(p))
+    imh = (jnp.zeros(chains), jnp.zeros(chains)) if proposal is not None else (None, None)
     states = mcmc.RWMState(jnp.asarray(x0), jnp.full(chains, -jnp.inf), jnp.zeros(chains), jnp.asarray(chols),
-                           jnp.asarray(x0), jnp.asarray(covs), jnp.zeros(chains))
+                           jnp.asarray(x0), jnp.asarray(covs), jnp.zeros(chains), *imh)
 
     n_chunk = max(1, min(chunk, burn_in or chunk, iterations or chunk))
     burn_total = -(-burn_in // n_chunk) * n_chunk  # rounded up to whole chunks, never down
@@ -270,15 +276,18 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     shape_at = tuple(sorted({f * burn_total // 4 for f in fractions} - {0}))
 
     @jit
-    def runner(k, s, start_step, adapt, y_, mask_):
+    def runner(k, s, start_step, adapt, prop, y_, mask_):
         def chain(kc, sc):
             return mcmc.run_chain(kc, sc, lambda x: logpost(x, y_, mask_), n_chunk, adapt=adapt,
-                                  adapt_shape_at=shape_at, target=target, start=start_step)
+                                  adapt_shape_at=shape_at, target=target, start=start_step, independent=prop)
         return jax.vmap(chain)(k, s)
 
     def run_chunk(keys, s, start_step, adapt):
-        s, xs, infos = runner(keys, s, start_step, adapt, *data)
-        return s, xs, {"accepted": infos.accepted, "logdensity": infos.logdensity}
+        s, xs, infos = runner(keys, s, start_step, adapt, proposal, *data)
+        stats = {"accepted": infos.accepted, "logdensity": infos.logdensity}
+        if proposal is not None:
+            stats["independent"] = infos.independent
+        return s, xs, stats
 
     states, xs, stats = sample_in_chunks(key_run, states, run_chunk, names, chains=chains, n_chunk=n_chunk,
                                          burn_total=burn_total, iterations=iterations, target_ess=target_ess,
@@ -286,9 +295,20 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
                                          sampler="kalman-mcmc")
     accepted, lp = stats["accepted"], stats["logdensity"]
     draws, loglik, record = finish(xs, lp, names, priors, target_ess)
+    info = {}
+    if proposal is not None:
+        ind = np.asarray(stats["independent"], dtype=bool)
+        info["independence"] = {
+            "modes": int(proposal.means.shape[0]),
+            "probability": np.asarray(independence.choice_probability(states.imh_accept,
+                                                                      states.imh_count)).tolist(),
+            "share": ind.mean(axis=1).tolist(),
+            "acceptance": [float(a[i].mean()) if i.any() else None for a, i in zip(accepted, ind)],
+            "random_walk_acceptance": [float(a[~i].mean()) if (~i).any() else None for a, i in zip(accepted, ind)],
+        }
     return MCMCOutput(names, draws, accepted, loglik, accepted.mean(axis=1),
                       np.exp(np.asarray(states.log_scale)), _time.perf_counter() - t0, record, start,
-                      burn_total)
+                      burn_total, info)
 
 
 def sample_in_chunks(key, states, run_chunk: Callable, names: tuple[str, ...], *, chains: int, n_chunk: int,

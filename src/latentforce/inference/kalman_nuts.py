@@ -95,7 +95,7 @@ def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, bool(np.all(mask)), kalman=kalman)
     data = (jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask))
     key_start, key_run = jax.random.split(key)
-    x0, covs, start = start_chains(key_start, logpost, data, inits, chains)
+    x0, covs, start, _ = start_chains(key_start, logpost, data, inits, chains)
     da_init, da_update, da_final = dual_averaging_adaptation(TARGET_ACCEPTANCE)
     kernel = nuts.build_kernel()
 

@@ -14,6 +14,11 @@ chain with a fixed proposal and targets the posterior exactly):
   Cholesky factor of the running covariance of the chain (Haario, Saksman &
   Tamminen 2001), started from a diagonal guess.
 
+With an ``independent`` proposal (:mod:`latentforce.inference.independence`,
+the posterior's Laplace fit) each step is, with a probability fixed at the
+end of the warm-up, an independence Metropolis-Hastings step instead of the
+random walk: a mixture of two kernels that each leave the target invariant.
+
 Pure functions in the house style: ``init(x, logdensity) -> RWMState``,
 ``step(key, state, logdensity, adapt) -> (RWMState, RWMInfo)``.
 """
@@ -26,6 +31,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from latentforce.inference import independence
 from latentforce.linalg import cholesky
 
 
@@ -39,11 +45,16 @@ class RWMState(NamedTuple):
     mean: Float[Array, " p"]        # running mean of x (adaptation)
     cov: Float[Array, "p p"]        # running covariance of x (adaptation)
     count: Float[Array, ""]         # number of adaptation updates so far
+    # The independence step's warm-up acceptance (mean probability) and how often it was tried;
+    # None where no independence proposal is used.
+    imh_accept: Float[Array, ""] | None = None
+    imh_count: Float[Array, ""] | None = None
 
 
 class RWMInfo(NamedTuple):
     accepted: Bool[Array, ""]
     logdensity: Float[Array, ""]
+    independent: Bool[Array, ""] | None = None  # the step was an independence proposal
 
 
 def target_acceptance(dim: int) -> float:
@@ -58,8 +69,16 @@ def init(x: Float[Array, " p"], logdensity: Callable, proposal_sd: Float[Array, 
 
 
 def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
-         adapt_shape: Bool[Array, ""], target: float, aux=None):
+         adapt_shape: Bool[Array, ""], target: float, aux=None,
+         independent: independence.IndependenceProposal | None = None):
     r"""One Metropolis step; adapts the proposal only where ``adapt`` is true.
+
+    With ``independent`` (and ``state.imh_accept``, ``state.imh_count`` set),
+    the step is an independence Metropolis-Hastings step with probability
+    :func:`latentforce.inference.independence.choice_probability` of the
+    independence step's warm-up acceptance (frozen with the rest of the
+    adaptation), else the random walk; the random walk's scale adapts on its
+    own steps only.
 
     A proposal whose log density is not finite (e.g. a NaN likelihood from an
     unstable parameter set) is rejected, never propagated (STYLE 12).
@@ -68,25 +87,43 @@ def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
     ``(state, info, aux of the point kept)``, so that what the density
     computed on the way (e.g. a rebuilt path) need not be computed again.
     """
-    key_prop, key_acc = jax.random.split(key)
     p = state.x.shape[0]
+    if independent is None:
+        key_prop, key_acc = jax.random.split(key)
+        use_ind = jnp.zeros((), bool)
+    else:
+        key_prop, key_acc, key_choice, key_ind = jax.random.split(key, 4)
+        prob = independence.choice_probability(state.imh_accept, state.imh_count)
+        use_ind = jax.random.uniform(key_choice, dtype=state.x.dtype) < prob
     eps = jax.random.normal(key_prop, (p,), dtype=state.x.dtype)
     x_new = state.x + jnp.exp(state.log_scale) * (state.chol @ eps)
+    log_q_ratio = jnp.zeros((), state.x.dtype)
+    if independent is not None:
+        x_new = jnp.where(use_ind, independence.draw(key_ind, independent), x_new)
+        # Hastings ratio q(x) / q(x'); zero for the (symmetric) random walk.
+        log_q_ratio = jnp.where(use_ind, independence.log_density(independent, state.x)
+                                - independence.log_density(independent, x_new), 0.0)
     if aux is None:
         ld_new = logdensity(x_new)
     else:
         ld_new, aux_new = logdensity(x_new)
     ld_new = jnp.where(jnp.isfinite(ld_new), ld_new, -jnp.inf)
-    log_alpha = jnp.minimum(ld_new - state.logdensity, 0.0)
+    log_alpha = jnp.minimum(ld_new - state.logdensity + log_q_ratio, 0.0)
+    log_alpha = jnp.where(jnp.isnan(log_alpha), -jnp.inf, log_alpha)
     accepted = jnp.log(jax.random.uniform(key_acc, dtype=state.x.dtype)) < log_alpha
     x = jnp.where(accepted, x_new, state.x)
     ld = jnp.where(accepted, ld_new, state.logdensity)
 
-    # Adaptation (burn-in only).
+    # Adaptation (burn-in only); the random walk's scale from its own steps.
     count = state.count + adapt
-    gamma = jnp.where(adapt, 1.0 / jnp.maximum(count, 1.0) ** 0.6, 0.0)
+    gamma = jnp.where(adapt & ~use_ind, 1.0 / jnp.maximum(count, 1.0) ** 0.6, 0.0)
     alpha = jnp.exp(jnp.where(jnp.isfinite(log_alpha), log_alpha, -jnp.inf))
     log_scale = state.log_scale + gamma * (alpha - target)
+    imh_accept, imh_count = state.imh_accept, state.imh_count
+    if independent is not None:
+        imh_count = imh_count + (adapt & use_ind)
+        imh_accept = imh_accept + jnp.where(adapt & use_ind, (alpha - imh_accept) / jnp.maximum(imh_count, 1.0),
+                                            0.0)
     w = jnp.where(adapt, 1.0 / (count + 1.0), 0.0)
     diff = x - state.mean
     mean = state.mean + w * diff
@@ -97,14 +134,16 @@ def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
     # Switching shape rescales: restart the scale near the optimal 2.38/sqrt(p).
     chol = jnp.where(use_new, new_chol * (2.38 / jnp.sqrt(p)), state.chol)
     log_scale = jnp.where(use_new, 0.0, log_scale)
-    out = RWMState(x, ld, log_scale, chol, mean, cov, count), RWMInfo(accepted, ld)
+    info = RWMInfo(accepted, ld) if independent is None else RWMInfo(accepted, ld, use_ind)
+    out = RWMState(x, ld, log_scale, chol, mean, cov, count, imh_accept, imh_count), info
     if aux is None:
         return out
     return out + (jax.tree_util.tree_map(lambda a, b: jnp.where(accepted, a, b), aux_new, aux),)
 
 
 def run_chain(key, state: RWMState, logdensity: Callable, n_steps: int, *, adapt,
-              adapt_shape_at: tuple[int, ...] = (), target: float = 0.234, start=0):
+              adapt_shape_at: tuple[int, ...] = (), target: float = 0.234, start=0,
+              independent: independence.IndependenceProposal | None = None):
     """Scan ``n_steps`` Metropolis steps; returns the final state, draws and infos.
 
     ``adapt`` may be a traced boolean and ``start`` (the global number of the
@@ -112,6 +151,7 @@ def run_chain(key, state: RWMState, logdensity: Callable, n_steps: int, *, adapt
     (for progress reports) by ONE compiled program, burn-in and sampling
     alike. ``adapt_shape_at`` lists the global step numbers at which the
     proposal shape is reset from the running covariance (burn-in only).
+    ``independent``: mix in independence steps (:func:`step`).
     """
     keys = jax.random.split(key, n_steps)
     steps = jnp.arange(n_steps) + start
@@ -120,7 +160,7 @@ def run_chain(key, state: RWMState, logdensity: Callable, n_steps: int, *, adapt
     def _step(s, inputs):
         k, i = inputs
         adapt_shape = jnp.any(i == shape_steps)
-        s, info = step(k, s, logdensity, jnp.asarray(adapt), adapt_shape, target)
+        s, info = step(k, s, logdensity, jnp.asarray(adapt), adapt_shape, target, independent=independent)
         return s, (s.x, info)
 
     state, (xs, infos) = jax.lax.scan(_step, state, (keys, steps))

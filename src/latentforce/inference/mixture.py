@@ -38,7 +38,7 @@ from latentforce.models import LatentForceModel
 #: bytes of stored trajectories (``posterior.nc``'s paths) at most
 PATH_BUDGET_BYTES = 256 * 2**20
 #: bytes of one batch's filter and smoother arrays at most
-BATCH_BUDGET_BYTES = 128 * 2**20
+BATCH_BUDGET_BYTES = 32 * 2**20
 STATES = ("displacement", "velocity", "force")
 
 
@@ -67,13 +67,14 @@ def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int)
 
 
 def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, outputs: tuple, smoother, kalman: str,
-         with_path: bool, use_steady: bool, key, theta, y, mask):
+         with_path: bool, steady_K: int | None, key, theta, y, mask):
     r"""One draw's smoothed means, variances, (path) and log-likelihood; a flag that it is exact.
 
     With ``outputs`` (:class:`latentforce.outputs.OutputSpec`), the state columns are followed by
     the outputs :math:`G_\theta x`: means :math:`G m_t`, variances
     :math:`\operatorname{diag}(G P_t G^T)` from the full covariances, and the path's outputs.
     ``smoother(params, y, mask, key)`` replaces the exact Kalman smoother (``ekf``/``ukf``).
+    ``steady_K``: the steady-state smoother with that transient, else (None) the full one.
     """
     from latentforce.inference.kalman_mcmc import linear_gaussian
     from latentforce.outputs import output_matrix
@@ -91,8 +92,8 @@ def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial,
         path = extend(sm.path) if with_path else jnp.zeros(())
         return extend(sm.means), var, path, sm.log_likelihood, jnp.ones((), bool)
     A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
-    if use_steady:
-        sm = steady.steady_smoother(A, Q, H, R, m0, P0, y, key if with_path else None, rows=G)
+    if steady_K is not None:
+        sm = steady.steady_smoother(A, Q, H, R, m0, P0, y, key if with_path else None, K=steady_K, rows=G)
         path = extend(sm.path) if with_path else jnp.zeros(())
         return extend(sm.means), sm.variances, path, sm.log_likelihood, sm.converged
     T = y.shape[0]
@@ -138,23 +139,44 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
 
     # A complete long record: covariances in steady state (O(T n) memory per draw), else the full smoother.
     parallel = use_parallel(kalman, T)
-    use_steady = smoother is None and steady.applies(T, bool(np.all(mask))) and not parallel
+    static = (model, fixed, names, dt, initial, outputs, smoother, kalman)
+    steady_K = None
+    if smoother is None and steady.applies(T, bool(np.all(mask)), steady.MIN_TRANSIENT) and not parallel:
+        # The transient from the settling of the slowest of a few draws (the filter's covariance
+        # does not depend on the data): a lightly damped structure needs more than a stiff one.
+        probe = thetas.reshape(-1, len(names))[np.linspace(0, chains * per_chain - 1, 8).round().astype(int)]
+        settle = jit(jax.vmap(functools.partial(_settling, *static[:5], steady.TRANSIENT)))
+        steady_K = steady.transient_for(int(np.max(np.asarray(settle(jnp.asarray(probe))))), T)
     # the associative scans hold about three times the sequential smoother's arrays
-    per_draw = T * (4 * n + 2) * 8 if use_steady else T * ((12 if parallel else 4) * n * n + 4 * n) * 8
+    per_draw = T * (4 * n + 2) * 8 if steady_K else T * ((12 if parallel else 4) * n * n + 4 * n) * 8
     batch = int(max(1, min(16, BATCH_BUDGET_BYTES // per_draw)))
     y = jnp.asarray(np.where(mask, y, 0.0))
     mask = jnp.asarray(mask)
-    static = (model, fixed, names, dt, initial, outputs, smoother, kalman)
-    programs = {(wp, st): jit(jax.vmap(functools.partial(_one, *static, wp, st), in_axes=(0, 0, None, None)))
-                for wp in (True, False) for st in {use_steady, False}}
+    # For draws that settle later than the probes: a longer transient, then the full smoother.
+    fallbacks = []
+    if steady_K:
+        fallbacks = [K for K in (2 * steady_K, steady.TRANSIENT) if K > steady_K and steady.applies(T, True, K)]
+        fallbacks = sorted(set(fallbacks)) + [None]
+    programs: dict = {}
+
+    def program(with_path, K):
+        if (with_path, K) not in programs:
+            programs[with_path, K] = jit(jax.vmap(functools.partial(_one, *static, with_path, K),
+                                                  in_axes=(0, 0, None, None)))
+        return programs[with_path, K]
 
     def smoothers(with_path, ks, th):
-        """The batch's smoothers; a draw whose covariances did not settle is redone in full."""
-        means, var, path, ll, exact = (np.array(a) for a in programs[with_path, use_steady](ks, th, y, mask))
-        if not exact.all():
-            full = [np.asarray(a) for a in programs[with_path, False](ks, th, y, mask)]
-            for target, source in zip((means, var, path, ll), full):
-                target[~exact] = source[~exact]
+        """The batch's smoothers; a draw whose covariances did not settle is redone with a longer
+        transient, and in full if need be (only those draws: the batch's rest repeats the first)."""
+        means, var, path, ll, exact = (np.array(a) for a in program(with_path, steady_K)(ks, th, y, mask))
+        for K in fallbacks:
+            if exact.all():
+                break
+            redo = np.flatnonzero(~exact)
+            pick = np.concatenate([redo, np.full(len(exact) - len(redo), redo[0])])
+            again = [np.asarray(a) for a in program(with_path, K)(ks[pick], th[pick], y, mask)]
+            for target, source in zip((means, var, path, ll, exact), again):
+                target[redo] = source[:len(redo)]
         return means, var, path, ll
 
     acc = _Accumulator(T, n + len(outputs))
@@ -188,6 +210,17 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
         point_result = ({s: (m_p[:, ix], np.sqrt(np.clip(v_p[:, ix], 0.0, None))) for s, ix in index.items()},
                         float(ll[0]))
     return Mixture(moments, sampled, idx[path_slots], chains * per_chain, point_result)
+
+
+def _settling(model, fixed, names, dt, initial, max_steps, theta):
+    """The filter covariance's settling steps (:func:`steady.settling_steps`) at ``theta``."""
+    from latentforce.inference.kalman_mcmc import linear_gaussian
+
+    params = dict(fixed)
+    for i, n in enumerate(names):
+        params[n] = theta[i]
+    A, Q, H, R, _, P0 = linear_gaussian(model, params, dt, initial)
+    return steady.settling_steps(A, Q, H, R, P0, max_steps)
 
 
 class _Accumulator:

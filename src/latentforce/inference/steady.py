@@ -32,10 +32,14 @@ from jaxtyping import Array, Bool, Float
 from latentforce.inference.kalman import _LOG_2PI
 from latentforce.linalg import psd_sqrt, solve, symmetrise
 
-#: transient steps kept with full covariances at each end of the record
+#: transient steps kept with full covariances at each end of the record, at most
 TRANSIENT = 2048
-#: relative change (to sqrt(P_ii P_jj)) under which a covariance counts as converged
-TOL = 1e-12
+#: ... and at least
+MIN_TRANSIENT = 128
+#: relative change (to sqrt(P_ii P_jj)) under which a covariance counts as converged. 1e-12 sat
+#: at the rounding floor of the backward recursion (P_f + G (P_s - P_p) G^T cancels): on the 3-DOF
+#: frame a longer transient was flagged *less* often converged than a shorter one.
+TOL = 1e-10
 
 
 class SteadySmoother(NamedTuple):
@@ -49,6 +53,35 @@ class SteadySmoother(NamedTuple):
 def applies(T: int, complete: bool, K: int | None = None) -> bool:
     """Whether the steady-state smoother serves a record: fully observed and longer than 2K+1."""
     return complete and T >= 2 * (TRANSIENT if K is None else K) + 2
+
+
+def settling_steps(A, Q, H, R, P0, max_steps: int) -> Array:
+    """Steps the filter's predicted covariance takes to converge from ``P0`` (to :data:`TOL`),
+    at most ``max_steps``: what the transient ``K`` must cover (data-free, so one per model)."""
+    r = jnp.diagonal(R)
+
+    def cond(carry):
+        t, _, done = carry
+        return (t < max_steps) & ~done
+
+    def body(carry):
+        t, P_p, _ = carry
+        P_next = symmetrise(A @ _scalar_updates(P_p, H, r)[2] @ A.T + Q)
+        return t + 1, P_next, _close(P_next, P_p)
+
+    t, _, _ = jax.lax.while_loop(cond, body, (jnp.zeros((), jnp.int32), P0, jnp.zeros((), bool)))
+    return t
+
+
+def transient_for(steps: int, T: int) -> int | None:
+    """The transient ``K`` (a power of two, with a margin over ``steps`` settling steps, at least
+    :data:`MIN_TRANSIENT`, at most :data:`TRANSIENT`) for a record of ``T`` samples; None where
+    the record is too short for it (:func:`applies`)."""
+    K = MIN_TRANSIENT
+    while K < 1.25 * steps + 16 and K < TRANSIENT:
+        K *= 2
+    K = min(K, TRANSIENT)
+    return K if applies(T, True, K) else None
 
 
 def _scalar_updates(P, H, r):
