@@ -265,7 +265,7 @@ class Study:
 REPLICATIONS = {
     "full": {("SBC", "kalman-mcmc"): 200, ("SBC", "kalman-nuts"): 200,
              ("coverage", "kalman-mcmc"): 100, ("coverage", "kalman-nuts"): 50},
-    "quick": {("SBC", "kalman-mcmc"): 20, ("SBC", "kalman-nuts"): 4,
+    "quick": {("SBC", "kalman-mcmc"): 20, ("SBC", "kalman-nuts"): 2,
               ("coverage", "kalman-mcmc"): 2, ("coverage", "kalman-nuts"): 0},
 }
 

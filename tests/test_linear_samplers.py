@@ -281,11 +281,11 @@ def test_mixture_redoes_draws_whose_transient_is_too_short(monkeypatch):
              "force_variance": np.exp(0.3 * rng.standard_normal((2, 8))),
              "force_lengthscale": 0.5 * np.exp(0.1 * rng.standard_normal((2, 8)))}
     kw = dict(thin_draws=2, point={k: float(v[0, 0]) for k, v in draws.items()})
-    monkeypatch.setattr(steady, "MIN_TRANSIENT", 4)
+    monkeypatch.setattr(steady, "TRANSIENT", 200)
     monkeypatch.setattr(steady, "transient_for", lambda steps, T: 4)
     short = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask,
                                       0.02, **kw)
-    monkeypatch.setattr(steady, "MIN_TRANSIENT", 10**6)  # never applies: the full smoother
+    monkeypatch.setattr(steady, "TRANSIENT", 10**6)  # never applies: the full smoother
     full = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask,
                                      0.02, **kw)
     for name in ("displacement", "velocity", "force"):
@@ -307,7 +307,7 @@ def test_streamed_mixture_on_a_long_record_uses_the_steady_smoother_exactly(monk
              "force_lengthscale": 0.5 * np.exp(0.1 * rng.standard_normal((2, 16)))}
     fast = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask,
                                      0.02, thin_draws=2, point={k: 1.0 * v[0, 0] for k, v in draws.items()})
-    monkeypatch.setattr(steady, "MIN_TRANSIENT", 10**6)  # never applies: the full smoother
+    monkeypatch.setattr(steady, "TRANSIENT", 10**6)  # never applies: the full smoother
     full = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask,
                                      0.02, thin_draws=2, point={k: 1.0 * v[0, 0] for k, v in draws.items()})
     for name in ("displacement", "velocity", "force"):

@@ -14,7 +14,9 @@ its parameters differ in scale by orders of magnitude): the chains start
 over-dispersed around the posterior's modes, found by L-BFGS, with each
 mode's Laplace covariance as the proposal shape (:func:`start_chains`,
 :mod:`latentforce.inference.laplace`); the proposal is adapted during the
-warm-up only (:mod:`latentforce.inference.mcmc`); and ``iterations =
+warm-up only (:mod:`latentforce.inference.mcmc`); independence steps from
+the modes' Laplace fit are mixed with the random walk
+(:mod:`latentforce.inference.independence`); and ``iterations =
 "auto"`` samples until R-hat and ESS say converged
 (:func:`sample_in_chunks`, :mod:`latentforce.inference.convergence`).
 
