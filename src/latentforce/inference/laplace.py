@@ -123,7 +123,7 @@ def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), ma
         xs[i], fs[i] = shift + L @ res.x, (-res.fun if res.fun < 1e299 else -np.inf)
         messages.append("inside a known mode's Laplace region: stopped there" if stopped else str(res.message))
         if not stopped and np.isfinite(fs[i]) and not any(_within(xs[i], m, same_mode_sd) for m in known):
-            mode = _as_mode(xs[i], fs[i], *laplace_at(i), value_and_grad, args)
+            mode, _ = _as_mode(xs[i], fs[i], *laplace_at(i), value_and_grad, args)
             if mode is not None:
                 known.append(mode)
     modes: list[Mode] = []
@@ -137,11 +137,10 @@ def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), ma
             rejected.append({"x": xs[i].tolist(), "log_posterior": float(fs[i]), "far_below_the_best": True})
             continue
         cov, ok = laplace_at(i)
-        mode = _as_mode(xs[i], fs[i], cov, ok, value_and_grad, args)
+        mode, decrement = _as_mode(xs[i], fs[i], cov, ok, value_and_grad, args)
         if mode is None:
-            grad = np.asarray(value_and_grad(jnp.asarray(xs[i]), *args)[1])
             rejected.append({"x": xs[i].tolist(), "log_posterior": float(fs[i]),
-                             "newton_decrement": float(grad @ cov @ grad), "hessian_definite": ok})
+                             "newton_decrement": decrement, "hessian_definite": ok})
             continue
         modes.append(mode)
     if not modes:
@@ -156,15 +155,17 @@ def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), ma
 
 
 def _as_mode(x: np.ndarray, f: float, cov: np.ndarray, ok: bool, value_and_grad: Callable,
-             args: tuple) -> Mode | None:
+             args: tuple) -> tuple[Mode | None, float]:
     """The optimum ``x`` as a :class:`Mode`, or None where it is none: the Hessian is not negative
     definite, or the squared Newton decrement (about twice the log density a Newton step would
-    still gain) is over 1, i.e. the optimiser stopped short."""
+    still gain) is over 1, i.e. the optimiser stopped short. Second value: that decrement."""
     grad = np.asarray(value_and_grad(jnp.asarray(x), *args)[1])
-    if not (ok and float(grad @ cov @ grad) < 1.0):
-        return None
+    decrement = float(grad @ cov @ grad)
+    if not (ok and decrement < 1.0):
+        return None, decrement
     _, logdet = np.linalg.slogdet(cov)
-    return Mode(x.copy(), float(f), cov, ok, float(f + 0.5 * logdet + 0.5 * x.size * np.log(2 * np.pi)))
+    log_mass = float(f + 0.5 * logdet + 0.5 * x.size * np.log(2 * np.pi))
+    return Mode(x.copy(), float(f), cov, ok, log_mass), decrement
 
 
 def _hessian(value_and_grad: Callable, x: np.ndarray, args: tuple) -> np.ndarray:

@@ -109,7 +109,6 @@ def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
         ld_new, aux_new = logdensity(x_new)
     ld_new = jnp.where(jnp.isfinite(ld_new), ld_new, -jnp.inf)
     log_alpha = jnp.minimum(ld_new - state.logdensity + log_q_ratio, 0.0)
-    log_alpha = jnp.where(jnp.isnan(log_alpha), -jnp.inf, log_alpha)
     accepted = jnp.log(jax.random.uniform(key_acc, dtype=state.x.dtype)) < log_alpha
     x = jnp.where(accepted, x_new, state.x)
     ld = jnp.where(accepted, ld_new, state.logdensity)

@@ -79,9 +79,7 @@ def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial,
     from latentforce.inference.kalman_mcmc import linear_gaussian
     from latentforce.outputs import output_matrix
 
-    params = dict(fixed)
-    for i, n in enumerate(names):
-        params[n] = theta[i]
+    params = _params(fixed, names, theta)
     G = output_matrix(model, outputs, params) if outputs else None
     extend = (lambda x: x) if G is None else (lambda x: jnp.concatenate([x, x @ G.T], axis=-1))
     if smoother is not None:  # ekf / ukf (inference/gaussian.py)
@@ -214,14 +212,19 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     return Mixture(moments, sampled, idx[path_slots], chains * per_chain, point_result)
 
 
+def _params(fixed: dict, names: tuple, theta) -> dict:
+    """The known values with one draw's ``theta`` (ordered as ``names``) in place."""
+    params = dict(fixed)
+    for i, n in enumerate(names):
+        params[n] = theta[i]
+    return params
+
+
 def _settling(model, fixed, names, dt, initial, max_steps, theta):
     """The filter covariance's settling steps (:func:`steady.settling_steps`) at ``theta``."""
     from latentforce.inference.kalman_mcmc import linear_gaussian
 
-    params = dict(fixed)
-    for i, n in enumerate(names):
-        params[n] = theta[i]
-    A, Q, H, R, _, P0 = linear_gaussian(model, params, dt, initial)
+    A, Q, H, R, _, P0 = linear_gaussian(model, _params(fixed, names, theta), dt, initial)
     return steady.settling_steps(A, Q, H, R, P0, max_steps)
 
 
