@@ -304,6 +304,22 @@ def test_mass_warning_without_a_force_channel():
     assert warnings_for([acc, load]) == []
 
 
+def test_no_mass_warning_for_a_mass_carried_from_a_calibration(tmp_path):
+    """A monitoring run whose mass prior is a calibration's posterior (which had the load cell)
+    is not warned: the mass was identified there."""
+    from latentforce.results import RunResult
+
+    d = two_dof_config(method="kalman-mcmc", sensors=[{"column": "a", "quantity": "acceleration",
+                                                       "noise_std": 0.1}])
+    d["system"] = {"type": "linear", "m": {"prior": "lognormal", "mu": 0.0, "sigma": 0.5, "init": 1.0},
+                   "c": 0.4, "k": 10.0}
+    problem = config_from_dict(d, source="c.toml")
+    for carried, expected in (({"[system].m": {}}, 0), ({"[system].c": {}}, 1)):
+        r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, {}, {}, {}, [], 0.0, {})
+        estimate._mass_warning(problem._replace(carried=carried), r)
+        assert len(r.diagnostics.get("warnings", [])) == expected, carried
+
+
 def test_outputs_and_mass_warning_through_kalman_mcmc(tmp_path):
     """kalman-mcmc end to end: the outputs are mixed (in the result, its paths and its files), and a
     run inferring m with only motion measured warns."""
@@ -335,3 +351,25 @@ def test_outputs_and_mass_warning_through_kalman_mcmc(tmp_path):
         assert post["acc_model"].dims == ("chain", "draw", "time")
         np.testing.assert_allclose(post["acc_model_mean"].values, result.state_mean["acc_model"][:, 0])
         assert post["acc_model_sd"].attrs["units"] == "m/s^2"
+
+
+def test_a_weakly_identified_parameter_is_named():
+    """A posterior barely narrower than its prior is named in a warning; an identified one is not."""
+    from latentforce.results import RunResult
+
+    d = two_dof_config(method="kalman-mcmc", sensors=[{"column": "a", "quantity": "acceleration",
+                                                       "noise_std": 0.1}])
+    d["system"] = {"type": "linear", "m": 1.0, "c": {"prior": "lognormal", "mu": -1.0, "sigma": 0.5},
+                   "k": {"prior": "lognormal", "mu": 2.3, "sigma": 1.0}}
+    problem = config_from_dict(d, source="c.toml")
+    rng = np.random.default_rng(0)
+    # c: draws from its prior (the data said nothing); k: a posterior 10x narrower than its prior
+    draws = {"c": np.exp(-1.0 + 0.5 * rng.normal(size=(4, 500))),
+             "k": np.exp(2.3 + 0.1 * rng.normal(size=(4, 500)))}
+    r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, draws, {}, {}, [], 0.0, {})
+    estimate._weak_identification_warning(problem, r)
+    (msg,) = r.diagnostics["warnings"]
+    assert "weakly identified: c (posterior sd" in msg and "k (" not in msg
+    r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, {"k": draws["k"]}, {}, {}, [], 0.0, {})
+    estimate._weak_identification_warning(problem, r)
+    assert "warnings" not in r.diagnostics

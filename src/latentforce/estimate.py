@@ -130,6 +130,7 @@ def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callabl
     result, extras = _dispatch(key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels,
                                checkpoint)
     _mass_warning(problem, result)
+    _weak_identification_warning(problem, result)
     # the force spectrum's draws (kalman) from their own key, apart from the method's
     key_psd = jax.random.fold_in(key, 0x5D)
     result.force_psd = force_spectrum(key_psd, problem, result, params0, y, mask, dataset.dt, initial)
@@ -138,14 +139,48 @@ def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callabl
 
 def _mass_warning(problem: Problem, result: RunResult) -> None:
     """Force and mass trade off (``u/m`` is what motion sensors see): inferring a mass
-    without a load cell leans on its prior alone for the scale of the force."""
-    masses = [n for n in problem.free if n == "m" or (n.startswith("m_") and n[2:].isdigit())]
+    without a load cell leans on its prior alone for the scale of the force. A mass whose prior
+    is carried from an earlier run (``prior = "posterior"``, e.g. a calibration with a load cell)
+    is that run's identification: no warning."""
+    carried = set()
+    for key in problem.carried or {}:  # "[system].m", "[system].masses[2]"
+        tail = key.rsplit(".", 1)[-1]
+        carried.add("m_" + tail[len("masses["):-1] if tail.startswith("masses[") else tail)
+    masses = [n for n in problem.free if (n == "m" or (n.startswith("m_") and n[2:].isdigit())) and n not in carried]
     if masses and not any(s.quantity == "force" for s in problem.model.sensors):
         result.diagnostics.setdefault("warnings", []).append(
             f"the mass ({', '.join(masses)}) is inferred but no sensor measures the force "
             "(quantity = \"force\"): with only motion measured, force and mass trade off (a force "
             "twice as large on a mass twice as large gives much the same response), so the mass and "
             "the force's scale are set by their priors. Add a load cell channel to identify the mass.")
+
+
+#: A posterior whose sd (in the samplers' softplus space) is at least this share of its
+#: prior's: the data carry at most ~36 % of its precision (1 - 0.8^2), the prior the rest.
+WEAK_SD_RATIO = 0.8
+
+
+def _weak_identification_warning(problem: Problem, result: RunResult) -> None:
+    """Name every sampled parameter whose posterior is barely narrower than its (proper) prior."""
+    from latentforce.priors import Flat, softplus_inverse
+
+    weak = []
+    for i, (name, spec) in enumerate(problem.free.items()):
+        draws = result.param_draws.get(name)
+        if draws is None or isinstance(spec.prior, Flat) or np.size(draws) < 20:
+            continue
+        prior = np.asarray(softplus_inverse(spec.prior.sample(jax.random.fold_in(jax.random.key(7), i), (4000,))))
+        post = np.asarray(softplus_inverse(np.asarray(draws, dtype=float).ravel()))
+        ok = np.isfinite(prior)
+        ratio = float(np.std(post) / np.std(prior[ok])) if ok.sum() > 100 else float("nan")
+        if np.isfinite(ratio) and ratio >= WEAK_SD_RATIO:
+            weak.append(f"{name} (posterior sd {ratio:.2f} of the prior's)")
+    if weak:
+        result.diagnostics.setdefault("warnings", []).append(
+            f"weakly identified: {', '.join(weak)}, in the samplers' space (softplus^-1 of the value). "
+            "The data say little about them: their posteriors are mostly their priors, and so is what "
+            "depends on them. Fix them at known values, narrow their priors from other evidence, or add a "
+            "sensor that sees them.")
 
 
 def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, initial, common: dict,
@@ -337,6 +372,15 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
     # stationary distribution at the current hyperparameters (particle_model.ParticleModel), for a
     # nonlinear one the model's near-rest default at the initial hyperparameters.
     initial = _mechanical_initial(problem, params0)
+    # An inferred noise level gets an exact Gibbs step whose conditional is proper only with
+    # more than two observed samples of its channel (inference/noise_gibbs.py).
+    observed_n = np.sum(mask & np.isfinite(y), axis=0)
+    for i, s in enumerate(model.sensors):
+        if s.noise_param in problem.free and observed_n[i] <= 2:
+            raise LatentForceError(
+                f"{problem.config_path}: [[sensors]][{i}].noise_std (column {s.name!r}) is inferred, but the "
+                f"column has {int(observed_n[i])} observed samples; method \"pgas\" needs more than two to "
+                "infer a noise level. Give noise_std as a number.")
     # PGAS needs a conditional resampling scheme; multinomial is the valid one we have.
     out = run_pgas(key, model, params0, free, np.where(mask, y, np.nan), mask, dataset.dt,
                    particles=settings.particles, iterations=settings.iterations, burn_in=settings.burn_in,
@@ -379,9 +423,10 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
                         "discretisation": settings.discretisation, "proposal": settings.proposal,
                         "resampling": "multinomial", "log_likelihood_note":
                             "particle-filter estimate of log p(y | theta), mean over the last sweeps"})
+    from latentforce.inference.hyper_moves import HYPERPARAMETERS
     from latentforce.priors import Flat
 
-    flat = [n for n, (prior, _) in free.items() if isinstance(prior, Flat)]
+    flat = [n for n, (prior, _) in free.items() if isinstance(prior, Flat) and n in HYPERPARAMETERS]
     if flat:
         record_s = len(dataset.time) * dataset.dt
         diagnostics.setdefault("warnings", []).append(

@@ -86,10 +86,16 @@ def predicted_observations(pm: particle_model.ParticleModel, path: Float[Array, 
     return jax.vmap(pm.offset)(path[:, :pm.nm]) + path[:, pm.nm:] @ pm.D.T
 
 
+def observation_residuals(pm: particle_model.ParticleModel, od: ObservationDensity,
+                          path: Float[Array, "T n"]) -> Float[Array, "T d"]:
+    r""":math:`y_t - c(\mathrm{mech}_t) - D x_{f,t}` on the observed channels, zero on the missing ones."""
+    return (od.y - predicted_observations(pm, path)) * od.maskf
+
+
 def observation_log_likelihood(pm: particle_model.ParticleModel, od: ObservationDensity,
                                path: Float[Array, "T n"]) -> Float[Array, ""]:
     r""":math:`\sum_t \log N(y_t; c(\mathrm{mech}_t) + D x_{f,t}, R)` over the observed channels."""
-    r = (od.y - predicted_observations(pm, path)) * od.maskf
+    r = observation_residuals(pm, od, path)
     return jnp.sum(od.const) - 0.5 * jnp.einsum("ti,tij,tj->", r, od.Rinv, r)
 
 

@@ -47,7 +47,7 @@ import numpy as np
 from jaxtyping import Array
 
 from latentforce.compile import shared_jit
-from latentforce.inference import convergence, particle_model
+from latentforce.inference import convergence, noise_gibbs, particle_model
 from latentforce.inference.hyper_moves import Hyper, init_proposal
 from latentforce.inference.latent import observation_density
 from latentforce.inference.path_moves import (
@@ -118,7 +118,14 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     ``params``: every model parameter (free hyperparameters too: their values
     are ignored except as fixed defaults). ``free``: ``name -> (prior, init)``
     for a subset of ``force_variance, force_lengthscale`` (may be empty: the
-    trajectory is then sampled at fixed :math:`\theta`). ``y`` ``(T, d)`` may
+    trajectory is then sampled at fixed :math:`\theta`) and of the sensors'
+    noise levels, named by their :attr:`~latentforce.models.Sensor.noise_param`
+    (``noise_std_<column>``; the prior on the standard deviation in the
+    parameter's unit, the sensor's ``noise_scale`` taking it to SI): each gets
+    one exact Gibbs update per block given the path
+    (:mod:`latentforce.inference.noise_gibbs`; its channel needs more than two
+    observed samples) and is recorded per iteration like the hyperparameters,
+    in ``theta`` and the convergence verdicts. ``y`` ``(T, d)`` may
     hold NaN where ``mask`` is False. ``iterations`` are kept after
     ``burn_in``; a PGAS sweep runs on iterations ``j % state_every == 0``,
     and every iteration makes ``mh_steps`` Metropolis steps on
@@ -141,7 +148,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     ``chunk_blocks`` blocks (at most ``max_iterations`` iterations) and stop
     once the convergence verdict of
     :func:`latentforce.inference.convergence.diagnose` holds (worst R-hat <=
-    1.01, bulk ESS >= ``target_ess``) over the hyperparameters and the
+    1.01, bulk ESS >= ``target_ess``) over the hyperparameters (noise levels included) and the
     displacement, velocity and force at 24 monitored times (recorded at every
     sweep, not thinned), or once ``max_time`` seconds have passed since the
     start. The verdict (of any run, "auto" or not) is in
@@ -168,9 +175,10 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     if channels is not None:
         model, y, mask = observe_through(model, channels, y, mask)
     pm = particle_model.ParticleModel(model, params, dt, discretisation, initial)
-    hyper = Hyper(params, free)
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool) & jnp.isfinite(y)
+    noise = noise_gibbs.noise_levels(model, free, mask)
+    hyper = Hyper(params, {n: v for n, v in free.items() if n not in noise.names})
     T = y.shape[0]
     p = len(hyper.names)
     t_start = time.perf_counter()
@@ -190,7 +198,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     # ---- initialisation (outside the loop; never from the truth), in compiled programs:
     # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
     x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
-    R = pm.R
+    R = pm.R if not noise.channels else jnp.diag(noise_gibbs.initial_variances(noise, pm.R))
     od = shared_jit(lambda y_, m_, R_: observation_density(pm, y_, m_, R_))(y, mask, R)
     k_theta, k_chains = jax.random.split(key)
 
@@ -208,7 +216,8 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     # (make_block checks the step counts)
     block = make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, particles=particles, proposal=proposal,
                        resampling=resampling, ancestor_sampling=ancestor_sampling, unroll=unroll,
-                       interweave=interweave, lowfreq_steps=lowfreq_steps, residual_steps=residual_steps)
+                       interweave=interweave, lowfreq_steps=lowfreq_steps, residual_steps=residual_steps,
+                       noise=noise)
     with_rp = rm.applies and int(residual_steps) > 0
 
     @shared_jit
@@ -225,8 +234,12 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         return jax.vmap(lambda tr_, x_: path_move_shapes(pm, rm, basis, od, tr_, x_, with_rp))(trs, paths)
 
     @shared_jit
-    def _init_chains(k_chains, tr0, eks, xs0, trs0, lfs, rps):
+    def _init_chains(k_chains, tr0, eks, xs0, trs0, lfs, rps, R):
         frame0 = LowFrequencyFrame(tr0, basis)
+        # every chain starts from the configured (initial) noise levels; None: none inferred.
+        # (R is None then: an unused argument is dropped from the program, whose text then
+        # no longer tells its shape, and shared_jit would hand it to a run of other channels)
+        var0 = noise_gibbs.initial_variances(noise, R) if noise.channels else None
 
         def _init_chain(ck, x, tr, lf, rp):
             k_path, k_run = jax.random.split(ck)
@@ -235,7 +248,8 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
             rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
             return ChainState(k_run, ref, rwm, rwm, lf, rp, tr, jnp.zeros((), jnp.int32),
                               jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
-                              jnp.zeros((sched.n_draws + 1, T, pm.n_state)), jnp.asarray(sched.thin, jnp.int32))
+                              jnp.zeros((sched.n_draws + 1, T, pm.n_state)), jnp.asarray(sched.thin, jnp.int32),
+                              var0)
 
         return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps)
 
@@ -245,7 +259,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         return np.broadcast_to(np.asarray(a), (chains,) + np.shape(a))
 
     lfs, rps = _shapes(od, jax.tree_util.tree_map(per_chain, tr0), per_chain(eks))
-    states = _init_chains(k_chains, tr0, eks, xs0, trs0, lfs, rps)
+    states = _init_chains(k_chains, tr0, eks, xs0, trs0, lfs, rps, R if noise.channels else None)
 
     n_blocks = sched.n_blocks
     scan_len, segments, reshape_at = reshape_chunks(n_blocks, sched.burn_blocks, chunk_blocks, not pm.is_linear)
@@ -300,7 +314,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
             progress(end * sched.state_every, n_blocks * sched.state_every, acc)
         finished = end >= n_blocks
         if auto and end >= first_check:
-            verdict = _verdict(pm, hyper, infos, sched, mpoints, target_ess)
+            verdict = _verdict(pm, hyper, infos, sched, mpoints, target_ess, noise.names)
             if verdict["converged"] or time.perf_counter() - t_start > max_time:
                 stopped = "converged" if verdict["converged"] else "max_time"
                 finished = True
@@ -312,11 +326,12 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     post_sweeps = max(0, done - sched.burn_blocks)
     thin = int(np.asarray(states.thin).reshape(-1)[0])
     n_draws = min(sched.n_draws, -(-post_sweeps // thin))
-    out = _assemble(pm, hyper, states, info, ref_q, sched.burn_in, total, sched.burn_blocks, n_draws, tpoints)
+    out = _assemble(pm, hyper, states, info, ref_q, sched.burn_in, total, sched.burn_blocks, n_draws, tpoints,
+                    noise.names)
     out.diagnostics["thin"] = thin
     out.diagnostics["iterations_run"] = max(0, total - sched.burn_in)
     if verdict is None:
-        verdict = _verdict(pm, hyper, infos, sched, mpoints, target_ess)
+        verdict = _verdict(pm, hyper, infos, sched, mpoints, target_ess, noise.names)
     out.diagnostics["convergence"] = verdict
     if auto:
         out.diagnostics["stopped"] = stopped or ("converged" if verdict["converged"] else "max_time"

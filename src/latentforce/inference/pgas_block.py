@@ -5,7 +5,9 @@ jittable function of the chain's :class:`ChainState`, the block index and the re
 (:class:`BlockData`): a PGAS sweep (:mod:`latentforce.inference.smc`) for the trajectory,
 the Metropolis-within-Gibbs hyperparameter steps (centred and non-centred), the
 low-frequency and residual-preserving trajectory moves, and the running sums of the
-post-burn-in states. :class:`Schedule` lays out the blocks of a run and
+post-burn-in states, and (where some sensor's noise level is inferred) one exact
+Gibbs update of each inferred noise variance (:mod:`latentforce.inference.noise_gibbs`).
+:class:`Schedule` lays out the blocks of a run and
 :func:`reshape_chunks` its segments; the driver that vmaps and scans the block is
 :func:`latentforce.inference.pgas.run_pgas`.
 
@@ -87,7 +89,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from latentforce.inference import mcmc, particle_model, smc
+from latentforce.inference import mcmc, noise_gibbs, particle_model, smc
 from latentforce.inference.hyper_moves import (
     _RESHAPE_AT,
     Hyper,
@@ -97,6 +99,7 @@ from latentforce.inference.hyper_moves import (
 )
 from latentforce.inference.latent import (
     ObservationDensity,
+    observation_density,
     observation_log_likelihood,
     whiten,
 )
@@ -129,6 +132,9 @@ class ChainState(NamedTuple):
     count: Float[Array, ""]
     draws: Float[Array, "S T n"]  # thinned trajectories (last slot is a discard slot)
     thin: Array  # every thin-th post-burn-in sweep is stored (doubled by run_pgas as "auto" runs on)
+    # every channel's noise variance (SI): the inferred ones drawn (noise_gibbs), the others as
+    # configured; None where no noise level is inferred (then the block uses BlockData.R)
+    noise_var: Float[Array, " d"] | None = None
 
 
 class BlockInfo(NamedTuple):
@@ -142,6 +148,11 @@ class BlockInfo(NamedTuple):
     ess: Float[Array, ""]
     force_points: Float[Array, "P nforce"]
     monitored: Float[Array, "M q"]  # displacement, velocity, force at the monitored times
+    # the inferred noise standard deviations (the parameters' units) held after each of the block's
+    # k MH iterations: the block's draw is made at its last iteration, the ones before hold the
+    # previous block's (so they pair with theta as the Gibbs chain's state)
+    noise: Float[Array, "k m"]
+    accept_noise: Float[Array, " m"]
 
 
 class BlockData(NamedTuple):
@@ -149,7 +160,7 @@ class BlockData(NamedTuple):
 
     y: Float[Array, "T d"]
     mask: Array
-    R: Float[Array, "d d"]  # the channels' noise covariance
+    R: Float[Array, "d d"]  # the channels' noise covariance (its inferred entries: ChainState.noise_var)
     od: ObservationDensity
     ref_q: Float[Array, "T q"]  # centring of the running sums (the smoother's summary quantities)
 
@@ -232,7 +243,8 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
                tpoints, mpoints, *,
                particles: int = 50, proposal: str = "optimal", resampling: str = "multinomial",
                ancestor_sampling: bool = True, unroll: int = 1, interweave: bool = True,
-               lowfreq_steps: int = 5, residual_steps: int = 60) -> Callable:
+               lowfreq_steps: int = 5, residual_steps: int = 60,
+               noise: noise_gibbs.NoiseLevels = noise_gibbs.NoiseLevels()) -> Callable:
     r"""``block(state, b, data) -> (state, BlockInfo)``: Gibbs block ``b`` of one chain (pure, jittable).
 
     A PGAS sweep at the carried transition; ``lowfreq_steps`` low-frequency
@@ -255,6 +267,16 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
     use. ``mpoints``: the time indices whose displacement, velocity and force are
     recorded every block (the convergence monitor). The stored-draw stride is the
     state's ``thin`` (``sched.thin`` at the start).
+
+    ``noise`` (:class:`~latentforce.inference.noise_gibbs.NoiseLevels`): the
+    channels whose noise level is inferred. With any, the block's noise
+    covariance is ``diag(state.noise_var)`` (the chain's own, which the state
+    must then hold) wherever ``data.R`` and ``data.od`` would be used, and
+    after the hyperparameter steps each inferred variance gets one exact Gibbs
+    update given the final path (:func:`~latentforce.inference.noise_gibbs.gibbs_step`),
+    its random numbers from the chain's key folded with
+    :data:`~latentforce.inference.noise_gibbs.NOISE_STREAM` (a run without
+    inferred noise draws what it drew before).
     """
     p = len(hyper.names)
     k_every, n_mh, burn_in = sched.state_every, sched.mh_steps, sched.burn_in
@@ -271,24 +293,30 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
     n_rp = n_rp if rm.applies else 0
 
     lf_reshape = jnp.asarray((-1,))
+    n_noise = len(noise.channels)
     interweave = bool(interweave) and p > 0
 
     def _block(state: ChainState, b, data: BlockData):
         """One Gibbs block of one chain (:func:`make_block`)."""
         key, k_sweep, k_mh, k_lf, k_rp = jax.random.split(state.key, 5)
         tr = state.tr
-        sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal, data.R)
+        if n_noise:  # the chain's own noise levels
+            R = jnp.diag(state.noise_var)
+            od = observation_density(pm, data.y, data.mask, R)
+        else:
+            R, od = data.R, data.od
+        sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal, R)
         out = sweep(k_sweep, sc, state.reference)
         path = out.trajectory
         rwm_lf, acc_lf = state.rwm_lf, jnp.zeros(())
         if n_lf:
             frame = LowFrequencyFrame(tr, basis)
-            rwm_lf, path, accs_lf = lowfreq_move(k_lf, rwm_lf, pm, data.od, frame, path, n_lf, adapt=b < burn_blocks,
+            rwm_lf, path, accs_lf = lowfreq_move(k_lf, rwm_lf, pm, od, frame, path, n_lf, adapt=b < burn_blocks,
                                                  step0=b * n_lf, reshape_steps=lf_reshape)
             acc_lf = jnp.mean(accs_lf.astype(float))
         rwm_rp, acc_rp = state.rwm_rp, jnp.zeros(())
         if n_rp:
-            rwm_rp, path, accs_rp = residual_move(k_rp, rwm_rp, rm, pm, data.od, tr, path, n_rp, adapt=b < burn_blocks)
+            rwm_rp, path, accs_rp = residual_move(k_rp, rwm_rp, rm, pm, od, tr, path, n_rp, adapt=b < burn_blocks)
             acc_rp = jnp.mean(accs_rp.astype(float))
         # ---- accumulate post-burn-in state samples
         post = (b >= burn_blocks) & (b < n_blocks)
@@ -329,12 +357,12 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
                 eps = whiten(tr_, g_)
 
                 def noncentred(x):
-                    return noncentred_log_target(hyper, pm, data.od, x, eps)
+                    return noncentred_log_target(hyper, pm, od, x, eps)
 
                 # at the current point the rebuilt path is the current one (up to round-off);
                 # the path is kept bit-for-bit when nothing moves (no round-off drift)
                 rwm_nc = rwm_nc._replace(x=rwm.x, logdensity=hyper.log_prior(rwm.x)
-                                         + observation_log_likelihood(pm, data.od, path_))
+                                         + observation_log_likelihood(pm, od, path_))
                 rwm_nc, accs_nc, (g_, path_, tr_) = _steps(k_nc, rwm_nc, noncentred, j, aux=(g_, path_, tr_))
                 rwm = rwm._replace(x=rwm_nc.x)
                 acc_nc = jnp.mean(accs_nc.astype(float))
@@ -345,10 +373,18 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
             _mh_iter, (state.rwm, state.rwm_nc, path, pm.latent(path), tr), (jax.random.split(k_mh, k_every), js))
         theta = hyper.to_constrained(xs)
         fp = path[tpoints][:, pm.nm + pm.kdim * np.arange(pm.nforce)]
+        # ---- the inferred noise levels given the final path (one exact Gibbs update each)
+        noise_var, sds, acc_noise = state.noise_var, jnp.zeros((k_every, 0)), jnp.zeros(0)
+        if n_noise:
+            k_noise = jax.random.fold_in(state.key, noise_gibbs.NOISE_STREAM)
+            noise_var, acc_noise = noise_gibbs.gibbs_step(k_noise, noise, pm, od, path_end, state.noise_var)
+            old, now = (noise_gibbs.standard_deviations(noise, v) for v in (state.noise_var, noise_var))
+            sds = jnp.where((jnp.arange(k_every) == k_every - 1)[:, None], now, old)
+            acc_noise = acc_noise.astype(float)
         new = ChainState(key, path_end, rwm, rwm_nc, rwm_lf, rwm_rp, tr_end, b + 1, sum1, sum2, state.count + wgt,
-                         draws, state.thin)
+                         draws, state.thin, noise_var)
         info = BlockInfo(theta, accs, accs_nc, acc_lf, acc_rp, out.info.log_likelihood, out.info.switched,
-                         jnp.mean(out.info.ess), fp, _summary_quantities(pm, path)[mpoints])
+                         jnp.mean(out.info.ess), fp, _summary_quantities(pm, path)[mpoints], sds, acc_noise)
         return new, info
 
     return _block

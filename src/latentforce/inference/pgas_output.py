@@ -4,7 +4,10 @@
 states, keeps the post-burn-in hyperparameters, paths and per-sweep diagnostics;
 :func:`_verdict` is the convergence record (R-hat, bulk ESS) over the hyperparameters and
 the monitored states, and :func:`convergence_diagnostics` the R-hat and ESS of the
-hyperparameters and the force at the recorded time points.
+hyperparameters and the force at the recorded time points. Inferred noise levels
+(``noise_std_<column>``, :mod:`latentforce.inference.noise_gibbs`) are parameters like the
+hyperparameters: recorded per MH iteration (:class:`~latentforce.inference.pgas_block.BlockInfo`),
+in ``theta`` and in both verdicts.
 """
 
 from __future__ import annotations
@@ -22,8 +25,8 @@ from latentforce.inference.pgas_block import BlockInfo, ChainState, Schedule
 class PGASOutput(NamedTuple):
     """What :func:`~latentforce.inference.pgas.run_pgas` returns (NumPy arrays; ``chains`` leading)."""
 
-    names: tuple  # free hyperparameter names
-    theta: dict  # name -> (chains, iterations), post burn-in
+    names: tuple  # inferred parameter names: the free hyperparameters, then the noise levels
+    theta: dict  # name -> (chains, iterations), post burn-in (noise levels included)
     theta_burn: dict  # name -> (chains, burn_in)
     trajectories: np.ndarray  # (chains, draws, T, n_state), thinned, post burn-in
     state_mean: dict  # "displacement" | "velocity" | "force" -> (T, ndof|nforce), all post-burn-in sweeps
@@ -35,19 +38,28 @@ class PGASOutput(NamedTuple):
     force_points: np.ndarray  # (chains, sweeps, P, nforce) force at `time_points`
     time_points: np.ndarray
     diagnostics: dict
-    mh_scale: np.ndarray  # (chains, p) frozen random-walk proposal sd per parameter (log space)
+    mh_scale: np.ndarray  # (chains, p) frozen random-walk proposal sd per hyperparameter (log space)
 
 
+
+
+def _parameters(hyper: Hyper, noise_names, info: BlockInfo) -> tuple[tuple, np.ndarray]:
+    """``(names, values)``: the inferred parameters' names and their values per MH iteration,
+    ``(chains, blocks * state_every, p + m)`` (hyperparameters, then noise levels)."""
+    chains, blocks = np.shape(info.accept)[:2]
+    theta = np.reshape(info.theta, (chains, blocks * np.shape(info.theta)[2], len(hyper.names)))
+    noise = np.reshape(info.noise, (chains, theta.shape[1], len(noise_names)))
+    return tuple(hyper.names) + tuple(noise_names), np.concatenate([theta, noise], axis=2)
 
 
 def _verdict(pm: particle_model.ParticleModel, hyper: Hyper, infos: list, sched: Schedule, mpoints,
-             target_ess: float) -> dict:
-    """The convergence record over the post-burn-in draws so far (hyperparameters per
-    iteration, the monitored displacement, velocity and force per sweep)."""
+             target_ess: float, noise_names=()) -> dict:
+    """The convergence record over the post-burn-in draws so far (hyperparameters and noise
+    levels per iteration, the monitored displacement, velocity and force per sweep)."""
     info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)
-    chains, blocks = info.accept.shape[:2]
-    theta = np.reshape(info.theta, (chains, blocks * sched.state_every, -1))[:, sched.burn_in:sched.total]
-    params = {n: theta[:, :, i] for i, n in enumerate(hyper.names)}
+    names, values = _parameters(hyper, noise_names, info)
+    theta = values[:, sched.burn_in:sched.total]
+    params = {n: theta[:, :, i] for i, n in enumerate(names)}
     mon = info.monitored[:, sched.burn_blocks:]  # (chains, sweeps, M, q)
     nd, nf = pm.ndof, pm.nforce
     columns = {"displacement": range(0, nd), "velocity": range(nd, 2 * nd), "force": range(2 * nd, 2 * nd + nf)}
@@ -61,12 +73,13 @@ def _verdict(pm: particle_model.ParticleModel, hyper: Hyper, infos: list, sched:
 
 
 def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, total, burn_blocks,
-              n_draws, tpoints) -> PGASOutput:
+              n_draws, tpoints, noise_names=()) -> PGASOutput:
     chains = info.accept.shape[0]
-    theta = np.reshape(info.theta, (chains, info.accept.shape[1] * info.accept.shape[2], len(hyper.names)))[:, :total]
+    names, theta = _parameters(hyper, noise_names, info)
+    theta = theta[:, :total]
     accept = np.reshape(info.accept, (chains, -1))[:, :total]
-    th_post = {n: theta[:, burn_in:, i] for i, n in enumerate(hyper.names)}
-    th_burn = {n: theta[:, :burn_in, i] for i, n in enumerate(hyper.names)}
+    th_post = {n: theta[:, burn_in:, i] for i, n in enumerate(names)}
+    th_burn = {n: theta[:, :burn_in, i] for i, n in enumerate(names)}
     count = np.asarray(states.count)[:, None, None]
     s1 = np.asarray(states.sum1)
     s2 = np.asarray(states.sum2)
@@ -101,8 +114,11 @@ def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, to
         "acceptance_lowfreq": info.accept_lowfreq[:, burn_blocks:].mean(axis=1).tolist(),
         "acceptance_residual": info.accept_residual[:, burn_blocks:].mean(axis=1).tolist(),
     }
+    if noise_names:  # per chain, per inferred channel: the independence sampler's acceptance
+        diag["acceptance_noise"] = {n: info.accept_noise[:, burn_blocks:, i].mean(axis=1).tolist()
+                                    for i, n in enumerate(noise_names)}
     diag.update(convergence_diagnostics(th_post, fp, tpoints))
-    return PGASOutput(hyper.names, th_post, th_burn, np.asarray(states.draws)[:, :n_draws], state_mean, state_sd,
+    return PGASOutput(names, th_post, th_burn, np.asarray(states.draws)[:, :n_draws], state_mean, state_sd,
                       accept[:, burn_in:].mean(axis=1) if hyper.names else np.zeros(chains), switch, ess,
                       info.log_likelihood[:, post], fp, tpoints, diag, mh_sd)
 

@@ -67,7 +67,8 @@ METHODS = ("kalman", "kalman-mcmc", "kalman-nuts", "pgas", "ekf", "ukf")
 # In the interface but without an implementation yet.
 PLANNED_SYSTEM_TYPES = ("bouc-wen",)
 # Parameters PGAS may infer in this version (Algorithm 4, Vibration 2020,
-# with Metropolis-within-Gibbs on the force hyperparameters only).
+# with Metropolis-within-Gibbs on the force hyperparameters), besides the sensors'
+# noise levels (an exact Gibbs step each, latentforce.inference.noise_gibbs).
 PGAS_FREE_OK = ("force_variance", "force_lengthscale")
 #: warm-up iterations per chain when [inference].burn_in is not given: the Kalman
 #: samplers start at the posterior's modes (Laplace), so a short warm-up adapts them
@@ -448,9 +449,10 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
                                   "version; use method = \"pgas\" for outputs of a nonlinear system.")
     if method == "pgas":
         for name in free:
-            if name not in PGAS_FREE_OK:
+            if name not in PGAS_FREE_OK and name not in noise_names:
                 raise fail(_free_key(name), f"method \"pgas\" can infer only the force variance and "
-                                            f"lengthscale in this version; give {name} as a number, or "
+                                            f"lengthscale and the sensors' noise_std in this version; "
+                                            f"give {name} as a number, or "
                                             f"use method = \"kalman-mcmc\" for a linear system, or "
                                             f"\"ekf\" / \"ukf\" (Gaussian approximations) for any system.")
     settings = InferenceSettings(
