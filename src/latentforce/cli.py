@@ -267,7 +267,7 @@ def simulate(
 @app.command()
 @handle_errors
 def demo(
-    name: str = typer.Argument(..., help="oma | duffing | sine"),
+    name: str = typer.Argument(..., help="oma | duffing | sine | silverbox"),
     out: Optional[Path] = typer.Option(None, "--out", help="Result folder (default: demo-NAME)."),
     quick: bool = typer.Option(False, "--quick", help="A short run (under a minute)."),
     seed: int = typer.Option(0, "--seed", help="Random seed."),
@@ -282,9 +282,9 @@ def demo(
     if name not in DEMOS:
         raise LatentForceError(f"Unknown demo {name!r}; available demos: {', '.join(DEMOS)}.")
     out = out if out is not None else Path(f"demo-{name}")
-    kwargs = {"paper_settings": True} if paper_settings and name != "oma" else {}
-    if paper_settings and name == "oma":
-        raise LatentForceError("--paper-settings applies to the nonlinear demos (duffing, sine), not to oma.")
+    kwargs = {"paper_settings": True} if paper_settings else {}
+    if paper_settings and name not in ("duffing", "sine"):
+        raise LatentForceError(f"--paper-settings applies to the Vibration 2020 demos (duffing, sine), not to {name}.")
     DEMOS[name](out=out, quick=quick, seed=seed, overwrite=force, echo=typer.echo, progress=Progress, **kwargs)
 
 

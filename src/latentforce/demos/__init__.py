@@ -2,5 +2,6 @@
 
 from latentforce.demos.nonlinear import run_duffing, run_sine
 from latentforce.demos.oma import run_oma
+from latentforce.demos.silverbox import run_silverbox
 
-DEMOS = {"oma": run_oma, "duffing": run_duffing, "sine": run_sine}
+DEMOS = {"oma": run_oma, "duffing": run_duffing, "sine": run_sine, "silverbox": run_silverbox}
