@@ -277,6 +277,25 @@ def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mas
         wall_time_s=_time.perf_counter() - t0, **common)
 
 
+def _laplace_evidence(problem: Problem, modes: list[dict]) -> dict:
+    r"""The Laplace estimate of the log evidence :math:`\log p(y)` (the model's, the parameters
+    integrated out under their priors): the log-sum over the optimiser's modes of each one's
+    Laplace mass. Comparable between runs on the same data with different kernels (or systems,
+    or sensors' noise models); a higher value is the model the data favour. Undefined under a
+    flat (improper) prior, whose normalising constant is arbitrary."""
+    from latentforce.priors import Flat
+
+    flat = [n for n, spec in problem.free.items() if isinstance(spec.prior, Flat)]
+    if flat:
+        return {"laplace": None, "reason": f"flat (improper) prior on {', '.join(flat)}: the evidence is "
+                                           "defined only up to an arbitrary constant"}
+    masses = [m["log_mass"] for m in modes if m.get("laplace_ok") and np.isfinite(m.get("log_mass", np.nan))]
+    if not masses:
+        return {"laplace": None, "reason": "no mode with a positive definite Laplace fit"}
+    top = max(masses)
+    return {"laplace": float(top + np.log(np.sum(np.exp(np.asarray(masses) - top)))), "modes": len(masses)}
+
+
 def _resumed(result: RunResult, checkpoint) -> RunResult:
     """Record in the diagnostics where a resumed run took over (its draws are the uninterrupted run's)."""
     if checkpoint is not None and checkpoint.resumed_from is not None:
@@ -320,6 +339,7 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
                    "chains": settings.chains, "mixture_draws": mix.n_mix, "start": out.start,
                    **out.sampler_info}
     modes = out.start.get("modes", [])
+    diagnostics["log_evidence"] = _laplace_evidence(problem, modes)
     record = dict(out.convergence)
     # The states are exact given the parameters: their stored paths' R-hat is information only.
     states = convergence.state_quantities({k: mix.paths[k] for k in STATES},
