@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.special import logsumexp
+from test_noise_and_carry import _record  # an exact draw from the linear-Gaussian model
 
 import latentforce  # noqa: F401
 from latentforce import estimate
@@ -28,19 +29,6 @@ SDOF = {
 }
 
 
-def _record(model, params, T, seed):
-    """An exact draw from the discrete linear-Gaussian model at ``params``."""
-    A, Q, H, R, m0, P0 = (np.asarray(a) for a in linear_gaussian(model, params, DT))
-    rng = np.random.default_rng(seed)
-    root = np.linalg.cholesky(Q + 1e-14 * np.eye(len(Q)))
-    x = np.linalg.cholesky(P0) @ rng.standard_normal(len(m0))
-    xs = np.empty((T, len(m0)))
-    for t in range(T):
-        xs[t] = x
-        x = A @ x + root @ rng.standard_normal(len(m0))
-    return xs @ H.T + rng.standard_normal((T, H.shape[0])) * np.sqrt(np.diag(R))
-
-
 def _evidence(config: dict, y: np.ndarray) -> dict:
     problem = config_from_dict(config, source="c.toml")
     T = len(y)
@@ -51,7 +39,7 @@ def _evidence(config: dict, y: np.ndarray) -> dict:
 
 def test_the_laplace_evidence_matches_quadrature_of_the_exact_likelihood():
     problem = config_from_dict(SDOF, source="c.toml")
-    y = _record(problem.model, {**TRUE, "noise_std_acc": 0.05}, 300, seed=1)
+    y, _ = _record(problem.model, {**TRUE, "noise_std_acc": 0.05}, 300, DT, seed=1)
     got = _evidence(SDOF, y)
     assert got["modes"] >= 1
     # log p(y) = log of the integral over x = softplus^-1(noise sd) of p(y | x) p(x), on a fine grid
@@ -93,7 +81,7 @@ def test_the_evidence_prefers_the_kernel_order_that_made_the_data():
                      "variance": {"prior": "lognormal", "mu": 0.0, "sigma": 1.0},
                      "lengthscale": {"prior": "lognormal", "mu": float(np.log(0.5)), "sigma": 1.0}}
     problem = config_from_dict(base, source="c.toml")
-    y = _record(problem.model, TRUE, 400, seed=2)
+    y, _ = _record(problem.model, TRUE, 400, DT, seed=2)
     ev = {}
     for kernel in ("matern12", "matern32", "matern52"):
         cfg = copy.deepcopy(base)
