@@ -60,40 +60,30 @@ of 13-17 s, for a block about 10 % faster; at 1 MB the chunk compiles in
 13 s, the path moves' loops are still merged, and a block costs what it did
 (quick demo, 2 chains: about 58 ms either case on a busy machine).
 
-**Programs shared within a process** (:func:`shared_jit`). A demo runs two
-cases of one structure side by side (the same system, kernel, channels and
-settings; other numbers), and on a first run compiling is most of its time:
-about 30 s of processor time per case, two thirds of all of it. Two
-``jax.jit`` functions built by two calls of a sampler are two functions to JAX,
-so each case compiled every program anew. :func:`shared_jit` lowers as
-``jax.jit`` does, then looks the lowered program's text up in a process-wide
-table: a program that lowers to the same text (the same operations, shapes,
-embedded constants and compiler options) gets the executable already
-compiled, or waits for the thread compiling it. Keyed by the text, not by a
-description of the inputs, and with what the executable holds outside the
-text (the arguments JAX kept, devices, shardings; no sharing for programs
-that call back into Python), a program is only shared with one that
-computes the same thing. One thread at a time traces and lowers (Python
-work, serialised by the interpreter lock anyway), so that one case traces
-its next program while XLA compiles the other's, instead of both tracing
-at half speed and then waiting on the same compile.
+**Numbers are arguments, structure is static.** A model is its structure
+(sizes, kernel order, sensor kinds, nonlinearity: hashable, compared by
+value) plus its numbers (a params dict of arrays). Every compiled program
+is a module-level ``jit`` function that takes the numbers and the record as
+arguments and the structure as a static argument, so JAX's own cache serves
+every parameter value and every record of one shape: a campaign's second
+record compiles nothing (``tests/test_compile_once.py``,
+``benchmarks/compile_counts.py``). A function that needs numbers and
+structure together travels into a program as a :class:`Bound`: a pytree whose
+leaves are its numbers and whose static part (the function and the
+structure) is in its tree definition.
 """
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import functools
-import hashlib
 import os
 import tempfile
-import threading
-from concurrent.futures import Future
 from pathlib import Path
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1,
                "xla_cpu_multi_thread_eigen": False, "xla_cpu_experimental_ynn_fusion_type": ""}
@@ -117,20 +107,15 @@ def require_x64(what: str) -> None:
 def raise_small_loop_threshold(environ=os.environ) -> bool:
     """Add ``xla_cpu_small_while_loop_byte_threshold`` (:data:`SMALL_LOOP_BYTES`) to ``XLA_FLAGS`` (module doc).
 
-    Returns whether it did: not when JAX's backends are already initialised
-    (the flag would be ignored), nor when ``XLA_FLAGS`` already sets backend
-    extra options (the user's own; a second occurrence would replace them).
+    Returns whether it did: not when ``XLA_FLAGS`` already sets backend extra
+    options (the user's own; a second occurrence would replace them). XLA reads
+    the flag when JAX starts its CPU backend, so it takes effect only if this
+    runs before the first JAX computation (:func:`latentforce.enable_x64` says so;
+    JAX has no public way to ask whether its backend has started).
     """
     flags = environ.get("XLA_FLAGS", "")
     if _EXTRA_OPTIONS_FLAG in flags:
         return False
-    try:
-        from jax._src import xla_bridge
-
-        if xla_bridge.backends_are_initialized():
-            return False
-    except (ImportError, AttributeError):  # a JAX without this check: setting the flag is harmless
-        pass
     option = f"{_EXTRA_OPTIONS_FLAG}=xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
     environ["XLA_FLAGS"] = f"{flags} {option}".strip()
     return True
@@ -162,149 +147,35 @@ def jit(fn=None, **kwargs):
     return jax.jit(fn, compiler_options=dict(cpu_options()), **kwargs)
 
 
-# executables shared by text (module doc): key -> Future of a jax.stages.Compiled
-_SHARED: collections.OrderedDict = collections.OrderedDict()
-_SHARED_LOCK = threading.Lock()
-SHARED_MAX = 64  # executables kept (the oldest are dropped)
-# one thread at a time traces and lowers (module doc); reentrant, since a trace may
-# call another program with concrete arguments
-_LOWERING_LOCK = threading.RLock()
+@jax.tree_util.register_pytree_node_class
+class Bound:
+    """``fn(static, numbers, *args)`` as a callable pytree (module doc).
 
-
-class SharedProgram:
-    """``jax.jit(fn)`` with :func:`cpu_options` whose executables are shared by text (module doc).
-
-    Called with concrete arguments it lowers once per argument signature and
-    compiles through :func:`compile_shared`; called inside another trace it is
-    the plain jitted function (inlined by the outer program, whose options apply).
+    ``numbers`` (any pytree of arrays) are its leaves, so a jitted function that
+    takes a :class:`Bound` traces them as arguments; ``fn`` and ``static``
+    (hashable, compared by value: a model's structure, names, settings) are its
+    tree definition, so two :class:`Bound` of the same function and structure
+    share compiled programs whatever their numbers. ``fn`` must be a
+    module-level function (a fresh closure is a new key every time).
     """
 
-    def __init__(self, fn, **kwargs):
-        self._options = dict(cpu_options())
-        self._jitted = jit(fn, **kwargs)
-        self._nested = jax.jit(fn, **kwargs)  # JAX takes compiler options only at the top level
-        self._compiled: dict = {}
-        functools.update_wrapper(self, fn)
+    __slots__ = ("fn", "static", "numbers")
+
+    def __init__(self, fn: Callable, static: Any, numbers: Any):
+        self.fn, self.static, self.numbers = fn, static, numbers
 
     def __call__(self, *args, **kwargs):
-        leaves, tree = jax.tree_util.tree_flatten((args, kwargs))
-        if _tracing() or any(isinstance(x, jax.core.Tracer) for x in leaves):
-            return self._nested(*args, **kwargs)
-        # as jax.jit's own cache: the arguments' types and the settings that change a trace
-        # (x64, default matmul precision, default device, ...)
-        signature = (tree, tuple(_abstract(x) for x in leaves), _trace_context())
-        compiled = self._compiled.get(signature)
-        if compiled is None:
-            with _LOWERING_LOCK:
-                lowered = self._jitted.lower(*args, **kwargs)
-            compiled = compile_shared(lowered, self._options)
-            self._compiled[signature] = compiled
-        return compiled(*args, **kwargs)
+        return self.fn(self.static, self.numbers, *args, **kwargs)
 
-    def lower(self, *args, **kwargs):
-        return self._jitted.lower(*args, **kwargs)
+    def tree_flatten(self):
+        return (self.numbers,), (self.fn, self.static)
 
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        return cls(aux[0], aux[1], children[0])
 
-def _tracing() -> bool:
-    """Whether this thread is inside a JAX trace (a call there must be inlined, even one
-    whose arguments are all concrete: its function may close over a tracer)."""
-    try:
-        from jax._src import core
-
-        return not core.trace_state_clean()
-    except (ImportError, AttributeError):  # a JAX without it: the arguments tell
-        return False
-
-
-def _trace_context() -> tuple:
-    try:
-        from jax._src import config
-
-        return config.trace_context()
-    except (ImportError, AttributeError):
-        return (jax.config.jax_enable_x64, str(jax.config.jax_default_matmul_precision),
-                str(jax.config.jax_default_device))
-
-
-def _abstract(x):
-    """What a compiled program's input is checked against: shape, dtype and weak type."""
-    typeof = getattr(jax, "typeof", None)  # JAX >= 0.4.36
-    if typeof is not None:
-        return typeof(x)
-    return np.shape(x), str(getattr(x, "dtype", type(x))), bool(getattr(x, "weak_type", False))
-
-
-def shared_jit(fn=None, **kwargs):
-    """:class:`SharedProgram` of ``fn`` (``jax.jit`` keywords allowed); usable as a decorator."""
-    if fn is None:
-        return functools.partial(shared_jit, **kwargs)
-    return SharedProgram(fn, **kwargs)
-
-
-def compile_shared(lowered, options=None):
-    """``lowered.compile()``, or the executable of a program with the same text (module doc).
-
-    The key is the lowered module's text (operations, shapes, embedded
-    constants), its argument and result trees, the compiler ``options`` and
-    what the compiled program holds besides its text: which arguments it kept
-    (JAX drops unused ones, so ``f(x, y) = 2x`` and ``g(x, y) = 2y`` lower to
-    the same text), the backend, devices, shardings, layouts and effects.
-    Nothing is shared (a plain compile) when that cannot be seen (a JAX
-    without ``Lowered._lowering.compile_args``), when the program calls back
-    into Python (the callback is not in the text), when JAX passes constants
-    as arguments instead of embedding them (:func:`constants_are_embedded`),
-    or when the text elides a constant.
-    """
-    compile_args = getattr(getattr(lowered, "_lowering", None), "compile_args", None)
-    if not isinstance(compile_args, dict) or compile_args.get("host_callbacks") or not constants_are_embedded():
-        return lowered.compile()
-    text = lowered.as_text()
-    if "__elided__" in text or "callback" in text:
-        return lowered.compile()
-    backend = compile_args.get("backend")
-    outside = tuple(repr(compile_args.get(k)) for k in (
-        "kept_var_idx", "num_devices", "in_shardings", "out_shardings", "in_layouts", "out_layouts",
-        "ordered_effects", "unordered_effects", "tuple_args"))
-    key = (hashlib.sha256(text.encode()).hexdigest(), str(lowered.in_tree), str(lowered.out_tree),
-           repr(sorted((options or {}).items())), str(getattr(backend, "platform", backend))) + outside
-    with _SHARED_LOCK:
-        future = _SHARED.get(key)
-        owner = future is None
-        if owner:
-            future = _SHARED[key] = Future()
-            while len(_SHARED) > SHARED_MAX:
-                _SHARED.popitem(last=False)
-        else:
-            _SHARED.move_to_end(key)
-    if owner:
-        try:
-            future.set_result(lowered.compile())
-        except BaseException as exc:  # the waiters see the error; a later call tries again
-            future.set_exception(exc)
-            with _SHARED_LOCK:
-                if _SHARED.get(key) is future:
-                    del _SHARED[key]
-            raise
-    return future.result()
-
-
-def constants_are_embedded() -> bool:
-    """Whether this JAX writes a program's closed-over arrays into its lowered text.
-
-    Found out once per value of ``jax_use_simplified_jaxpr_constants``, from
-    the text of a small program with two constants of 64 numbers (a NumPy and
-    a JAX array): the sharing of :func:`compile_shared` is sound only if it does.
-    """
-    return _constants_are_embedded(getattr(jax.config, "jax_use_simplified_jaxpr_constants", None))
-
-
-@functools.lru_cache(maxsize=4)
-def _constants_are_embedded(_flag) -> bool:
-    marker = np.full(64, 1234.5)
-    marker[0] = 8765.25
-    device_marker = jnp.asarray(-marker)
-    text = jax.jit(lambda x: x + marker + 2.0 * device_marker).lower(np.zeros(64)).as_text()
-    return all(v in text for v in ("8.765250e+03", "1.234500e+03", "-8.765250e+03", "-1.234500e+03"))
+    def __repr__(self) -> str:
+        return f"Bound({getattr(self.fn, '__name__', self.fn)!r}, {self.static!r})"
 
 
 @contextlib.contextmanager

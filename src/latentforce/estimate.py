@@ -14,7 +14,7 @@ from typing import Callable
 import jax
 import numpy as np
 
-from latentforce.compile import jit, require_x64, shared_jit
+from latentforce.compile import jit, require_x64
 from latentforce.errors import LatentForceError
 from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth, state_moments
 from latentforce.io.channels import channel_units, noise_in_si
@@ -245,7 +245,7 @@ def _mechanical_initial(problem: Problem, params0: dict):
     if model.system.is_linear:
         return None
     # one compiled program: op by op its small solves compiled some dozens of programs
-    m0, P0 = shared_jit(model.default_initial)(params0)
+    m0, P0 = jit(model.default_initial)(params0)
     return np.asarray(m0)[:nm], np.asarray(P0)[:nm, :nm]
 
 

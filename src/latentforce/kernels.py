@@ -91,6 +91,13 @@ class Kernel:
         tau = jnp.abs(jnp.asarray(tau, dtype=float))
         return jnp.vectorize(lambda s: (ss.H @ expm_balanced(ss.F * s) @ ss.Pinf @ ss.H.T)[0, 0])(tau)
 
+    # A kernel is structure only (its numbers are in KernelParams): equal by type and name.
+    def __eq__(self, other) -> bool:
+        return type(other) is type(self) and (self.name, self.dim) == (other.name, other.dim)
+
+    def __hash__(self) -> int:
+        return hash((type(self), self.name, self.dim))
+
     def __add__(self, other: "Kernel") -> "Kernel":
         return Sum(self, other)
 

@@ -105,6 +105,24 @@ class LatentForceModel:
         self.n_state = self.n_mech + self.nforce * kernel.dim
         self.n_obs = len(self.sensors)
 
+    # ----- the model as a static argument of compiled programs -------------
+    def _key(self) -> tuple:
+        # the structure: the sensors' noise levels are numbers (``noise_params``), passed in the
+        # params dict to every compiled program, never read from here inside one
+        return (self.system, self.kernel, tuple(s._replace(noise_std=0.0) for s in self.sensors))
+
+    def __eq__(self, other) -> bool:
+        return type(other) is type(self) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
+    def noise_params(self) -> dict:
+        """Each sensor's configured noise level as a parameter, ``{noise_param: sd}`` in the
+        parameter's unit (``noise_std / noise_scale``): merged into the params of every compiled
+        program, so that two models differing only in their noise levels share programs."""
+        return {s.noise_param: s.noise_std / s.noise_scale for s in self.sensors}
+
     def __repr__(self) -> str:
         return f"LatentForceModel({self.system!r}, {self.kernel!r}, {len(self.sensors)} sensors)"
 

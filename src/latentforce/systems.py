@@ -43,6 +43,17 @@ class System:
     def nforce(self) -> int:
         return len(self.force_dofs)
 
+    # A system is structure only (its numbers are in the params dict): two systems of one type
+    # with the same attributes are equal, so that compiled programs keyed by the model serve both.
+    def _key(self) -> tuple:
+        return (type(self),) + tuple(sorted(vars(self).items()))
+
+    def __eq__(self, other) -> bool:
+        return type(other) is type(self) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
     def input_matrix(self) -> jnp.ndarray:
         B = np.zeros((self.ndof, self.nforce))
         for j, dof in enumerate(self.force_dofs):

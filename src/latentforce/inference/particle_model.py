@@ -66,7 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from latentforce.compile import shared_jit
+from latentforce.compile import jit
 from latentforce.kernels import KernelParams, Matern
 from latentforce.linalg import cholesky, inv, solve_lyapunov, symmetrise, van_loan
 
@@ -147,7 +147,7 @@ class ParticleModel:
         zero_mech, zero_f = jnp.zeros(self.nm), jnp.zeros(self.nfx)
 
         # one compiled program (op by op, each primitive compiled on its own)
-        @shared_jit
+        @jit
         def _jacobians():
             D = jax.jacfwd(lambda xf: self.model.observe(self._gp_dummy(), jnp.concatenate([zero_mech, xf])))(zero_f)
             # Observation Jacobian in the latent (x_f, w) about rest: the proposal's linearisation
@@ -159,7 +159,7 @@ class ParticleModel:
         # linear systems: the joint stationary start (class doc); nonlinear ones: the model's default
         self.stationary_start = initial is None and self.is_linear
         self._mech0_user = None if self.stationary_start else self.initial_mech(initial)
-        self.mech0_mean, self.mech0_cov = shared_jit(self.initial_mech)(initial)  # None: an empty pytree
+        self.mech0_mean, self.mech0_cov = jit(self.initial_mech)(initial)  # None: an empty pytree
 
     # ----- pieces of the model ---------------------------------------------
     def _hold(self, xf: Float[Array, " nf"], s) -> Float[Array, " nforce"]:

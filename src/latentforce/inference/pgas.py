@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from latentforce.compile import shared_jit
+from latentforce.compile import jit
 from latentforce.inference import convergence, noise_gibbs, particle_model
 from latentforce.inference.hyper_moves import Hyper, init_proposal
 from latentforce.inference.latent import observation_density
@@ -199,10 +199,10 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
     x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
     R = pm.R if not noise.channels else jnp.diag(noise_gibbs.initial_variances(noise, pm.R))
-    od = shared_jit(lambda y_, m_, R_: observation_density(pm, y_, m_, R_))(y, mask, R)
+    od = jit(lambda y_, m_, R_: observation_density(pm, y_, m_, R_))(y, mask, R)
     k_theta, k_chains = jax.random.split(key)
 
-    @shared_jit
+    @jit
     def _start_transitions(k):
         # the chains' dispersed starts theta_0 exp(0.5 eps), and the transitions at theta_0
         # and at those, from one place in the program (each place compiles its own matrix
@@ -220,7 +220,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
                        noise=noise)
     with_rp = rm.applies and int(residual_steps) > 0
 
-    @shared_jit
+    @jit
     def _smooth(y, mask, R, tr0):
         eks = extended_kalman_smoother(pm, tr0, y, mask, R)
         # ref_q: centring of the running sums (numerical stability)
@@ -229,11 +229,11 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     # One program shapes the path moves (Gauss-Newton, a Jacobian through the path
     # rebuild: a large program) at the smoother's path and, for nonlinear models, at
     # each chain's path between burn-in chunks; inside the block it compiled again.
-    @shared_jit
+    @jit
     def _shapes(od, trs, paths):
         return jax.vmap(lambda tr_, x_: path_move_shapes(pm, rm, basis, od, tr_, x_, with_rp))(trs, paths)
 
-    @shared_jit
+    @jit
     def _init_chains(k_chains, tr0, eks, xs0, trs0, lfs, rps, R):
         frame0 = LowFrequencyFrame(tr0, basis)
         # every chain starts from the configured (initial) noise levels; None: none inferred.
@@ -271,7 +271,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     # blocks') and in the scan
     vblock = jax.jit(jax.vmap(block, (0, None, None)))
 
-    @shared_jit
+    @jit
     def _run_chunk(states, blocks, end, data):
         # here, not before: the whole trace then happens under the one lowering turn
         # (latentforce.compile.shared_jit)
