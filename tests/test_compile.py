@@ -64,10 +64,7 @@ def test_an_unknown_option_is_dropped_and_the_others_kept(monkeypatch):
 # ---------------------------------------------------------------------------
 # XLA CPU's small-loop threshold (set in XLA_FLAGS by latentforce.enable_x64)
 # ---------------------------------------------------------------------------
-def test_threshold_is_added_to_xla_flags_unless_the_user_set_backend_options(monkeypatch):
-    from jax._src import xla_bridge
-
-    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: False)
+def test_threshold_is_added_to_xla_flags_unless_the_user_set_backend_options():
     env = {}
     assert lc.raise_small_loop_threshold(env)
     assert env["XLA_FLAGS"] == (f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
@@ -79,10 +76,6 @@ def test_threshold_is_added_to_xla_flags_unless_the_user_set_backend_options(mon
     env = {"XLA_FLAGS": mine}
     assert not lc.raise_small_loop_threshold(env)  # the user's own backend options are kept
     assert env["XLA_FLAGS"] == mine
-    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: True)
-    env = {}
-    assert not lc.raise_small_loop_threshold(env)  # too late: the backend read XLA_FLAGS already
-    assert env == {}
 
 
 _HOIST_PROBE = """
@@ -140,121 +133,71 @@ def test_the_threshold_makes_xla_run_batched_rebuild_loops_as_one_function(tmp_p
 
 
 # ---------------------------------------------------------------------------
-# Executables shared by text (shared_jit)
+# Numbers as arguments, structure static (Bound): JAX's own cache shares programs
 # ---------------------------------------------------------------------------
-def _closure(constant):
-    # a new function object each call, as a sampler builds its programs per run
-    return lc.shared_jit(lambda x: _program(x * constant))
+def _scaled(static, numbers, x):
+    (power,), (c,) = static, numbers
+    return _program(x * c**power)
 
 
-def _only_executable(program):
-    (compiled,) = program._compiled.values()
-    return compiled
+@lc.jit
+def _apply(fn, x):
+    return fn(x)
 
 
-def test_shared_jit_gives_jits_result_and_shares_executables_by_text():
+def _count_compiles(fn):
+    seen = []
+
+    def listen(event, duration, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            seen.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        fn()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    return len(seen)
+
+
+def test_a_bound_function_shares_its_program_across_numbers_but_not_across_structure():
     x = jnp.linspace(-1.0, 1.0, 5)
-    c = np.arange(5.0)
-    a, b, other = _closure(c), _closure(c.copy()), _closure(c + 1.0)
-    ref = jax.jit(lambda x: _program(x * c))(x)
-    for prog in (a, b):
-        for got, want in zip(prog(x), ref):
-            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-12, atol=1e-14)
-    other(x)
-    assert _only_executable(a) is _only_executable(b)  # same text: one executable
-    assert _only_executable(other) is not _only_executable(a)  # another constant: another program
-    # inside another trace it is the plain jitted function, inlined
-    outer = jax.jit(lambda x: a(x)[1] * 2.0)(x)
-    np.testing.assert_allclose(np.asarray(outer), 2.0 * np.asarray(ref[1]), rtol=1e-12)
+    c, other = np.arange(5.0), np.arange(5.0) + 0.5
+    ref = jax.jit(lambda x: _program(x * other))(x)
+    _apply(lc.Bound(_scaled, (1,), (c,)), x)  # compiled here
+    n = _count_compiles(lambda: _apply(lc.Bound(_scaled, (1,), (other,)), x))
+    got = _apply(lc.Bound(_scaled, (1,), (other,)), x)
+    assert n == 0  # other numbers: the same program, and its result is the other numbers'
+    for g, w in zip(got, ref):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-12, atol=1e-14)
+    assert _count_compiles(lambda: _apply(lc.Bound(_scaled, (2,), (c,)), x)) == 1  # another structure
+    # a plain function through bound()/call(): its own program
+    np.testing.assert_allclose(np.asarray(lc.call(lambda v: v * 3.0, x)), 3.0 * np.asarray(x))
 
 
-def test_shared_jit_compiles_once_for_concurrent_callers():
-    from concurrent.futures import ThreadPoolExecutor
+def test_models_are_equal_by_structure_not_by_numbers():
+    from latentforce.kernels import Matern
+    from latentforce.models import LatentForceModel, Sensor
+    from latentforce.systems import Duffing, LinearSystem
 
-    c = np.linspace(0.5, 1.5, 4) + 1e-3  # a constant no other test uses
-    programs = [_closure(c) for _ in range(4)]
-    with ThreadPoolExecutor(4) as pool:
-        list(pool.map(lambda p: p(jnp.ones(4)), programs))
-    assert len({id(_only_executable(p)) for p in programs}) == 1
+    def model(system, p, noise, quantity="acceleration"):
+        return LatentForceModel(system, Matern(p), [Sensor(quantity, 0, noise, "acc")])
 
-
-class _Lowering:
-    compile_args = {"kept_var_idx": {0}, "host_callbacks": []}
-
-
-def test_a_failed_compile_is_not_kept():
-    class Lowered:
-        in_tree, out_tree = "in", "out"
-        _lowering = _Lowering()
-        calls = 0
-
-        def as_text(self):
-            return "module @a_failing_program_of_this_test"
-
-        def compile(self):
-            Lowered.calls += 1
-            if Lowered.calls == 1:
-                raise RuntimeError("out of memory")
-            return "executable"
-
-    with pytest.raises(RuntimeError, match="out of memory"):
-        lc.compile_shared(Lowered())
-    assert lc.compile_shared(Lowered()) == "executable"  # tried again, not the stored error
-    assert lc.compile_shared(Lowered()) == "executable" and Lowered.calls == 2
+    a, b = model(Duffing(), 1, 0.1), model(Duffing(), 1, 0.3)
+    assert a == b and hash(a) == hash(b)  # noise levels are numbers (model.noise_params)
+    assert a.noise_params() == {"noise_std_acc": 0.1} and b.noise_params() == {"noise_std_acc": 0.3}
+    assert a != model(Duffing(), 2, 0.1)  # kernel order
+    assert a != model(LinearSystem(), 1, 0.1)  # system
+    assert a != model(Duffing(), 1, 0.1, "velocity")  # sensor kind
+    assert LinearSystem(2, (1,)) == LinearSystem(2, (1,)) != LinearSystem(2, (0,))
 
 
-def test_nothing_is_shared_when_constants_are_not_in_the_text(monkeypatch):
-    monkeypatch.setattr(lc, "constants_are_embedded", lambda: False)
-    c = np.arange(5.0) + 0.125
-    a, b = _closure(c), _closure(c)
-    a(jnp.ones(5)), b(jnp.ones(5))
-    assert _only_executable(a) is not _only_executable(b)
-
-
-def test_concurrent_compiles_of_one_text_wait_for_the_first():
-    """Four threads lower the same program at once (a slow compile): one compiles, three wait."""
-    import threading
-    import time
-    from concurrent.futures import ThreadPoolExecutor
-
+def test_jit_at_module_level_runs_no_jax_until_called(monkeypatch):
     calls = []
-
-    class Lowered:
-        in_tree, out_tree = "in", "out"
-        _lowering = _Lowering()
-
-        def as_text(self):
-            return "module @a_slow_program_of_this_test"
-
-        def compile(self):
-            calls.append(threading.get_ident())
-            time.sleep(0.5)
-            return object()
-
-    with ThreadPoolExecutor(4) as pool:
-        got = list(pool.map(lambda _: lc.compile_shared(Lowered()), range(4)))
-    assert len(calls) == 1 and all(g is got[0] for g in got)
-
-
-def test_programs_with_the_same_text_but_other_arguments_or_callbacks_are_not_shared():
-    """JAX drops unused arguments (f(x, y) = 2x and g(x, y) = 2y lower to one text), and a Python
-    callback is not in the text: neither may share an executable."""
-    x, y = jnp.ones(3), jnp.full(3, 5.0)
-    first, second = lc.shared_jit(lambda x, y: x * 2.0), lc.shared_jit(lambda x, y: y * 2.0)
-    np.testing.assert_array_equal(np.asarray(first(x, y)), 2.0)
-    np.testing.assert_array_equal(np.asarray(second(x, y)), 10.0)
-
-    def calling(offset):
-        return lc.shared_jit(lambda v: jax.pure_callback(lambda a: np.asarray(a) + offset,
-                                                         jax.ShapeDtypeStruct((3,), v.dtype), v))
-
-    np.testing.assert_array_equal(np.asarray(calling(1.0)(x)), 2.0)
-    np.testing.assert_array_equal(np.asarray(calling(100.0)(x)), 101.0)
-
-
-def test_a_shared_program_closing_over_an_outer_tracer_is_inlined():
-    out = jax.jit(lambda q: lc.shared_jit(lambda: q * 2.0)())(1.5)
-    assert float(out) == 3.0
+    monkeypatch.setattr(lc, "cpu_options", lambda: calls.append(1) or ())
+    f = lc.jit(lambda x: x + 1.0)
+    assert calls == []
+    assert float(f(1.0)) == 2.0 and calls == [1]
 
 
 def test_persistent_cache_serves_a_new_process_and_restores_the_settings(tmp_path):
@@ -267,9 +210,8 @@ def test_persistent_cache_serves_a_new_process_and_restores_the_settings(tmp_pat
     script = (
         "import sys, numpy as np, jax, jax.numpy as jnp\n"
         "from latentforce.compile import persistent_cache, jit\n"
-        "from jax._src import monitoring\n"
         "hits = []\n"
-        "monitoring.register_event_listener(lambda e, **k: hits.append(e) if 'cache_hits' in e else None)\n"
+        "jax.monitoring.register_event_listener(lambda e, **k: hits.append(e) if 'cache_hits' in e else None)\n"
         "with persistent_cache(sys.argv[1]):\n"
         "    f = jit(lambda y: jnp.cumsum(jnp.sin(y)) @ y)\n"
         "    print(float(f(np.random.default_rng(int(sys.argv[2])).normal(size=64))))\n"

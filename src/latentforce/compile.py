@@ -84,6 +84,7 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1,
                "xla_cpu_multi_thread_eigen": False, "xla_cpu_experimental_ynn_fusion_type": ""}
@@ -141,10 +142,30 @@ def cpu_options() -> tuple:
 
 
 def jit(fn=None, **kwargs):
-    """``jax.jit(fn, **kwargs)`` with :func:`cpu_options`; usable as a decorator."""
+    """``jax.jit(fn, **kwargs)`` with :func:`cpu_options`; usable as a decorator, also at module level:
+    the options are found (which runs JAX) at the first call, not at import."""
     if fn is None:
         return functools.partial(jit, **kwargs)
-    return jax.jit(fn, compiler_options=dict(cpu_options()), **kwargs)
+    return _Jit(fn, kwargs)
+
+
+class _Jit:
+    """:func:`jit`'s function: ``jax.jit`` built at the first call or lowering."""
+
+    def __init__(self, fn, kwargs):
+        self._fn, self._kwargs, self._jitted = fn, kwargs, None
+        functools.update_wrapper(self, fn)
+
+    def _get(self):
+        if self._jitted is None:
+            self._jitted = jax.jit(self._fn, compiler_options=dict(cpu_options()), **self._kwargs)
+        return self._jitted
+
+    def __call__(self, *args, **kwargs):
+        return self._get()(*args, **kwargs)
+
+    def lower(self, *args, **kwargs):
+        return self._get().lower(*args, **kwargs)
 
 
 @jax.tree_util.register_pytree_node_class
@@ -176,6 +197,33 @@ class Bound:
 
     def __repr__(self) -> str:
         return f"Bound({getattr(self.fn, '__name__', self.fn)!r}, {self.static!r})"
+
+
+def _call_plain(fn, _numbers, *args, **kwargs):
+    return fn(*args, **kwargs)
+
+
+def bound(fn: Callable) -> Bound:
+    """``fn`` as a :class:`Bound`: itself if it is one, else with no numbers of its own (a plain
+    function or closure is then its own static key: a fresh closure compiles anew)."""
+    return fn if isinstance(fn, Bound) else Bound(_call_plain, fn, ())
+
+
+@jit
+def _call(fn: Bound, *args):
+    return fn(*args)
+
+
+def call(fn: Callable, *args):
+    """``fn(*args)`` as one compiled program (``fn`` a :class:`Bound`: one program per structure
+    and argument shapes; a plain function: one per function)."""
+    return _call(bound(fn), *args)
+
+
+def numbers(params: dict) -> dict:
+    """A params dict as the numbers of a compiled program: float64 NumPy arrays, so that a
+    Python float, a NumPy scalar and an array of the same shape give one argument type."""
+    return {k: np.asarray(v, dtype=float) for k, v in params.items()}
 
 
 @contextlib.contextmanager

@@ -8,15 +8,16 @@ folder; progress goes through an optional callback.
 
 from __future__ import annotations
 
+import functools
 import time as _time
 from typing import Callable
 
 import jax
 import numpy as np
 
-from latentforce.compile import jit, require_x64
+from latentforce.compile import call, jit, numbers, require_x64
 from latentforce.errors import LatentForceError
-from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth, state_moments
+from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_jit, state_moments
 from latentforce.io.channels import channel_units, noise_in_si
 from latentforce.io.config import Problem
 from latentforce.io.data import Dataset
@@ -61,7 +62,8 @@ def _check_stable(problem: Problem, params: dict) -> None:
     if problem.initial is not None:
         return
     F, _ = model.continuous(params, linear_part=True)
-    eig = np.linalg.eigvals(np.asarray(F)[: model.n_mech, : model.n_mech])
+    mech = model.layout.mech
+    eig = np.linalg.eigvals(np.asarray(F)[mech, mech])
     if np.max(eig.real) >= 0:
         what = ("linear system" if model.system.is_linear
                 else "system, linearised about rest,")
@@ -117,7 +119,7 @@ def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callabl
     y = np.asarray(dataset.values, dtype=float)
     mask = np.asarray(dataset.mask, dtype=bool)
     initial = None if problem.initial is None else Initial(*problem.initial)
-    params0 = dict(problem.fixed)
+    params0 = _fixed(problem)
     for name, spec in problem.free.items():
         params0[name] = spec.init
     _check_stable(problem, params0)
@@ -135,6 +137,14 @@ def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callabl
     key_psd = jax.random.fold_in(key, 0x5D)
     result.force_psd = force_spectrum(key_psd, problem, result, params0, y, mask, dataset.dt, initial)
     return result, extras
+
+
+def _fixed(problem: Problem) -> dict:
+    """The known numbers: the config's fixed values and every sensor's configured noise level not
+    inferred (``model.noise_params``), so that the compiled programs take all of them as
+    arguments and serve every configuration of the same structure."""
+    noise = {k: v for k, v in problem.model.noise_params().items() if k not in problem.free}
+    return {**noise, **problem.fixed}
 
 
 def _mass_warning(problem: Problem, result: RunResult) -> None:
@@ -191,7 +201,8 @@ def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, i
     extras: dict = {}
 
     if settings.method == "kalman":
-        sm = smooth(model, params0, y, mask, dataset.dt, initial, kalman=settings.kalman)
+        sm = smooth_jit(numbers(params0), y, mask, initial, model=model, dt=float(dataset.dt),
+                        kalman=settings.kalman)
         if not np.isfinite(float(sm.log_likelihood)):
             raise LatentForceError("The Kalman filter's log-likelihood is not finite for the configured "
                                    f"model in {problem.config_path}: check the parameter values and units.")
@@ -233,20 +244,26 @@ def _smoothed_moments(problem: Problem, params: dict, means, covs) -> tuple[dict
     return state_mean, state_sd
 
 
+@functools.partial(jit, static_argnames=("model",))
+def _default_initial(params, *, model):
+    # one compiled program: op by op its small solves compiled some dozens of programs
+    return model.default_initial(params)
+
+
 def _mechanical_initial(problem: Problem, params0: dict):
     """The mechanical states' ``(mean, cov)`` start of the particle sampler's model (``pgas``,
     ``ekf``, ``ukf``): the user's ``[initial]``; else None for a linear system (the joint
     stationary start at each parameter value), the model's near-rest default for a nonlinear one."""
     model = problem.model
-    nm = model.n_mech
+    mech = model.layout.mech
     if problem.initial is not None:
         mean, cov = problem.initial
-        return np.asarray(mean)[:nm], np.asarray(cov)[:nm, :nm]
+        return np.asarray(mean)[mech], np.asarray(cov)[mech, mech]
     if model.system.is_linear:
         return None
     # one compiled program: op by op its small solves compiled some dozens of programs
-    m0, P0 = jit(model.default_initial)(params0)
-    return np.asarray(m0)[:nm], np.asarray(P0)[:nm, :nm]
+    m0, P0 = _default_initial(numbers(params0), model=model)
+    return np.asarray(m0)[mech], np.asarray(P0)[mech, mech]
 
 
 def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict, progress,
@@ -262,7 +279,7 @@ def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mas
         return _run_kalman_sampler(key, problem, dataset, y, mask, None, common, progress, t0, extras,
                                    checkpoint, gaussian=(loglik, smoother))
     y0 = np.where(mask, y, 0.0)
-    sm = jit(smoother)({k: np.asarray(v, dtype=float) for k, v in params0.items()}, y0, mask)
+    sm = call(smoother, numbers(params0), y0, mask)
     if not np.isfinite(float(sm.log_likelihood)):
         raise LatentForceError(f"The {settings.method.upper()} log-likelihood is not finite for the configured "
                                f"model in {problem.config_path}: check the parameter values and units.")
@@ -317,7 +334,7 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
     runner = run_kalman_nuts if settings.method == "kalman-nuts" else run_kalman_mcmc
     loglik, smoother = gaussian if gaussian is not None else (None, None)
-    out = runner(key_mcmc, model, dict(problem.fixed), free, y, mask, dataset.dt,
+    out = runner(key_mcmc, model, _fixed(problem), free, y, mask, dataset.dt,
                  iterations=settings.iterations, burn_in=settings.burn_in, chains=settings.chains,
                  initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time,
                  checkpoint=checkpoint, kalman=settings.kalman,
@@ -327,7 +344,7 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
     # The paper's estimate: the smoother at the CDF median of each parameter.
     median = {n: float(np.median(v)) for n, v in pooled.items()}
-    mix = mixture_posterior(key_mix, model, dict(problem.fixed), out.draws, y, mask, dataset.dt,
+    mix = mixture_posterior(key_mix, model, _fixed(problem), out.draws, y, mask, dataset.dt,
                             thin_draws=settings.thin_draws, initial=initial, point=median,
                             outputs=problem.outputs, smoother=smoother, kalman=settings.kalman)
     mom_median, ll_median = mix.point
@@ -409,10 +426,7 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
                    resampling="multinomial", thin_draws=settings.thin_draws, initial=initial,
                    progress=progress, channels=channels, target_ess=settings.target_ess,
                    max_time=settings.max_time, max_iterations=PGAS_AUTO_ITERATIONS, checkpoint=checkpoint)
-    nd, nm, kd = model.ndof, model.n_mech, model.kernel.dim
-    force_idx = nm + kd * np.arange(model.nforce)
-    tr = out.trajectories
-    paths = {"displacement": tr[..., :nd], "velocity": tr[..., nd:nm], "force": tr[..., force_idx]}
+    paths = model.layout.quantities(out.trajectories)
     state_mean = {n: np.asarray(v) for n, v in out.state_mean.items()}
     state_sd = {n: np.asarray(v) for n, v in out.state_sd.items()}
     if problem.outputs:  # from the stored paths, the acceleration from the equation of motion
@@ -428,7 +442,7 @@ def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, c
     burn_blocks = -(-settings.burn_in // k)
     iterations = int(out.diagnostics.pop("iterations_run"))
     thin = int(out.diagnostics.pop("thin"))
-    slots = np.arange(tr.shape[1])
+    slots = np.arange(out.trajectories.shape[1])
     idx = np.clip((burn_blocks + slots * thin) * k + k - 1 - settings.burn_in, 0, max(iterations - 1, 0))
     param_draws = {n: v[:, idx] for n, v in out.theta.items()}
     pooled = {n: v.reshape(-1) for n, v in out.theta.items()}

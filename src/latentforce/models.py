@@ -75,6 +75,67 @@ class Sensor(NamedTuple):
         return "noise_std_" + re.sub(r"\W", "_", self.name or f"{self.quantity}_{self.dof}")
 
 
+class StateLayout(NamedTuple):
+    """Where each quantity sits in the state vector (module doc): the one place that knows.
+
+    ``x = [z (ndof) | zdot (ndof) | force 0's kdim states | force 1's | ...]``; each force
+    ``u_j`` is the first state of its block (``u_j = x[force[j]]``, Matérn; a composite kernel's
+    force is ``H_f`` of its block, :meth:`LatentForceModel.force_matrix`). The particle methods'
+    latent ``(x_f, w)`` of the mechanical noise uses the same blocks.
+    """
+
+    ndof: int
+    nforce: int
+    kdim: int
+
+    @property
+    def n_mech(self) -> int:
+        return 2 * self.ndof
+
+    @property
+    def n_force_states(self) -> int:
+        return self.nforce * self.kdim
+
+    @property
+    def n_state(self) -> int:
+        return self.n_mech + self.n_force_states
+
+    @property
+    def displacement(self) -> slice:
+        return slice(0, self.ndof)
+
+    @property
+    def velocity(self) -> slice:
+        return slice(self.ndof, self.n_mech)
+
+    @property
+    def mech(self) -> slice:
+        return slice(0, self.n_mech)
+
+    @property
+    def force_states(self) -> slice:
+        return slice(self.n_mech, self.n_state)
+
+    @property
+    def force(self) -> np.ndarray:
+        """Index of each force value ``u_j`` (first state of each force block)."""
+        return self.n_mech + self.kdim * np.arange(self.nforce)
+
+    def index(self, quantity: str) -> np.ndarray:
+        """State indices of ``"displacement"``, ``"velocity"`` or ``"force"`` (one per DOF or force)."""
+        if quantity == "force":
+            return self.force
+        return np.arange(self.n_state)[getattr(self, quantity)]
+
+    def split(self, x) -> tuple:
+        """``(z, zdot, x_f)`` of states ``x`` (``(..., n_state)``)."""
+        return x[..., self.displacement], x[..., self.velocity], x[..., self.force_states]
+
+    def quantities(self, x) -> dict:
+        """``{"displacement", "velocity", "force"}`` columns of states ``x`` (``(..., n_state)``)."""
+        return {q: x[..., self.index(q)] for q in ("displacement", "velocity", "force")}
+
+
 class LatentForceModel:
     """Static structure of a latent force model (numbers live in a params dict).
 
@@ -99,10 +160,11 @@ class LatentForceModel:
             if s.quantity == "force" and s.dof not in system.force_dofs:
                 raise ValueError(f"force sensor {s.name!r} at DOF {s.dof}: no latent force acts there "
                                  f"(force_dofs = {list(system.force_dofs)})")
+        self.layout = StateLayout(system.ndof, system.nforce, kernel.dim)
         self.ndof = system.ndof
         self.nforce = system.nforce
-        self.n_mech = 2 * self.ndof
-        self.n_state = self.n_mech + self.nforce * kernel.dim
+        self.n_mech = self.layout.n_mech
+        self.n_state = self.layout.n_state
         self.n_obs = len(self.sensors)
 
     # ----- the model as a static argument of compiled programs -------------
@@ -128,14 +190,14 @@ class LatentForceModel:
 
     # ----- indices into the state vector --------------------------------
     def displacement_index(self) -> np.ndarray:
-        return np.arange(self.ndof)
+        return self.layout.index("displacement")
 
     def velocity_index(self) -> np.ndarray:
-        return np.arange(self.ndof, 2 * self.ndof)
+        return self.layout.index("velocity")
 
     def force_index(self) -> np.ndarray:
         """Index of each force value ``u_j`` (first state of each force block)."""
-        return self.n_mech + self.kernel.dim * np.arange(self.nforce)
+        return self.layout.force
 
     def force_matrix(self) -> jnp.ndarray:
         """``Hu`` with ``u = Hu @ x`` (``nforce x n_state``)."""
@@ -166,16 +228,16 @@ class LatentForceModel:
             raise TypeError(f"{self.system!r} is nonlinear: it has no linear state-space form")
         M, C, K = self.system.linear_part(params)
         Ff, Wf, Hf, _ = self.force_state_space(params)
-        n, nd, nm = self.n_state, self.ndof, self.n_mech
+        n, nd, L = self.n_state, self.ndof, self.layout
         Minv = inv(M)
         B = self.system.input_matrix()
         F = jnp.zeros((n, n))
-        F = F.at[:nd, nd:nm].set(jnp.eye(nd))
-        F = F.at[nd:nm, :nd].set(-Minv @ K)
-        F = F.at[nd:nm, nd:nm].set(-Minv @ C)
-        F = F.at[nd:nm, nm:].set(Minv @ B @ Hf)
-        F = F.at[nm:, nm:].set(Ff)
-        W = jnp.zeros((n, n)).at[nm:, nm:].set(Wf)
+        F = F.at[L.displacement, L.velocity].set(jnp.eye(nd))
+        F = F.at[L.velocity, L.displacement].set(-Minv @ K)
+        F = F.at[L.velocity, L.velocity].set(-Minv @ C)
+        F = F.at[L.velocity, L.force_states].set(Minv @ B @ Hf)
+        F = F.at[L.force_states, L.force_states].set(Ff)
+        W = jnp.zeros((n, n)).at[L.force_states, L.force_states].set(Wf)
         return F, W
 
     def discretise(self, params, dt: float, linear_part: bool = False):
@@ -188,20 +250,18 @@ class LatentForceModel:
         if not (self.system.is_linear or linear_part):
             raise TypeError(f"{self.system!r} is nonlinear: its observation is not linear")
         F, _ = self.continuous(params, linear_part)
-        nd = self.ndof
+        L = self.layout
         BHu = self.system.input_matrix() @ self.force_matrix()  # (B u) = BHu @ x
         rows = []
         for s in self.sensors:
-            if s.quantity == "displacement":
-                rows.append(jnp.zeros(self.n_state).at[s.dof].set(1.0))
-            elif s.quantity == "velocity":
-                rows.append(jnp.zeros(self.n_state).at[nd + s.dof].set(1.0))
+            if s.quantity in ("displacement", "velocity"):
+                rows.append(jnp.zeros(self.n_state).at[L.index(s.quantity)[s.dof]].set(1.0))
             elif s.quantity == "strain":
-                rows.append(jnp.zeros(self.n_state).at[:nd].set(jnp.asarray(s.coefficients, dtype=float)))
+                rows.append(jnp.zeros(self.n_state).at[L.displacement].set(jnp.asarray(s.coefficients, dtype=float)))
             elif s.quantity == "force":
                 rows.append(BHu[s.dof])
             else:  # acceleration: the velocity row of the drift, Eq. (23b)
-                rows.append(F[nd + s.dof])
+                rows.append(F[L.index("velocity")[s.dof]])
         H = jnp.stack(rows)
         return H, self.noise_covariance(params)
 
@@ -222,19 +282,16 @@ class LatentForceModel:
     # ----- general (nonlinear) model ---------------------------------------
     def drift(self, params, x):
         r"""Deterministic drift :math:`f(x)` of the augmented SDE, one state ``x``."""
-        nd, nm = self.ndof, self.n_mech
         Ff, _, Hf, _ = self.force_state_space(params)
-        z, v, xf = x[:nd], x[nd:nm], x[nm:]
+        z, v, xf = self.layout.split(x)
         a = self.system.acceleration(params, z, v, Hf @ xf)
         return jnp.concatenate([v, a, Ff @ xf])
 
     def observe(self, params, x):
         """Noise-free measurement vector for one state ``x`` (any system)."""
-        nd, nm = self.ndof, self.n_mech
         _, _, Hf, _ = self.force_state_space(params)
-        z, v = x[:nd], x[nd:nm]
-        return self.sensor_readout(z, v, lambda: self.system.acceleration(params, z, v, Hf @ x[nm:]),
-                                   lambda: Hf @ x[nm:])
+        z, v, xf = self.layout.split(x)
+        return self.sensor_readout(z, v, lambda: self.system.acceleration(params, z, v, Hf @ xf), lambda: Hf @ xf)
 
     def sensor_readout(self, z, v, acceleration, force=None):
         """The sensors' noise-free values from displacement ``z``, velocity ``v``,
@@ -272,6 +329,6 @@ class LatentForceModel:
         if self.system.is_linear:
             return self.stationary_initial(params)
         _, P = self.stationary_initial(params, linear_part=True)
-        nm = self.n_mech
-        P = P.at[:nm, :].multiply(0.1).at[:, :nm].multiply(0.1)
+        mech = self.layout.mech
+        P = P.at[mech, :].multiply(0.1).at[:, mech].multiply(0.1)
         return jnp.zeros(self.n_state), symmetrise(P)

@@ -31,6 +31,7 @@ samplers, and a figure ``figures/output_NAME.png``.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -39,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from latentforce.compile import jit, numbers
 from latentforce.models import LatentForceModel
 
 __all__ = ["OutputSpec", "gaussian_moments", "output_matrix", "path_outputs", "sample_moments"]
@@ -67,14 +69,14 @@ def output_matrix(model: LatentForceModel, outputs: Sequence[OutputSpec], params
     :math:`F` (``model.continuous``), the force rows pick :math:`u = H_u x`.
     """
     F, _ = model.continuous(params)
-    nd, nm = model.ndof, model.n_mech
+    nd, L = model.ndof, model.layout
     Hu = model.force_matrix()
     rows = []
     for spec in outputs:
         g = jnp.zeros(model.n_state)
-        g = g.at[:nd].add(jnp.asarray(_coefficients(spec, "displacement", nd)))
-        g = g.at[nd:nm].add(jnp.asarray(_coefficients(spec, "velocity", nd)))
-        g = g + jnp.asarray(_coefficients(spec, "acceleration", nd)) @ F[nd:nm]
+        g = g.at[L.displacement].add(jnp.asarray(_coefficients(spec, "displacement", nd)))
+        g = g.at[L.velocity].add(jnp.asarray(_coefficients(spec, "velocity", nd)))
+        g = g + jnp.asarray(_coefficients(spec, "acceleration", nd)) @ F[L.velocity]
         g = g + jnp.asarray(_coefficients(spec, "force", model.nforce)) @ Hu
         rows.append(g)
     return jnp.stack(rows)
@@ -102,10 +104,15 @@ def path_outputs(model: LatentForceModel, outputs: Sequence[OutputSpec], params:
     out = z @ cz.T + v @ cv.T + u @ cu.T
     if np.any(np.asarray(ca)):
         lead = z.shape[:-1]
-        acc = jax.jit(jax.vmap(lambda zz, vv, uu: model.system.acceleration(params, zz, vv, uu)))
-        a = acc(z.reshape(-1, nd), v.reshape(-1, nd), u.reshape(-1, nf)).reshape(*lead, nd)
+        a = _accelerations(numbers(params), z.reshape(-1, nd), v.reshape(-1, nd), u.reshape(-1, nf),
+                           system=model.system).reshape(*lead, nd)
         out = out + a @ ca.T
     return np.asarray(out)
+
+
+@functools.partial(jit, static_argnames=("system",))
+def _accelerations(params, z, v, u, *, system):
+    return jax.vmap(lambda zz, vv, uu: system.acceleration(params, zz, vv, uu))(z, v, u)
 
 
 def sample_moments(paths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

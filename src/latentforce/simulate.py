@@ -13,13 +13,14 @@ Numerics only: files are written by :mod:`latentforce.io.data`.
 
 from __future__ import annotations
 
+import functools
 from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from latentforce.compile import jit, require_x64
+from latentforce.compile import jit, numbers, require_x64
 from latentforce.models import LatentForceModel, Sensor
 
 
@@ -64,7 +65,7 @@ def integrate(model: LatentForceModel, params: dict, force_fine, dt_fine: float,
     force_fine = jnp.asarray(force_fine, dtype=float)
 
     def deriv(state, u):
-        z, v = state[:nd], state[nd:]
+        z, v = state[model.layout.displacement], state[model.layout.velocity]
         return jnp.concatenate([v, system.acceleration(params, z, v, u)])
 
     def _step(state, inputs):
@@ -85,6 +86,13 @@ def integrate(model: LatentForceModel, params: dict, force_fine, dt_fine: float,
     return z, v, a
 
 
+# one compiled program each per model structure and length, the numbers as arguments
+_gp_force = functools.partial(jit, static_argnames=("model", "n", "dt"))(
+    lambda key, params, *, model, n, dt: gp_force(key, model, params, n, dt))
+_integrate = functools.partial(jit, static_argnames=("model", "dt"))(
+    lambda params, u, start, *, model, dt: integrate(model, params, u, dt, *(start or (None, None))))
+
+
 def simulate(key, model: LatentForceModel, params: dict, n_samples: int, dt: float, *,
              force: Callable | None = None, substeps: int = 8, z0=None, v0=None) -> Simulation:
     """Simulate ``n_samples`` samples at spacing ``dt`` from rest (or ``z0, v0``).
@@ -98,10 +106,11 @@ def simulate(key, model: LatentForceModel, params: dict, n_samples: int, dt: flo
     if force is None:
         # one compiled program: op by op, the kernel's discretisation alone compiled
         # some hundred tiny programs (about 5 s of a quick demo)
-        u_fine = jit(lambda k: gp_force(k, model, params, n_fine, dt_fine))(key)
+        u_fine = _gp_force(key, numbers(params), model=model, n=n_fine, dt=float(dt_fine))
     else:
         u_fine = jnp.reshape(jnp.asarray(force(t_fine), dtype=float), (n_fine, model.nforce))
-    z, v, a = jit(lambda u: integrate(model, params, u, dt_fine, z0, v0))(u_fine)
+    start = None if z0 is None and v0 is None else (z0, v0)
+    z, v, a = _integrate(numbers(params), u_fine, start, model=model, dt=float(dt_fine))
     pick = lambda x: np.asarray(x[::substeps])
     return Simulation(np.arange(n_samples) * dt, pick(z), pick(v), pick(a), pick(u_fine),
                       tuple(model.system.force_dofs))

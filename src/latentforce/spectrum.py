@@ -24,11 +24,14 @@ force hyperparameters (the fixed values under ``kalman``).
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.signal import welch
 
+from latentforce.compile import jit
 from latentforce.kernels import KernelParams
 
 __all__ = ["PSD_SAMPLES", "force_psd_table", "force_spectrum", "kalman_force_samples", "prior_psd", "welch_psd"]
@@ -86,21 +89,23 @@ def force_psd_table(force_paths: np.ndarray, dt: float, kernel, variance: float,
 def kalman_force_samples(key, model, params: dict, y, mask, dt: float, initial=None,
                          n: int = PSD_SAMPLES) -> np.ndarray:
     """``n`` force paths ``(n, T, nforce)`` from the exact smoothing distribution (FFBS)."""
-    from latentforce.compile import jit
+    from latentforce.compile import numbers
+
+    y = jnp.asarray(np.where(mask, y, 0.0))
+    return np.asarray(_force_draws(numbers(params), initial, jax.random.split(key, n), y, jnp.asarray(mask),
+                                   model=model, dt=float(dt)))
+
+
+@functools.partial(jit, static_argnames=("model", "dt"))
+def _force_draws(params, initial, keys, y, mask, *, model, dt):
     from latentforce.inference.kalman import kalman_filter, sample_smoothed_trajectory
     from latentforce.inference.kalman_mcmc import linear_gaussian
 
-    idx = jnp.asarray(model.force_index())
-
-    @jit
-    def draw(keys, y_, mask_):
-        A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
-        filt = kalman_filter(A, Q, H, R, m0, P0, y_, mask_)
-        # one path at a time: only its force columns are kept
-        return jax.lax.map(lambda k: sample_smoothed_trajectory(k, A, Q, filt)[:, idx], keys)
-
-    y = jnp.asarray(np.where(mask, y, 0.0))
-    return np.asarray(draw(jax.random.split(key, n), y, jnp.asarray(mask)))
+    idx = jnp.asarray(model.layout.force)
+    A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
+    filt = kalman_filter(A, Q, H, R, m0, P0, y, mask)
+    # one path at a time: only its force columns are kept
+    return jax.lax.map(lambda k: sample_smoothed_trajectory(k, A, Q, filt)[:, idx], keys)
 
 
 def hyperparameters(result, fixed: dict) -> tuple[float, float]:

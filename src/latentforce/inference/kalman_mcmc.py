@@ -28,6 +28,7 @@ posterior of each state, mixed over posterior draws in bounded memory
 
 from __future__ import annotations
 
+import functools
 import time as _time
 from typing import Callable, NamedTuple
 
@@ -35,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from latentforce.compile import jit
+from latentforce.compile import Bound, bound, jit, numbers
 from latentforce.inference import independence, mcmc
 from latentforce.inference.kalman import log_likelihood, log_likelihood_complete
 from latentforce.inference.kalman_choice import (
@@ -81,12 +82,20 @@ def smooth(model: LatentForceModel, params: dict, y, mask, dt: float, initial: I
     return rts_smoother_for(kalman, T)(A, filt)
 
 
+@functools.partial(jit, static_argnames=("model", "dt", "kalman"))
+def smooth_jit(params: dict, y, mask, initial: Initial | None = None, *, model: LatentForceModel, dt: float,
+               kalman: str = "auto"):
+    """:func:`smooth` as one compiled program per model structure and record shape (``params`` and
+    ``initial`` arguments); ``y`` where ``mask`` is False: anything finite or not."""
+    return smooth(model, params, jnp.where(mask, y, 0.0), mask, dt, initial, kalman)
+
+
 def state_moments(model: LatentForceModel, means, covs):
     """Split smoothed moments into displacement / velocity / force (mean, sd) arrays."""
     var = jnp.diagonal(covs, axis1=-2, axis2=-1)
     out = {}
-    for name, idx in (("displacement", model.displacement_index()), ("velocity", model.velocity_index()),
-                      ("force", model.force_index())):
+    for name in ("displacement", "velocity", "force"):
+        idx = model.layout.index(name)
         out[name] = (means[..., idx], jnp.sqrt(jnp.clip(var[..., idx], 0.0)))
     return out
 
@@ -116,39 +125,48 @@ class MCMCOutput(NamedTuple):
 
 def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
                      dt: float, initial: Initial | None = None, complete: bool = True,
-                     loglik: Callable | None = None, kalman: str = "auto") -> Callable:
+                     loglik: Callable | None = None, kalman: str = "auto") -> Bound:
     """``logpost(x, y, mask)`` of the unconstrained parameter vector ``x`` (data as arguments).
 
     ``loglik(params, y, mask)``, when given, replaces the exact Kalman
     log-likelihood (the ``ekf``/``ukf`` methods' approximate one).
 
-    The record is an argument, not a constant of the program, so records of
-    one shape share one compiled sampler. ``complete`` (every sample of
+    A :class:`~latentforce.compile.Bound`: the fixed values, the priors' numbers,
+    the initial state and ``loglik``'s own numbers are its leaves, the model's
+    structure, names and settings its static part, so records of one shape and
+    configurations of one structure share one compiled sampler whatever their
+    numbers. ``complete`` (every sample of
     every channel observed) selects the exact steady-state shortcut of
     :func:`~latentforce.inference.kalman.log_likelihood_complete`, unless
     ``kalman`` (:mod:`latentforce.inference.kalman_choice`) picks the parallel
     scan for the record's length, which serves every record.
     """
+    static = (model, tuple(names), float(dt), bool(complete), kalman)
+    return Bound(_logpost, static, (numbers(fixed), tuple(priors), initial,
+                                    None if loglik is None else bound(loglik)))
 
-    def params_of(x):
-        params = dict(fixed)
-        for i, name in enumerate(names):
-            params[name] = softplus(x[i])
-        return params
 
-    def logpost(x, y, mask):
-        if loglik is not None:
-            ll = loglik(params_of(x), y, mask)
-        elif use_parallel(kalman, y.shape[0]):  # decided at trace time, from the record's static length
-            lg = linear_gaussian(model, params_of(x), dt, initial)
+def _params_of(fixed: dict, names: tuple[str, ...], x) -> dict:
+    params = dict(fixed)
+    for i, name in enumerate(names):
+        params[name] = softplus(x[i])
+    return params
+
+
+def _logpost(static, nums, x, y, mask):
+    model, names, dt, complete, kalman = static
+    fixed, priors, initial, loglik = nums
+    params = _params_of(fixed, names, x)
+    if loglik is not None:
+        ll = loglik(params, y, mask)
+    else:
+        lg = linear_gaussian(model, params, dt, initial)
+        if use_parallel(kalman, y.shape[0]):  # decided at trace time, from the record's static length
             ll = parallel_log_likelihood(*lg, y, mask)
         else:
-            lg = linear_gaussian(model, params_of(x), dt, initial)
             ll = log_likelihood_complete(*lg, y) if complete else log_likelihood(*lg, y, mask)
-        lp = sum(log_prob_unconstrained(prior, x[i]) for i, prior in enumerate(priors))
-        return lp + ll
-
-    return logpost
+    lp = sum(log_prob_unconstrained(prior, x[i]) for i, prior in enumerate(priors))
+    return lp + ll
 
 
 def make_log_posterior(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
@@ -277,15 +295,9 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     fractions = ((2, 3) if start["method"] == "laplace" else (1, 2, 3)) if adapt_shape else ()
     shape_at = tuple(sorted({f * burn_total // 4 for f in fractions} - {0}))
 
-    @jit
-    def runner(k, s, start_step, adapt, prop, y_, mask_):
-        def chain(kc, sc):
-            return mcmc.run_chain(kc, sc, lambda x: logpost(x, y_, mask_), n_chunk, adapt=adapt,
-                                  adapt_shape_at=shape_at, target=target, start=start_step, independent=prop)
-        return jax.vmap(chain)(k, s)
-
     def run_chunk(keys, s, start_step, adapt):
-        s, xs, infos = runner(keys, s, start_step, adapt, proposal, *data)
+        s, xs, infos = _run_chains(logpost, keys, s, start_step, adapt, proposal, *data, n_chunk=n_chunk,
+                                   shape_at=shape_at, target=target)
         stats = {"accepted": infos.accepted, "logdensity": infos.logdensity}
         if proposal is not None:
             stats["independent"] = infos.independent
@@ -311,6 +323,16 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     return MCMCOutput(names, draws, accepted, loglik, accepted.mean(axis=1),
                       np.exp(np.asarray(states.log_scale)), _time.perf_counter() - t0, record, start,
                       burn_total, info)
+
+
+@functools.partial(jit, static_argnames=("n_chunk", "shape_at", "target"))
+def _run_chains(logpost: Bound, k, s, start_step, adapt, prop, y, mask, *, n_chunk: int, shape_at: tuple,
+                target: float):
+    """``n_chunk`` iterations of every chain (vmapped): one compiled program per structure and shape."""
+    def chain(kc, sc):
+        return mcmc.run_chain(kc, sc, lambda x: logpost(x, y, mask), n_chunk, adapt=adapt,
+                              adapt_shape_at=shape_at, target=target, start=start_step, independent=prop)
+    return jax.vmap(chain)(k, s)
 
 
 def sample_in_chunks(key, states, run_chunk: Callable, names: tuple[str, ...], *, chains: int, n_chunk: int,

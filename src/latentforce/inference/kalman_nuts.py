@@ -23,6 +23,7 @@ an acceptance statistic of 0.8 during warm-up, then frozen at its average.
 
 from __future__ import annotations
 
+import functools
 import time as _time
 from typing import Callable, NamedTuple
 
@@ -30,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from latentforce.compile import jit
+from latentforce.compile import Bound, jit
 from latentforce.inference.kalman_mcmc import (
     Initial,
     MCMCOutput,
@@ -74,6 +75,52 @@ def forward_mode_density(logdensity: Callable) -> Callable:
     return f
 
 
+def _whitened(logpost: Bound, shift, root, y, mask):
+    return forward_mode_density(lambda z: logpost(shift + root @ z, y, mask))
+
+
+@jit
+def _init_chains(logpost: Bound, x, roots, y, mask):
+    """Each chain's NUTS state at its start, in the whitened coordinates."""
+    from blackjax.adaptation.step_size import dual_averaging_adaptation
+    from blackjax.mcmc import nuts
+
+    da_init = dual_averaging_adaptation(TARGET_ACCEPTANCE)[0]
+
+    def one(xi, ri):
+        # A first step of half the Laplace sd (one unit of z is one sd).
+        return NUTSChain(nuts.init(jnp.zeros_like(xi), _whitened(logpost, xi, ri, y, mask)), da_init(0.5), xi, ri)
+
+    return jax.vmap(one)(x, roots)
+
+
+@functools.partial(jit, static_argnames=("n_chunk",))
+def _run_chains(logpost: Bound, keys, s, adapt, y, mask, *, n_chunk: int):
+    """``n_chunk`` NUTS iterations of every chain (vmapped); the step size adapted while ``adapt``."""
+    from blackjax.adaptation.step_size import dual_averaging_adaptation
+    from blackjax.mcmc import nuts
+
+    _, da_update, da_final = dual_averaging_adaptation(TARGET_ACCEPTANCE)
+    kernel = nuts.build_kernel()
+
+    def chain(kc, sc):
+        density = _whitened(logpost, sc.shift, sc.root, y, mask)
+        unit_mass = jnp.ones(sc.shift.shape[-1])
+
+        def step(c, k):
+            step_size = jnp.where(adapt, jnp.exp(c.da.log_step_size), da_final(c.da))
+            hmc, info = kernel(k, c.hmc, density, step_size, unit_mass, max_num_doublings=MAX_DOUBLINGS)
+            acc = jnp.where(jnp.isfinite(info.acceptance_rate), info.acceptance_rate, 0.0)
+            da = jax.tree_util.tree_map(lambda new, old: jnp.where(adapt, new, old), da_update(c.da, acc), c.da)
+            stats = {"accepted": acc, "logdensity": hmc.logdensity,
+                     "steps": info.num_integration_steps, "divergent": info.is_divergent}
+            return c._replace(hmc=hmc, da=da), (c.shift + c.root @ hmc.position, stats)
+        return jax.lax.scan(step, sc, jax.random.split(kc, n_chunk))
+
+    s, (xs, stats) = jax.vmap(chain)(keys, s)
+    return s, xs, stats
+
+
 def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
                     iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
                     progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
@@ -85,8 +132,6 @@ def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     ``proposal_scale`` the step sizes, ``sampler_info`` the mean number of
     integration steps and the divergences.
     """
-    from blackjax.adaptation.step_size import dual_averaging_adaptation
-    from blackjax.mcmc import nuts
 
     t0 = _time.perf_counter()
     names = tuple(free)
@@ -96,47 +141,16 @@ def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     data = (jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask))
     key_start, key_run = jax.random.split(key)
     x0, covs, start, _ = start_chains(key_start, logpost, data, inits, chains)
-    da_init, da_update, da_final = dual_averaging_adaptation(TARGET_ACCEPTANCE)
-    kernel = nuts.build_kernel()
-
-    def whitened(shift, root, y_, mask_):
-        return forward_mode_density(lambda z: logpost(shift + root @ z, y_, mask_))
-
-    @jit
-    def init_fn(x, roots, y_, mask_):
-        def one(xi, ri):
-            # A first step of half the Laplace sd (one unit of z is one sd).
-            return NUTSChain(nuts.init(jnp.zeros_like(xi), whitened(xi, ri, y_, mask_)), da_init(0.5), xi, ri)
-        return jax.vmap(one)(x, roots)
-
     # The Laplace covariance as a dense mass matrix, applied as the change of variables
     # x = shift + root z with an identity mass for z: the same dynamics, and the square
     # root taken here (NumPy) keeps LAPACK out of the vmapped program (cf. latentforce.linalg).
     roots = np.stack([np.linalg.cholesky(c) for c in covs])
-    states = init_fn(jnp.asarray(x0), jnp.asarray(roots), *data)
-    unit_mass = jnp.ones(len(names))
+    states = _init_chains(logpost, jnp.asarray(x0), jnp.asarray(roots), *data)
     n_chunk = max(1, min(chunk, burn_in or chunk, iterations or chunk))
     burn_total = -(-burn_in // n_chunk) * n_chunk
 
-    @jit
-    def runner(keys, s, adapt, y_, mask_):
-        def chain(kc, sc):
-            density = whitened(sc.shift, sc.root, y_, mask_)
-
-            def step(c, k):
-                step_size = jnp.where(adapt, jnp.exp(c.da.log_step_size), da_final(c.da))
-                hmc, info = kernel(k, c.hmc, density, step_size, unit_mass, max_num_doublings=MAX_DOUBLINGS)
-                acc = jnp.where(jnp.isfinite(info.acceptance_rate), info.acceptance_rate, 0.0)
-                da = jax.tree_util.tree_map(lambda new, old: jnp.where(adapt, new, old), da_update(c.da, acc), c.da)
-                stats = {"accepted": acc, "logdensity": hmc.logdensity,
-                         "steps": info.num_integration_steps, "divergent": info.is_divergent}
-                return c._replace(hmc=hmc, da=da), (c.shift + c.root @ hmc.position, stats)
-            return jax.lax.scan(step, sc, jax.random.split(kc, n_chunk))
-        s, (xs, stats) = jax.vmap(chain)(keys, s)
-        return s, xs, stats
-
     def run_chunk(keys, s, start_step, adapt):
-        return runner(keys, s, adapt, *data)
+        return _run_chains(logpost, keys, s, adapt, *data, n_chunk=n_chunk)
 
     states, xs, stats = sample_in_chunks(key_run, states, run_chunk, names, chains=chains, n_chunk=n_chunk,
                                          burn_total=burn_total, iterations=iterations, target_ess=target_ess,

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
-from latentforce.compile import jit
+from latentforce.compile import Bound, bound, jit
 
 #: an optimum whose log posterior is this far below the best mode's is not examined (no Hessian):
 #: it could carry mass only with a Laplace volume ~exp(1000) times the best's
@@ -43,6 +43,12 @@ class Mode(NamedTuple):
     cov: np.ndarray          # (p, p) Laplace covariance; a diagonal fallback if the Hessian is not definite
     laplace_ok: bool         # the Hessian was negative definite
     log_mass: float          # Laplace estimate of the mode's log probability mass (unnormalised)
+
+
+@jit
+def _value_and_grad(logdensity: Bound, x, *args):
+    """The log density and its forward-mode gradient: one program per structure and shape."""
+    return logdensity(x, *args), jax.jacfwd(logdensity)(x, *args)
 
 
 def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), max_iter: int = 200,
@@ -64,9 +70,10 @@ def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), ma
     starts = np.atleast_2d(np.asarray(starts, dtype=float))
     n, p = starts.shape
 
-    @jit
+    fn = bound(logdensity)
+
     def value_and_grad(x, *a):
-        return logdensity(x, *a), jax.jacfwd(logdensity)(x, *a)
+        return _value_and_grad(fn, x, *a)
 
     evals = 0
 

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from latentforce.compile import jit
+from latentforce.compile import bound, jit, numbers
 from latentforce.inference import steady
 from latentforce.inference.kalman_choice import (
     kalman_filter_for,
@@ -123,8 +123,7 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     outputs = tuple(outputs)
     chains, n_iter = next(iter(draws.values())).shape
     T, n = np.shape(y)[0], model.n_state
-    index = {"displacement": model.displacement_index(), "velocity": model.velocity_index(),
-             "force": model.force_index()}
+    index = {q: model.layout.index(q) for q in STATES}
     index.update({o.name: np.array([n + i]) for i, o in enumerate(outputs)})
     states = STATES + tuple(o.name for o in outputs)
     width = sum(len(ix) for ix in index.values())
@@ -137,7 +136,10 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
 
     # A complete long record: covariances in steady state (O(T n) memory per draw), else the full smoother.
     parallel = use_parallel(kalman, T)
-    static = (model, fixed, names, dt, initial, outputs, smoother, kalman)
+    # numbers (arguments of the compiled programs) and structure (their static arguments)
+    fixed = numbers(fixed)
+    smoother = None if smoother is None else bound(smoother)
+    static = dict(model=model, names=names, dt=float(dt))
     steady_K = None
     # (Only where the longest transient fits twice: on shorter records the probe's compile, about
     # 2 s, outweighs what the steady state saves; measured at T = 2 000.)
@@ -145,8 +147,8 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
         # The transient from the settling of the slowest of a few draws (the filter's covariance
         # does not depend on the data): a lightly damped structure needs more than a stiff one.
         probe = thetas.reshape(-1, len(names))[np.linspace(0, chains * per_chain - 1, 8).round().astype(int)]
-        settle = jit(jax.vmap(functools.partial(_settling, *static[:5], steady.TRANSIENT)))
-        steady_K = steady.transient_for(int(np.max(np.asarray(settle(jnp.asarray(probe))))), T)
+        settle = _settle(fixed, initial, jnp.asarray(probe), max_steps=steady.TRANSIENT, **static)
+        steady_K = steady.transient_for(int(np.max(np.asarray(settle))), T)
     # the associative scans hold about three times the sequential smoother's arrays
     per_draw = T * (4 * n + 2) * 8 if steady_K else T * ((12 if parallel else 4) * n * n + 4 * n) * 8
     batch = int(max(1, min(16, BATCH_BUDGET_BYTES // per_draw)))
@@ -157,13 +159,9 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     if steady_K:
         fallbacks = [K for K in (2 * steady_K, steady.TRANSIENT) if K > steady_K and steady.applies(T, True, K)]
         fallbacks = sorted(set(fallbacks)) + [None]
-    programs: dict = {}
-
     def program(with_path, K):
-        if (with_path, K) not in programs:
-            programs[with_path, K] = jit(jax.vmap(functools.partial(_one, *static, with_path, K),
-                                                  in_axes=(0, 0, None, None)))
-        return programs[with_path, K]
+        return functools.partial(_batch, fixed, initial, smoother, outputs=outputs, kalman=kalman,
+                                 with_path=with_path, steady_K=K, **static)
 
     def smoothers(with_path, ks, th):
         """The batch's smoothers; a draw whose covariances did not settle is redone with a longer
@@ -220,12 +218,24 @@ def _params(fixed: dict, names: tuple, theta) -> dict:
     return params
 
 
-def _settling(model, fixed, names, dt, initial, max_steps, theta):
-    """The filter covariance's settling steps (:func:`steady.settling_steps`) at ``theta``."""
+@functools.partial(jit, static_argnames=("model", "names", "dt", "max_steps"))
+def _settle(fixed, initial, thetas, *, model, names, dt, max_steps):
+    """The filter covariance's settling steps (:func:`steady.settling_steps`) at each row of ``thetas``."""
     from latentforce.inference.kalman_mcmc import linear_gaussian
 
-    A, Q, H, R, _, P0 = linear_gaussian(model, _params(fixed, names, theta), dt, initial)
-    return steady.settling_steps(A, Q, H, R, P0, max_steps)
+    def one(theta):
+        A, Q, H, R, _, P0 = linear_gaussian(model, _params(fixed, names, theta), dt, initial)
+        return steady.settling_steps(A, Q, H, R, P0, max_steps)
+
+    return jax.vmap(one)(thetas)
+
+
+@functools.partial(jit, static_argnames=("model", "names", "dt", "outputs", "kalman", "with_path", "steady_K"))
+def _batch(fixed, initial, smoother, keys, thetas, y, mask, *, model, names, dt, outputs, kalman, with_path,
+           steady_K):
+    """:func:`_one` over a batch of draws: one program per structure, shape and smoother kind."""
+    return jax.vmap(lambda k, th: _one(model, fixed, names, dt, initial, outputs, smoother, kalman, with_path,
+                                       steady_K, k, th, y, mask))(keys, thetas)
 
 
 class _Accumulator:
