@@ -150,10 +150,14 @@ def jit(fn=None, **kwargs):
 
 
 class _Jit:
-    """:func:`jit`'s function: ``jax.jit`` built at the first call or lowering."""
+    """:func:`jit`'s function: ``jax.jit`` built at the first call or lowering.
+
+    Called inside another program's trace it is the plain ``jax.jit`` (inlined there;
+    JAX takes compiler options at the top level only, and says so with a ValueError).
+    """
 
     def __init__(self, fn, kwargs):
-        self._fn, self._kwargs, self._jitted = fn, kwargs, None
+        self._fn, self._kwargs, self._jitted, self._nested = fn, kwargs, None, None
         functools.update_wrapper(self, fn)
 
     def _get(self):
@@ -162,7 +166,17 @@ class _Jit:
         return self._jitted
 
     def __call__(self, *args, **kwargs):
-        return self._get()(*args, **kwargs)
+        leaves = jax.tree_util.tree_leaves((args, kwargs))
+        if self._nested is not None and any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return self._nested(*args, **kwargs)
+        try:
+            return self._get()(*args, **kwargs)
+        except ValueError as exc:  # inside another trace (possibly with concrete arguments only)
+            if "compiler_options" not in str(exc) or not cpu_options():
+                raise
+            if self._nested is None:
+                self._nested = jax.jit(self._fn, **self._kwargs)
+            return self._nested(*args, **kwargs)
 
     def lower(self, *args, **kwargs):
         return self._get().lower(*args, **kwargs)

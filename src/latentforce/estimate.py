@@ -17,7 +17,7 @@ import numpy as np
 
 from latentforce.compile import call, jit, numbers, require_x64
 from latentforce.errors import LatentForceError
-from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_jit, state_moments
+from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_compiled, state_moments
 from latentforce.io.channels import channel_units, noise_in_si
 from latentforce.io.config import Problem
 from latentforce.io.data import Dataset
@@ -201,8 +201,7 @@ def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, i
     extras: dict = {}
 
     if settings.method == "kalman":
-        sm = smooth_jit(numbers(params0), y, mask, initial, model=model, dt=float(dataset.dt),
-                        kalman=settings.kalman)
+        sm = smooth_compiled(model, params0, y, mask, dataset.dt, initial, kalman=settings.kalman)
         if not np.isfinite(float(sm.log_likelihood)):
             raise LatentForceError("The Kalman filter's log-likelihood is not finite for the configured "
                                    f"model in {problem.config_path}: check the parameter values and units.")

@@ -36,6 +36,7 @@ from __future__ import annotations
 import re
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -185,6 +186,11 @@ class LatentForceModel:
         program, so that two models differing only in their noise levels share programs."""
         return {s.noise_param: s.noise_std / s.noise_scale for s in self.sensors}
 
+    def complete(self, params: dict) -> dict:
+        """``params`` with the configured noise level of every sensor it does not name: what a
+        compiled program takes (it may not read a number from the model)."""
+        return {**self.noise_params(), **params}
+
     def __repr__(self) -> str:
         return f"LatentForceModel({self.system!r}, {self.kernel!r}, {len(self.sensors)} sensors)"
 
@@ -270,6 +276,12 @@ class LatentForceModel:
         ``params[sensor.noise_param]`` (times the sensor's ``noise_scale``) where ``params``
         holds one."""
         params = {} if params is None else params
+        missing = [s.noise_param for s in self.sensors if s.noise_param not in params]
+        if missing and any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(params)):
+            # inside a compiled program: a noise level read from here would be a constant of a
+            # program that models of this structure with other noise levels share
+            raise TypeError(f"noise_covariance: {missing} must be in the params of a compiled program "
+                            "(model.complete(params) adds the configured ones)")
         sd = [jnp.asarray(params[s.noise_param], dtype=float) * s.noise_scale if s.noise_param in params
               else jnp.asarray(s.noise_std, dtype=float) for s in self.sensors]
         return jnp.diag(jnp.stack(sd) ** 2)

@@ -92,8 +92,8 @@ def kalman_force_samples(key, model, params: dict, y, mask, dt: float, initial=N
     from latentforce.compile import numbers
 
     y = jnp.asarray(np.where(mask, y, 0.0))
-    return np.asarray(_force_draws(numbers(params), initial, jax.random.split(key, n), y, jnp.asarray(mask),
-                                   model=model, dt=float(dt)))
+    return np.asarray(_force_draws(numbers(model.complete(params)), initial, jax.random.split(key, n), y,
+                                   jnp.asarray(mask), model=model, dt=float(dt)))
 
 
 @functools.partial(jit, static_argnames=("model", "dt"))

@@ -82,12 +82,17 @@ def smooth(model: LatentForceModel, params: dict, y, mask, dt: float, initial: I
     return rts_smoother_for(kalman, T)(A, filt)
 
 
+def smooth_compiled(model: LatentForceModel, params: dict, y, mask, dt: float, initial: Initial | None = None,
+                    kalman: str = "auto"):
+    """:func:`smooth` as one compiled program per model structure and record shape (the numbers
+    are its arguments); ``y`` where ``mask`` is False: anything finite or not."""
+    return _smooth(numbers(model.complete(params)), jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask),
+                   initial, model=model, dt=float(dt), kalman=kalman)
+
+
 @functools.partial(jit, static_argnames=("model", "dt", "kalman"))
-def smooth_jit(params: dict, y, mask, initial: Initial | None = None, *, model: LatentForceModel, dt: float,
-               kalman: str = "auto"):
-    """:func:`smooth` as one compiled program per model structure and record shape (``params`` and
-    ``initial`` arguments); ``y`` where ``mask`` is False: anything finite or not."""
-    return smooth(model, params, jnp.where(mask, y, 0.0), mask, dt, initial, kalman)
+def _smooth(params: dict, y, mask, initial, *, model: LatentForceModel, dt: float, kalman: str):
+    return smooth(model, params, y, mask, dt, initial, kalman)
 
 
 def state_moments(model: LatentForceModel, means, covs):
@@ -142,7 +147,7 @@ def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...
     scan for the record's length, which serves every record.
     """
     static = (model, tuple(names), float(dt), bool(complete), kalman)
-    return Bound(_logpost, static, (numbers(fixed), tuple(priors), initial,
+    return Bound(_logpost, static, (numbers(model.complete(fixed)), tuple(priors), initial,
                                     None if loglik is None else bound(loglik)))
 
 

@@ -137,7 +137,7 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     # A complete long record: covariances in steady state (O(T n) memory per draw), else the full smoother.
     parallel = use_parallel(kalman, T)
     # numbers (arguments of the compiled programs) and structure (their static arguments)
-    fixed = numbers(fixed)
+    fixed = numbers(model.complete(fixed))
     smoother = None if smoother is None else bound(smoother)
     static = dict(model=model, names=names, dt=float(dt))
     steady_K = None
