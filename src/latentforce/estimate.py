@@ -8,6 +8,7 @@ folder; progress goes through an optional callback.
 
 from __future__ import annotations
 
+import functools
 import time as _time
 from typing import Callable
 
@@ -244,16 +245,22 @@ def _mechanical_initial(problem: Problem, params0: dict):
         return np.asarray(mean)[:nm], np.asarray(cov)[:nm, :nm]
     if model.system.is_linear:
         return None
-    # one compiled program: op by op its small solves compiled some dozens of programs
-    m0, P0 = jit(model.default_initial)(params0)
+    m0, P0 = _default_initial(model, params0)
     return np.asarray(m0)[:nm], np.asarray(P0)[:nm, :nm]
+
+
+# one compiled program (op by op its small solves compiled some dozens of programs), the model
+# static: every record of one structure shares it
+@functools.partial(jit, static_argnames=("model",))
+def _default_initial(model, params: dict):
+    return model.default_initial(params)
 
 
 def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict, progress,
                   t0: float, extras: dict, checkpoint=None) -> RunResult:
     """``ekf`` / ``ukf``: the Gaussian smoother at fixed parameters, or random-walk Metropolis over the
     inferred ones on its approximate likelihood with the states mixed over the draws."""
-    from latentforce.inference.gaussian import for_parameters
+    from latentforce.inference.gaussian import for_parameters, smooth_at
 
     model, settings = problem.model, problem.inference
     loglik, smoother = for_parameters(settings.method, model, dataset.dt, settings.discretisation,
@@ -262,7 +269,7 @@ def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mas
         return _run_kalman_sampler(key, problem, dataset, y, mask, None, common, progress, t0, extras,
                                    checkpoint, gaussian=(loglik, smoother))
     y0 = np.where(mask, y, 0.0)
-    sm = jit(smoother)({k: np.asarray(v, dtype=float) for k, v in params0.items()}, y0, mask)
+    sm = smooth_at(smoother, {k: np.asarray(v, dtype=float) for k, v in params0.items()}, y0, mask)
     if not np.isfinite(float(sm.log_likelihood)):
         raise LatentForceError(f"The {settings.method.upper()} log-likelihood is not finite for the configured "
                                f"model in {problem.config_path}: check the parameter values and units.")
