@@ -110,15 +110,13 @@ def test_derivatives_match_jax_linalg():
 # ---------------------------------------------------------------------------
 # The samplers' programs hold no LAPACK call
 # ---------------------------------------------------------------------------
-def _recording(texts, builder=None):
-    """A stand-in for ``latentforce.compile.jit`` (or ``builder``, e.g. ``shared_jit``) that keeps
-    each program's StableHLO text."""
-    builder = builder or lf_compile.jit
+def _recording(texts):
+    """A stand-in for ``latentforce.compile.jit`` that keeps each program's StableHLO text."""
 
     def jit(fn=None, **kwargs):
         if fn is None:
             return functools.partial(jit, **kwargs)
-        compiled = builder(fn, **kwargs)
+        compiled = lf_compile.jit(fn, **kwargs)
 
         def call(*args, **kw):
             texts.append((getattr(fn, "__name__", repr(fn)), compiled.lower(*args, **kw).as_text()))
@@ -127,6 +125,21 @@ def _recording(texts, builder=None):
         return call
 
     return jit
+
+
+def _recording_programs(monkeypatch, texts, *modules):
+    """Replace every module-level compiled program (a ``jit`` function) of ``modules`` by one that
+    keeps its StableHLO text at each call."""
+    for module in modules:
+        for name, prog in list(vars(module).items()):
+            if not (callable(prog) and hasattr(prog, "lower") and hasattr(prog, "trace")):
+                continue
+
+            def call(*args, _prog=prog, _name=name, **kw):
+                texts.append((_name, _prog.lower(*args, **kw).as_text()))
+                return _prog(*args, **kw)
+
+            monkeypatch.setattr(module, name, call)
 
 
 def _lapack_calls(texts):
@@ -140,8 +153,7 @@ def test_particle_gibbs_programs_call_no_lapack(monkeypatch):
     from latentforce.inference import particle_model, pgas
 
     texts = []
-    monkeypatch.setattr(pgas, "shared_jit", _recording(texts, lf_compile.shared_jit))
-    monkeypatch.setattr(particle_model, "shared_jit", _recording(texts, lf_compile.shared_jit))
+    _recording_programs(monkeypatch, texts, pgas, particle_model)
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
     params = dict(m=1.0, c=0.5, k=10.0, k3=1000.0, force_variance=1.0, force_lengthscale=0.5)
     free = {"force_variance": (LogNormal(0.0, 1.0), 1.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 0.5)}
@@ -150,7 +162,8 @@ def test_particle_gibbs_programs_call_no_lapack(monkeypatch):
                         particles=8, iterations=4, burn_in=2, chains=2)
     assert np.all(np.isfinite(out.state_mean["force"]))
     names = {name for name, _ in texts}
-    assert {"_run_chunk", "_shapes", "_smooth"} <= names, names
+    expected = {"_run_chunk", "_shapes", "_smooth", "_init_chains", "_start_transitions", "_derived_program"}
+    assert expected <= names, names
     assert _lapack_calls(texts) == [], _lapack_calls(texts)
 
 

@@ -796,9 +796,10 @@ def test_observe_through_keeps_the_likelihood_and_checks_the_sensors():
 
 def test_runs_through_the_same_channels_compile_once_and_agree_with_their_own_sensors():
     """Two records with other sensors, noise and data, run through the same channels: the second
-    run compiles nothing (every program shared by text), and gives what it gives through its own
-    sensors (same draws, round-off apart). Hyperparameters fixed, to keep the programs small."""
-    from latentforce import compile as lc
+    run compiles nothing (one model structure: jax.jit's cache serves every program, the noise and
+    the data being arguments), and gives what it gives through its own sensors (same draws,
+    round-off apart). Hyperparameters fixed, to keep the programs small."""
+    from test_pgas_compile_once import counting_compiles
 
     params, both, y, acc_only, y_acc = _two_sensor_records()
     channels = [("acceleration", 0), ("displacement", 0)]
@@ -809,12 +810,12 @@ def test_runs_through_the_same_channels_compile_once_and_agree_with_their_own_se
         return pgas.run_pgas(jax.random.key(2), model, params, {}, y_, np.isfinite(y_), 0.02,
                              channels=channels_, **settings)
 
-    assert lc.constants_are_embedded()  # else nothing is shared and the check below says nothing
-    run(both, y, channels)
-    before = set(lc._SHARED)
-    assert before
-    shared = run(acc_only, y_acc, channels)
-    assert set(lc._SHARED) == before
+    with counting_compiles() as compiles:
+        run(both, y, channels)
+        assert compiles  # else the check below says nothing
+        compiles.clear()
+        shared = run(acc_only, y_acc, channels)
+        assert len(compiles) == 0, f"{len(compiles)} programs compiled for the second record"
     own = run(acc_only, y_acc, None)
     for name in own.state_mean:
         np.testing.assert_allclose(shared.state_mean[name], own.state_mean[name], rtol=1e-6, atol=1e-12)

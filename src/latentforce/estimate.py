@@ -15,7 +15,7 @@ from typing import Callable
 import jax
 import numpy as np
 
-from latentforce.compile import call, jit, numbers, require_x64
+from latentforce.compile import jit, numbers, require_x64
 from latentforce.errors import LatentForceError
 from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_compiled, state_moments
 from latentforce.io.channels import channel_units, noise_in_si
@@ -269,7 +269,7 @@ def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mas
                   t0: float, extras: dict, checkpoint=None) -> RunResult:
     """``ekf`` / ``ukf``: the Gaussian smoother at fixed parameters, or random-walk Metropolis over the
     inferred ones on its approximate likelihood with the states mixed over the draws."""
-    from latentforce.inference.gaussian import for_parameters
+    from latentforce.inference.gaussian import for_parameters, smooth_at
 
     model, settings = problem.model, problem.inference
     loglik, smoother = for_parameters(settings.method, model, dataset.dt, settings.discretisation,
@@ -278,7 +278,7 @@ def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mas
         return _run_kalman_sampler(key, problem, dataset, y, mask, None, common, progress, t0, extras,
                                    checkpoint, gaussian=(loglik, smoother))
     y0 = np.where(mask, y, 0.0)
-    sm = call(smoother, numbers(params0), y0, mask)
+    sm = smooth_at(smoother, numbers(params0), y0, mask)
     if not np.isfinite(float(sm.log_likelihood)):
         raise LatentForceError(f"The {settings.method.upper()} log-likelihood is not finite for the configured "
                                f"model in {problem.config_path}: check the parameter values and units.")

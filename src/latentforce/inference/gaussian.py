@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from latentforce.compile import Bound, jit
 from latentforce.inference import particle_model
 from latentforce.linalg import cho_solve, cholesky, psd_sqrt, solve, symmetrise
 
@@ -171,22 +172,46 @@ def for_parameters(kind: str, model, dt: float, discretisation: str = "rk4", ini
     """``(loglik, smoother)``: ``loglik(params, y, mask)`` and ``smoother(params, y, mask, key=None)``
     of the ``kind`` filter with every number taken from ``params`` (jittable, differentiable: the
     samplers' model is built inside, :class:`particle_model.ParticleModel`); ``initial`` the mechanical
-    states' ``(mean, sd|cov)`` as for ``pgas``."""
+    states' ``(mean, sd|cov)`` as for ``pgas``.
 
-    def build(params):
-        pm = particle_model.ParticleModel(model, params, dt, discretisation, initial)
-        tr = pm.transition(params["force_variance"], params["force_lengthscale"])
-        return pm, tr, model.noise_covariance(params)
+    Each is a :class:`latentforce.compile.Bound`: its numbers (``initial`` and the sensors' noise
+    levels, :meth:`~latentforce.models.LatentForceModel.noise_params`, which ``params`` may
+    override) are leaves, its structure (``kind``, the model, ``dt``, the discretisation) static,
+    so a compiled program that takes it as an argument serves every model of one structure."""
+    if kind not in METHODS:
+        raise ValueError(f"unknown Gaussian smoother {kind!r}; valid: {METHODS}")
+    if initial is not None:
+        initial = tuple(jnp.asarray(a, dtype=float) for a in initial)
+    static = (kind, model, float(dt), discretisation)
+    numbers = (initial, {n: jnp.asarray(v, dtype=float) for n, v in model.noise_params().items()})
+    return Bound(_loglik, static, numbers), Bound(_smoother, static, numbers)
 
-    def loglik(params, y, mask):
-        pm, tr, R = build(params)
-        return gaussian_log_likelihood(kind, pm, tr, y, mask, R)
 
-    def smoother(params, y, mask, key=None):
-        pm, tr, R = build(params)
-        return gaussian_smoother(kind, pm, tr, y, mask, R, key)
+def _build(static, numbers, params):
+    """The samplers' model, the transition and the noise covariance at ``params`` (:func:`for_parameters`)."""
+    _, model, dt, discretisation = static
+    initial, noise = numbers
+    params = {**noise, **params}
+    pm = particle_model.ParticleModel(model, params, dt, discretisation, initial)
+    tr = pm.transition(params["force_variance"], params["force_lengthscale"])
+    return pm, tr, model.noise_covariance(params)
 
-    return loglik, smoother
+
+def _loglik(static, numbers, params, y, mask):
+    pm, tr, R = _build(static, numbers, params)
+    return gaussian_log_likelihood(static[0], pm, tr, y, mask, R)
+
+
+def _smoother(static, numbers, params, y, mask, key=None):
+    pm, tr, R = _build(static, numbers, params)
+    return gaussian_smoother(static[0], pm, tr, y, mask, R, key)
+
+
+@jit
+def smooth_at(smoother: Bound, params: dict, y, mask) -> GaussianSmoother:
+    """``smoother(params, y, mask)`` (of :func:`for_parameters`) as one compiled program, which every
+    model of one structure and every record of one shape share (op by op, it compiled each primitive)."""
+    return smoother(params, y, mask)
 
 
 def gaussian_smoother(kind: str, pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None,

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -32,10 +33,13 @@ def gp_path_log_density(pm: particle_model.ParticleModel, variance, lengthscale,
     return latent_log_density(pm.transition(variance, lengthscale), g)
 
 
+@jax.tree_util.register_pytree_node_class
 class Hyper:
     """Which hyperparameters are free, their priors, and the fixed values of the others.
 
-    The sampling coordinates are :math:`x = \\log\\theta` (module doc).
+    The sampling coordinates are :math:`x = \\log\\theta` (module doc). A pytree: the names are
+    static, the priors' numbers, the starting values and the fixed values are leaves (a compiled
+    program that takes it serves every value).
     """
 
     def __init__(self, params: dict, free: dict):
@@ -48,6 +52,16 @@ class Hyper:
         if not np.all(self.init > 0):
             raise ValueError(f"initial hyperparameters must be positive, got {dict(zip(self.names, self.init))}")
         self.fixed = {n: float(params[n]) for n in HYPERPARAMETERS}
+
+    def tree_flatten(self):
+        return (self.priors, self.init, self.fixed), self.names
+
+    @classmethod
+    def tree_unflatten(cls, names, children):
+        hyper = object.__new__(cls)
+        hyper.names = names
+        hyper.priors, hyper.init, hyper.fixed = children
+        return hyper
 
     @staticmethod
     def to_unconstrained(theta: Float[Array, " p"]) -> Float[Array, " p"]:

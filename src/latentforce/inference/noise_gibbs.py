@@ -38,13 +38,20 @@ NOISE_STREAM = 0x4E015E
 
 
 class NoiseLevels(NamedTuple):
-    """The channels whose noise level is inferred (static; empty: every noise fixed)."""
+    """The channels whose noise level is inferred (empty: every noise fixed)."""
 
     names: tuple[str, ...] = ()  # parameter names, noise_std_<column>
     channels: tuple[int, ...] = ()  # their columns of y
     priors: tuple = ()  # priors on the noise standard deviation (the parameter's unit)
     scales: tuple[float, ...] = ()  # SI per unit of the parameter (the sensor's noise_scale)
     init: tuple[float, ...] = ()  # starting standard deviations (the parameter's unit)
+
+
+# a pytree whose numbers (the priors' and the starting values) are leaves and whose names, columns
+# and units are static: a compiled program that takes it serves every prior and start
+jax.tree_util.register_pytree_node(
+    NoiseLevels, lambda nl: ((nl.priors, nl.init), (nl.names, nl.channels, nl.scales)),
+    lambda aux, ch: NoiseLevels(aux[0], aux[1], ch[0], aux[2], ch[1]))
 
 
 def noise_levels(model, free: dict, mask=None) -> NoiseLevels:

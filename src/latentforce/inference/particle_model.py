@@ -94,13 +94,23 @@ class Transition(NamedTuple):
     Pinf: Float[Array, "nl nl"]
 
 
+@jax.tree_util.register_pytree_node_class
 class ParticleModel:
-    r"""Static view of a :class:`~latentforce.models.LatentForceModel` for particle methods.
+    r"""The sampler's view of a :class:`~latentforce.models.LatentForceModel` for particle methods.
 
     Holds the model, the fixed system/sensor parameters ``params``, ``dt``,
-    the discretisation and the prior of the initial state; everything that
-    depends on the GP hyperparameters is computed by :meth:`transition` from a
-    traced ``(variance, lengthscale)``.
+    the discretisation, the channels' noise covariance ``R`` and the prior of
+    the initial state; everything that depends on the GP hyperparameters is
+    computed by :meth:`transition` from a traced ``(variance, lengthscale)``.
+
+    A pytree: its numbers (``params``, ``R`` and what is derived from them)
+    are leaves, its structure (the model, ``dt``, the discretisation, whether
+    the start is the stationary one) its tree definition, so a compiled
+    program that takes it as an argument serves every parameter value of one
+    structure (:mod:`latentforce.inference.pgas`). It can be built from traced
+    ``params`` inside a program; there ``R`` must come from ``params`` (every
+    :meth:`~latentforce.models.LatentForceModel.noise_params`) or the ``R``
+    argument, not from the sensors.
 
     Initial state. By default (``initial=None``) a linear system's whole first
     state (mechanical and force states together) has the system's stationary
@@ -122,13 +132,30 @@ class ParticleModel:
     path moves).
     """
 
-    def __init__(self, model, params: dict, dt: float, discretisation: str = "rk4", initial=None):
+    #: the numbers (pytree leaves: arguments of a compiled program that takes the model)
+    _LEAVES = ("params", "R", "_Minv", "_B", "D", "D_latent", "_phi_force", "_mech0_user", "mech0_mean",
+               "mech0_cov")
+
+    def __init__(self, model, params: dict, dt: float, discretisation: str = "rk4", initial=None, R=None):
         if discretisation not in DISCRETISATIONS:
             raise ValueError(f"unknown discretisation {discretisation!r}; valid: {DISCRETISATIONS}")
-        self.model = model
+        # linear systems: the joint stationary start (class doc); nonlinear ones: the model's default
+        self._structure(model, float(dt), discretisation, initial is None and bool(model.system.is_linear))
         self.params = {k: (jnp.asarray(v, dtype=float)) for k, v in params.items()}
-        self.dt = float(dt)
-        self.discretisation = discretisation
+        # R: the channels' noise covariance, by default an inferred (or a caller's) noise level in
+        # params, else the sensor's; built inside a compiled program, the caller passes every noise
+        # level in params (model.noise_params()) or R
+        self.R = jnp.asarray(model.noise_covariance(self.params) if R is None else R, dtype=float)
+        self._Minv = inv(model.system.mass(self.params))
+        self._B = model.system.input_matrix()
+        self.D = self.D_latent = self._phi_force = self._mech0_user = self.mech0_mean = self.mech0_cov = None
+        (self.D, self.D_latent, self._phi_force, self._mech0_user, self.mech0_mean,
+         self.mech0_cov) = _derived(self, initial)
+
+    def _structure(self, model, dt: float, discretisation: str, stationary_start: bool) -> None:
+        """The static attributes (the pytree's tree definition): sizes and switches of ``model``."""
+        self.model, self.dt, self.discretisation = model, dt, discretisation
+        self.stationary_start = stationary_start
         self.nm = model.n_mech
         self.ndof = model.ndof
         self.nforce = model.nforce
@@ -138,28 +165,22 @@ class ParticleModel:
         self.n_state = model.n_state
         self.n_obs = model.n_obs
         self.is_linear = bool(model.system.is_linear)
-        self.R = jnp.asarray(model.noise_covariance())
         # Matérn: the force held as the Taylor polynomial of its derivative states;
         # composite kernels: zero-order hold of u = H_f x_f
         self._taylor = isinstance(model.kernel, Matern)
-        self._Minv = inv(model.system.mass(self.params))
-        self._B = model.system.input_matrix()
-        zero_mech, zero_f = jnp.zeros(self.nm), jnp.zeros(self.nfx)
 
-        # one compiled program (op by op, each primitive compiled on its own)
-        @jit
-        def _jacobians():
-            D = jax.jacfwd(lambda xf: self.model.observe(self._gp_dummy(), jnp.concatenate([zero_mech, xf])))(zero_f)
-            # Observation Jacobian in the latent (x_f, w) about rest: the proposal's linearisation
-            D_latent = jnp.concatenate([D, jax.jacfwd(self.offset)(zero_mech)], axis=1)
-            # d Phi / d x_f of the step's hold (the linear part's force response of phi)
-            return D, D_latent, jax.jacfwd(self.phi, argnums=1)(zero_mech, zero_f)
+    # ----- the model as a pytree: numbers are leaves, structure is static ----
+    def tree_flatten(self):
+        return (tuple(getattr(self, n) for n in self._LEAVES),
+                (self.model, self.dt, self.discretisation, self.stationary_start))
 
-        self.D, self.D_latent, self._phi_force = _jacobians()
-        # linear systems: the joint stationary start (class doc); nonlinear ones: the model's default
-        self.stationary_start = initial is None and self.is_linear
-        self._mech0_user = None if self.stationary_start else self.initial_mech(initial)
-        self.mech0_mean, self.mech0_cov = jit(self.initial_mech)(initial)  # None: an empty pytree
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        pm = object.__new__(cls)
+        pm._structure(*aux)
+        for n, v in zip(cls._LEAVES, children):
+            setattr(pm, n, v)
+        return pm
 
     # ----- pieces of the model ---------------------------------------------
     def _hold(self, xf: Float[Array, " nf"], s) -> Float[Array, " nforce"]:
@@ -325,6 +346,30 @@ class ParticleModel:
         H = jax.jacfwd(lambda x: self._observe(x[:nm], x[nm:]))(x0)
         m1 = jnp.concatenate([self.mech0_mean, jnp.zeros(nfx)])
         return A_d, tr.Q[perm][:, perm], H, m1, tr.Pinf[perm][:, perm]
+
+
+def _derived(pm: ParticleModel, initial):
+    """``(D, D_latent, phi_force, mech0_user, mech0_mean, mech0_cov)`` of a partly built ``pm``: one
+    compiled program for every model of one structure (op by op, each primitive compiled on its own);
+    inline where ``pm`` is built inside a program (our ``jit``'s compiler options are for top-level
+    programs only: JAX refuses them on a nested one)."""
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((pm, initial))):
+        return _derived_of(pm, initial)
+    return _derived_program(pm, initial)
+
+
+def _derived_of(pm: ParticleModel, initial):
+    zero_mech, zero_f = jnp.zeros(pm.nm), jnp.zeros(pm.nfx)
+    D = jax.jacfwd(lambda xf: pm.model.observe(pm._gp_dummy(), jnp.concatenate([zero_mech, xf])))(zero_f)
+    # Observation Jacobian in the latent (x_f, w) about rest: the proposal's linearisation
+    D_latent = jnp.concatenate([D, jax.jacfwd(pm.offset)(zero_mech)], axis=1)
+    # d Phi / d x_f of the step's hold (the linear part's force response of phi)
+    phi_force = jax.jacfwd(pm.phi, argnums=1)(zero_mech, zero_f)
+    mech0 = pm.initial_mech(initial)
+    return D, D_latent, phi_force, None if pm.stationary_start else mech0, *mech0
+
+
+_derived_program = jit(_derived_of)
 
 
 def _mv1(M, x):

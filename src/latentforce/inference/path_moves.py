@@ -151,8 +151,9 @@ def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: particle_model.ParticleMode
                  target=target)
 
 
+@jax.tree_util.register_pytree_node_class
 class ResidualMove:
-    r"""Static pieces of the residual-preserving move for one model and record length.
+    r"""The pieces of the residual-preserving move for one model and record length.
 
     **Why.** With acceleration-only data on a stiffening system the slow
     direction of the posterior is a slow displacement offset :math:`\delta z(t)`
@@ -192,6 +193,10 @@ class ResidualMove:
     channels sees the force values through an invertible block, e.g.
     displacement sensors only, or a kernel whose force is a combination of
     several states.
+
+    A pytree: whether it applies, the channels and states it solves for and the
+    sizes are static (decided here, with NumPy, from the concrete ``pm.D``); the
+    inverse block, the basis and the scales are leaves.
     """
 
     def __init__(self, pm: particle_model.ParticleModel, T: int, K: int, noise_sd: Float[Array, " nm"]):
@@ -214,6 +219,18 @@ class ResidualMove:
         self.scale_w = jnp.asarray(noise_sd) * math.sqrt(T)
         self.scale_0 = jnp.sqrt(jnp.diagonal(pm.mech0_cov))
         self.dim = (self.K + 1) * pm.nm
+
+    def tree_flatten(self):
+        return ((self.Dinv, self.basis, self.scale_w, self.scale_0),
+                (tuple(int(i) for i in self.cols), tuple(int(i) for i in self.rows), self.applies, self.K, self.dim))
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        rm = object.__new__(cls)
+        cols, rows, rm.applies, rm.K, rm.dim = aux
+        rm.cols, rm.rows = np.asarray(cols, dtype=int), np.asarray(rows, dtype=int)
+        rm.Dinv, rm.basis, rm.scale_w, rm.scale_0 = children
+        return rm
 
     def delta_w(self, c: Float[Array, " q"]) -> Float[Array, "T nm"]:
         """The change of the within-step noise for coordinates ``c``."""

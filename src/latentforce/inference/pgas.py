@@ -38,6 +38,7 @@ independent, but a chain's draws then depend on the first chain's key).
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Callable
 
@@ -104,6 +105,15 @@ def observe_through(model, channels, y, mask):
     return LatentForceModel(model.system, model.kernel, sensors), y_all, mask_all
 
 
+def _unnamed(model):
+    """``model`` with its sensors' names cleared: the programs' model, so that records whose channels
+    are named otherwise (and the placeholders of :func:`observe_through`) share them. Inside, a name
+    only keys a noise level in ``params``; the programs take the noise covariance as an argument."""
+    from latentforce.models import LatentForceModel
+
+    return LatentForceModel(model.system, model.kernel, [s._replace(name="") for s in model.sensors])
+
+
 def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
              particles: int = 50, iterations: int | None = 1000, burn_in: int = 500, state_every: int = 1,
              chains: int = 4, mh_steps: int = 1, discretisation: str = "rk4", proposal: str = "optimal",
@@ -161,10 +171,17 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     Channels no sensor reads are never observed, so the posterior is the same
     (the draws too, unless an unobserved channel is the one that lets the
     residual-preserving move apply: an exact move either way, so still the same
-    posterior); two runs whose models differ only in their sensors then compile the same
-    programs, and run side by side in one process they compile them once
-    (:func:`latentforce.compile.shared_jit`). The programs take the record and
-    the noise covariance as arguments, never as constants.
+    posterior); two runs whose models differ only in their sensors' names and
+    noise then have one structure and share every compiled program.
+
+    **Compiled once per structure.** The programs are module-level ``jit``
+    functions (:func:`_run_chunk`, :func:`_shapes` ...) that take every number
+    as an argument (the record, the noise covariance, and the model's numbers
+    in :class:`~particle_model.ParticleModel`, :class:`Hyper`,
+    :class:`ResidualMove` and :class:`~noise_gibbs.NoiseLevels`, pytrees whose
+    leaves are numbers) and the structure and settings as static arguments, so
+    a second run of one structure and shape compiles nothing, whatever its
+    numbers (``tests/test_pgas_compile_once.py``).
 
     ``checkpoint`` (:class:`latentforce.checkpoint.Checkpoint`, or None) is
     offered the loop state after every segment of blocks (the segments are
@@ -174,10 +191,11 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     """
     if channels is not None:
         model, y, mask = observe_through(model, channels, y, mask)
-    pm = particle_model.ParticleModel(model, params, dt, discretisation, initial)
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool) & jnp.isfinite(y)
     noise = noise_gibbs.noise_levels(model, free, mask)
+    pm = particle_model.ParticleModel(_unnamed(model), params, dt, discretisation, initial,
+                                      R=model.noise_covariance(params))
     hyper = Hyper(params, {n: v for n, v in free.items() if n not in noise.names})
     T = y.shape[0]
     p = len(hyper.names)
@@ -192,74 +210,32 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         sched = schedule(burn_in, iterations, state_every, mh_steps, thin_draws)
     tpoints = np.unique(np.linspace(0, T - 1, time_points).round().astype(int))
     mpoints = convergence.monitored_times(T)
-    nq = 2 * pm.ndof + pm.nforce
     basis = lowfreq_basis(T, lowfreq_modes)
 
     # ---- initialisation (outside the loop; never from the truth), in compiled programs:
     # run op by op it compiled some hundred tiny programs, most of a quick run's start-up
     x0 = hyper.to_unconstrained(hyper.init) if p else jnp.zeros(0)
     R = pm.R if not noise.channels else jnp.diag(noise_gibbs.initial_variances(noise, pm.R))
-    od = jit(lambda y_, m_, R_: observation_density(pm, y_, m_, R_))(y, mask, R)
+    od = _observation_density(pm, y, mask, R)
     k_theta, k_chains = jax.random.split(key)
-
-    @jit
-    def _start_transitions(k):
-        # the chains' dispersed starts theta_0 exp(0.5 eps), and the transitions at theta_0
-        # and at those, from one place in the program (each place compiles its own matrix
-        # exponentials: they dominated the compile time)
-        xs = x0 + 0.5 * jax.random.normal(k, (chains, p))
-        trs = jax.vmap(lambda x: pm.transition(*hyper.values(x)))(jnp.concatenate([x0[None], xs]))
-        return xs, jax.tree_util.tree_map(lambda a: a[0], trs), jax.tree_util.tree_map(lambda a: a[1:], trs)
-
-    xs0, tr0, trs0 = _start_transitions(k_theta)
+    xs0, tr0, trs0 = _start_transitions(k_theta, x0, pm, hyper, chains=int(chains))
     rm = ResidualMove(pm, T, residual_modes, np.sqrt(np.diagonal(np.asarray(tr0.Q))[pm.nfx:]))
-    # (make_block checks the step counts)
-    block = make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, particles=particles, proposal=proposal,
-                       resampling=resampling, ancestor_sampling=ancestor_sampling, unroll=unroll,
-                       interweave=interweave, lowfreq_steps=lowfreq_steps, residual_steps=residual_steps,
-                       noise=noise)
     with_rp = rm.applies and int(residual_steps) > 0
-
-    @jit
-    def _smooth(y, mask, R, tr0):
-        eks = extended_kalman_smoother(pm, tr0, y, mask, R)
-        # ref_q: centring of the running sums (numerical stability)
-        return eks, _summary_quantities(pm, eks)
-
-    # One program shapes the path moves (Gauss-Newton, a Jacobian through the path
-    # rebuild: a large program) at the smoother's path and, for nonlinear models, at
-    # each chain's path between burn-in chunks; inside the block it compiled again.
-    @jit
-    def _shapes(od, trs, paths):
-        return jax.vmap(lambda tr_, x_: path_move_shapes(pm, rm, basis, od, tr_, x_, with_rp))(trs, paths)
-
-    @jit
-    def _init_chains(k_chains, tr0, eks, xs0, trs0, lfs, rps, R):
-        frame0 = LowFrequencyFrame(tr0, basis)
-        # every chain starts from the configured (initial) noise levels; None: none inferred.
-        # (R is None then: an unused argument is dropped from the program, whose text then
-        # no longer tells its shape, and shared_jit would hand it to a run of other channels)
-        var0 = noise_gibbs.initial_variances(noise, R) if noise.channels else None
-
-        def _init_chain(ck, x, tr, lf, rp):
-            k_path, k_run = jax.random.split(ck)
-            ref = dispersed_start(k_path, pm, frame0, lf, eks)
-            # the log density is set at the first block
-            rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
-            return ChainState(k_run, ref, rwm, rwm, lf, rp, tr, jnp.zeros((), jnp.int32),
-                              jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
-                              jnp.zeros((sched.n_draws + 1, T, pm.n_state)), jnp.asarray(sched.thin, jnp.int32),
-                              var0)
-
-        return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps)
-
-    eks, ref_q = _smooth(y, mask, R, tr0)
+    # the block's settings (static): make_block checks the step counts, here before any compile
+    block_settings = dict(particles=int(particles), proposal=proposal, resampling=resampling,
+                          ancestor_sampling=bool(ancestor_sampling), unroll=int(unroll), interweave=bool(interweave),
+                          lowfreq_steps=int(lowfreq_steps), residual_steps=int(residual_steps))
+    make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, noise=noise, **block_settings)
+    block_static = dict(sched=sched, tpoints=tuple(int(t) for t in tpoints), mpoints=tuple(int(t) for t in mpoints),
+                        settings=tuple(sorted(block_settings.items())))
+    eks, ref_q = _smooth(pm, y, mask, R, tr0)
 
     def per_chain(a):
         return np.broadcast_to(np.asarray(a), (chains,) + np.shape(a))
 
-    lfs, rps = _shapes(od, jax.tree_util.tree_map(per_chain, tr0), per_chain(eks))
-    states = _init_chains(k_chains, tr0, eks, xs0, trs0, lfs, rps, R if noise.channels else None)
+    lfs, rps = _shapes(pm, rm, basis, od, jax.tree_util.tree_map(per_chain, tr0), per_chain(eks), with_rp=with_rp)
+    states = _init_chains(pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rps, R, chains=int(chains),
+                          sched=sched)
 
     n_blocks = sched.n_blocks
     scan_len, segments, reshape_at = reshape_chunks(n_blocks, sched.burn_blocks, chunk_blocks, not pm.is_linear)
@@ -267,24 +243,6 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     # the data are arguments, not constants of the program: a compiled program (and
     # JAX's persistent cache entry) then serves every record of the same shape
     data = BlockData(y, mask, R, od, ref_q)
-    # traced once inside the chunk's trace: for the shapes of its output (the skipped
-    # blocks') and in the scan
-    vblock = jax.jit(jax.vmap(block, (0, None, None)))
-
-    @jit
-    def _run_chunk(states, blocks, end, data):
-        # here, not before: the whole trace then happens under the one lowering turn
-        # (latentforce.compile.shared_jit)
-        info_shapes = jax.eval_shape(vblock, states, jax.ShapeDtypeStruct((), jnp.int32), data)[1]
-
-        def skip(s):
-            return s, jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), info_shapes)
-
-        def body(s, b):
-            return jax.lax.cond(b < end, lambda s_: vblock(s_, b, data), skip, s)
-
-        states, info = jax.lax.scan(body, states, blocks)
-        return states, jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), info)  # chains first
 
     infos = []
     verdict, done, finished, stopped = None, 0, False, None
@@ -301,12 +259,13 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         if end <= done:  # run before the checkpoint this run was restored from
             continue
         if start in reshape_at:  # new shapes, the adapted scales kept
-            lfs, rps = _shapes(od, states.tr, states.reference)
+            lfs, rps = _shapes(pm, rm, basis, od, states.tr, states.reference, with_rp=with_rp)
             states = states._replace(rwm_lf=_with_scale_of(lfs, states.rwm_lf),
                                      rwm_rp=_with_scale_of(rps, states.rwm_rp))
         if auto:
             states = fit_draws(states, end - sched.burn_blocks, sched.n_draws)
-        states, info = _run_chunk(states, np.arange(start, start + scan_len, dtype=np.int32), np.int32(end), data)
+        states, info = _run_chunk(states, np.arange(start, start + scan_len, dtype=np.int32), np.int32(end), data,
+                                  pm, hyper, rm, basis, noise, **block_static)
         infos.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, :end - start], info))
         done = end
         if progress is not None:
@@ -337,6 +296,83 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
         out.diagnostics["stopped"] = stopped or ("converged" if verdict["converged"] else "max_time"
                                                  if time.perf_counter() - t_start > max_time else "max_iterations")
     return out
+
+
+# ---------------------------------------------------------------------------
+# The compiled programs: module-level, the model's numbers (pm, hyper, rm, noise: pytrees whose
+# leaves are numbers) and the record as arguments, the structure and the settings static. JAX's
+# own cache then serves every run of one structure and shape: a campaign's second record
+# compiles nothing (tests/test_pgas_compile_once.py, benchmarks/compile_counts.py).
+# ---------------------------------------------------------------------------
+@jit
+def _observation_density(pm, y, mask, R):
+    return observation_density(pm, y, mask, R)
+
+
+@functools.partial(jit, static_argnames=("chains",))
+def _start_transitions(k, x0, pm, hyper, *, chains):
+    """The chains' dispersed starts theta_0 exp(0.5 eps), and the transitions at theta_0 and at those,
+    from one place in the program (each place compiles its own matrix exponentials: they dominated
+    the compile time)."""
+    xs = x0 + 0.5 * jax.random.normal(k, (chains, len(hyper.names)))
+    trs = jax.vmap(lambda x: pm.transition(*hyper.values(x)))(jnp.concatenate([x0[None], xs]))
+    return xs, jax.tree_util.tree_map(lambda a: a[0], trs), jax.tree_util.tree_map(lambda a: a[1:], trs)
+
+
+@jit
+def _smooth(pm, y, mask, R, tr0):
+    """The extended Kalman smoother's path at theta_0, and its summary quantities (``ref_q``:
+    the centring of the running sums, for numerical stability)."""
+    eks = extended_kalman_smoother(pm, tr0, y, mask, R)
+    return eks, _summary_quantities(pm, eks)
+
+
+@functools.partial(jit, static_argnames=("with_rp",))
+def _shapes(pm, rm, basis, od, trs, paths, *, with_rp):
+    """The path moves' shapes at each chain's path. One program (Gauss-Newton, a Jacobian through
+    the path rebuild: a large program) for the smoother's path and, for nonlinear models, each
+    chain's path between burn-in chunks; inside the block it compiled again."""
+    return jax.vmap(lambda tr_, x_: path_move_shapes(pm, rm, basis, od, tr_, x_, with_rp))(trs, paths)
+
+
+@functools.partial(jit, static_argnames=("chains", "sched"))
+def _init_chains(pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rps, R, *, chains, sched):
+    """Every chain's first :class:`ChainState`, from the smoother's path moved by its own dispersion."""
+    frame0 = LowFrequencyFrame(tr0, basis)
+    T, nq = eks.shape[0], 2 * pm.ndof + pm.nforce
+    # every chain starts from the configured (initial) noise levels; None: none inferred
+    var0 = noise_gibbs.initial_variances(noise, R) if noise.channels else None
+
+    def _init_chain(ck, x, tr, lf, rp):
+        k_path, k_run = jax.random.split(ck)
+        ref = dispersed_start(k_path, pm, frame0, lf, eks)
+        # the log density is set at the first block
+        rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
+        return ChainState(k_run, ref, rwm, rwm, lf, rp, tr, jnp.zeros((), jnp.int32),
+                          jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
+                          jnp.zeros((sched.n_draws + 1, T, pm.n_state)), jnp.asarray(sched.thin, jnp.int32), var0)
+
+    return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps)
+
+
+@functools.partial(jit, static_argnames=("sched", "tpoints", "mpoints", "settings"))
+def _run_chunk(states, blocks, end, data, pm, hyper, rm, basis, noise, *, sched, tpoints, mpoints, settings):
+    """The Gibbs blocks ``blocks`` of every chain (vmapped), those at or past ``end`` skipped
+    (:func:`reshape_chunks`); the block is built here, from the traced model, by :func:`make_block`."""
+    block = make_block(pm, hyper, sched, rm, basis, np.asarray(tpoints, dtype=int), np.asarray(mpoints, dtype=int),
+                       noise=noise, **dict(settings))
+    # traced once: for the shapes of the output (the skipped blocks') and in the scan
+    vblock = jax.jit(jax.vmap(block, (0, None, None)))
+    info_shapes = jax.eval_shape(vblock, states, jax.ShapeDtypeStruct((), jnp.int32), data)[1]
+
+    def skip(s):
+        return s, jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), info_shapes)
+
+    def body(s, b):
+        return jax.lax.cond(b < end, lambda s_: vblock(s_, b, data), skip, s)
+
+    states, info = jax.lax.scan(body, states, blocks)
+    return states, jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), info)  # chains first
 
 
 def fit_draws(states: ChainState, post_sweeps: int, n_slots: int) -> ChainState:

@@ -247,6 +247,11 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
                noise: noise_gibbs.NoiseLevels = noise_gibbs.NoiseLevels()) -> Callable:
     r"""``block(state, b, data) -> (state, BlockInfo)``: Gibbs block ``b`` of one chain (pure, jittable).
 
+    :func:`~latentforce.inference.pgas.run_pgas` calls this inside its compiled
+    chunk, with ``pm``, ``hyper``, ``rm``, ``basis`` and ``noise`` traced (pytrees
+    whose leaves are the numbers), so the closure is rebuilt at each trace and
+    the compiled program serves every run of one structure.
+
     A PGAS sweep at the carried transition; ``lowfreq_steps`` low-frequency
     moves (``basis``: :func:`lowfreq_basis`) and ``residual_steps``
     residual-preserving moves (``rm``; skipped where it does not apply); the
