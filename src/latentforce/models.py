@@ -137,6 +137,26 @@ class StateLayout(NamedTuple):
         return {q: x[..., self.index(q)] for q in ("displacement", "velocity", "force")}
 
 
+class LatentLayout(NamedTuple):
+    """The particle methods' latent ``g = (x_f, w)``: the force states, then the mechanical step's
+    noise (``particle_model`` module doc), and its slices."""
+
+    n_force_states: int
+    n_mech: int
+
+    @property
+    def n(self) -> int:
+        return self.n_force_states + self.n_mech
+
+    @property
+    def force(self) -> slice:
+        return slice(0, self.n_force_states)
+
+    @property
+    def noise(self) -> slice:
+        return slice(self.n_force_states, self.n)
+
+
 class LatentForceModel:
     """Static structure of a latent force model (numbers live in a params dict).
 
@@ -162,6 +182,7 @@ class LatentForceModel:
                 raise ValueError(f"force sensor {s.name!r} at DOF {s.dof}: no latent force acts there "
                                  f"(force_dofs = {list(system.force_dofs)})")
         self.layout = StateLayout(system.ndof, system.nforce, kernel.dim)
+        self.latent_layout = LatentLayout(self.layout.n_force_states, self.layout.n_mech)
         self.ndof = system.ndof
         self.nforce = system.nforce
         self.n_mech = self.layout.n_mech

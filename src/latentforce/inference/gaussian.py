@@ -63,15 +63,12 @@ class GaussianSmoother(NamedTuple):
 
 def model_functions(pm: particle_model.ParticleModel, tr: particle_model.Transition):
     """``(f, h, Q, m_1, P_1)`` of the sampler's discrete model (module doc) at the transition ``tr``."""
-    nm, nfx = pm.nm, pm.nfx
     _, Q, _, m1, P1 = pm.linear_discrete(tr)
-    A_f, E = tr.A[:nfx, :nfx], tr.A[nfx:, :nfx]
 
     def f(x):
-        return jnp.concatenate([pm.phi(x[:nm], x[nm:]) + E @ x[nm:], A_f @ x[nm:]])
+        return pm.state_step(tr, x)
 
-    def h(x):
-        return pm.offset(x[:nm]) + pm.D @ x[nm:]
+    h = pm.readout
 
     return f, h, Q, m1, P1
 

@@ -83,7 +83,7 @@ def observation_density(pm: particle_model.ParticleModel, y, mask, R=None) -> Ob
 
 def predicted_observations(pm: particle_model.ParticleModel, path: Float[Array, "T n"]) -> Float[Array, "T d"]:
     r"""Noise-free observations :math:`c(\mathrm{mech}_t) + D x_{f,t}` of a path."""
-    return jax.vmap(pm.offset)(path[:, :pm.nm]) + path[:, pm.nm:] @ pm.D.T
+    return jax.vmap(pm.offset)(path[:, pm.layout.mech]) + path[:, pm.layout.force_states] @ pm.D.T
 
 
 def observation_residuals(pm: particle_model.ParticleModel, od: ObservationDensity,

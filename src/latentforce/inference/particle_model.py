@@ -156,12 +156,14 @@ class ParticleModel:
         """The static attributes (the pytree's tree definition): sizes and switches of ``model``."""
         self.model, self.dt, self.discretisation = model, dt, discretisation
         self.stationary_start = stationary_start
-        self.nm = model.n_mech
+        # where each part sits (models.StateLayout, models.LatentLayout); the sizes by name
+        self.layout, self.latent_layout = model.layout, model.latent_layout
+        self.nm = self.layout.n_mech
         self.ndof = model.ndof
         self.nforce = model.nforce
         self.kdim = model.kernel.dim
-        self.nfx = model.nforce * model.kernel.dim
-        self.nl = self.nfx + self.nm
+        self.nfx = self.layout.n_force_states
+        self.nl = self.latent_layout.n
         self.n_state = model.n_state
         self.n_obs = model.n_obs
         self.is_linear = bool(model.system.is_linear)
@@ -203,9 +205,20 @@ class ParticleModel:
         return _mv1(self._Minv, rhs)
 
     def _rhs(self, mech, u):
-        nd = self.ndof
-        z, v = mech[:nd], mech[nd:]
+        z, v = mech[self.layout.displacement], mech[self.layout.velocity]
         return jnp.concatenate([v, self.acceleration(z, v, u)])
+
+    def state_step(self, tr: "Transition", x):
+        r"""The state's mean one step on, :math:`f(x) = (\Phi(\mathrm{mech}, x_f) + E x_f,\; A_f x_f)`
+        (the mechanical step's noise held at zero)."""
+        L, G = self.layout, self.latent_layout
+        mech, xf = x[L.mech], x[L.force_states]
+        return jnp.concatenate([self.phi(mech, xf) + tr.A[G.noise, G.force] @ xf, tr.A[G.force, G.force] @ xf])
+
+    def readout(self, x):
+        """The sensors' noise-free values of state ``x`` in the sampler's observation form:
+        ``offset(mech) + D x_f``."""
+        return self.offset(x[self.layout.mech]) + self.D @ x[self.layout.force_states]
 
     def phi(self, mech: Float[Array, " nm"], xf: Float[Array, " nf"]) -> Float[Array, " nm"]:
         r""":math:`\Phi(\mathrm{mech}_{t-1}, x_{f,t-1})`: one RK4 (or Euler) step of the mechanical ODE."""
@@ -223,10 +236,10 @@ class ParticleModel:
         """:meth:`phi` for a batch of particles, with displacement and velocity carried as
         separate arrays through the stages: XLA then fuses the whole step into one
         loop (stacking ``(z, v)`` at every stage made it materialise each stage)."""
-        nd, h = self.ndof, self.dt
+        h = self.dt
         acc = jax.vmap(self.acceleration)
         hold = jax.vmap(self._hold, (0, None))
-        z, v = mech[:, :nd], mech[:, nd:]
+        z, v = mech[:, self.layout.displacement], mech[:, self.layout.velocity]
         if self.discretisation == "euler":
             a = acc(z, v, hold(xf, 0.0))
             return jnp.concatenate([z + h * v, v + h * a], axis=1)
@@ -244,8 +257,7 @@ class ParticleModel:
     def _observe(self, mech, xf):
         r"""Noise-free observation ``c(mech) + D x_f``; equals ``model.observe`` (tested), written
         out with the precomputed :math:`M^{-1}` for speed."""
-        nd = self.ndof
-        z, v = mech[:nd], mech[nd:]
+        z, v = mech[self.layout.displacement], mech[self.layout.velocity]
         return self.model.sensor_readout(z, v, lambda: self.acceleration(z, v, self._hold(xf, 0.0)),
                                          lambda: self._hold(xf, 0.0))
 
@@ -272,18 +284,19 @@ class ParticleModel:
         :meth:`phi`'s Taylor hold, so that for linear systems the model is the
         exact discretisation up to the RK4 error of the homogeneous step.
         """
-        nm, nfx = self.nm, self.nfx
+        L, G = self.layout, self.latent_layout
         A_f, Q_f, P_f = self.force_transition(variance, lengthscale)
         prm = {**self.params, "force_variance": variance, "force_lengthscale": lengthscale}
         F, W = self.model.continuous(prm, linear_part=True)
         A, Q = van_loan(F, W, self.dt)
-        perm = np.r_[np.arange(nm, nm + nfx), np.arange(nm)]  # (x_f, mech) order
-        Qg = Q[perm][:, perm].at[:nfx, :nfx].set(Q_f)
-        E = A[:nm, nm:] - self._phi_force
-        Ag = jnp.zeros((self.nl, self.nl)).at[:nfx, :nfx].set(A_f).at[nfx:, :nfx].set(E)
+        state = np.arange(L.n_state)
+        perm = np.r_[state[L.force_states], state[L.mech]]  # the state's entries in the latent's (x_f, mech) order
+        Qg = Q[perm][:, perm].at[G.force, G.force].set(Q_f)
+        E = A[L.mech, L.force_states] - self._phi_force
+        Ag = jnp.zeros((self.nl, self.nl)).at[G.force, G.force].set(A_f).at[G.noise, G.force].set(E)
         if self.stationary_start:
             # the joint stationary covariance (class doc), force block the kernel's own
-            Pg = solve_lyapunov(F, W)[perm][:, perm].at[:nfx, :nfx].set(P_f)
+            Pg = solve_lyapunov(F, W)[perm][:, perm].at[G.force, G.force].set(P_f)
         else:
             Pg = jax.scipy.linalg.block_diag(P_f, self._mech0_user[1])
         return Transition(Ag, symmetrise(Qg), symmetrise(Pg))
@@ -300,15 +313,14 @@ class ParticleModel:
             return mean, jnp.diag(jnp.broadcast_to(spread, (self.nm,)) ** 2)
         if self.is_linear:
             _, P0 = self.model.stationary_initial(self.params)
-            return jnp.zeros(self.nm), symmetrise(P0[: self.nm, : self.nm])
+            return jnp.zeros(self.nm), symmetrise(P0[self.layout.mech, self.layout.mech])
         m0, P0 = self.model.default_initial({**self.params, "force_variance": 1.0, "force_lengthscale": 1.0})
-        return m0[: self.nm], symmetrise(P0[: self.nm, : self.nm])
+        return m0[self.layout.mech], symmetrise(P0[self.layout.mech, self.layout.mech])
 
     def path(self, g: Float[Array, "T nl"]) -> Float[Array, "T n"]:
         r"""The state path ``(mech, x_f)`` of a latent path :math:`g = (x_f, w)`:
         :math:`\mathrm{mech}_1 = m_0 + w_1`, :math:`\mathrm{mech}_t = \Phi(\mathrm{mech}_{t-1}, x_{f,t-1}) + w_t`."""
-        nfx = self.nfx
-        xf, w = g[:, :nfx], g[:, nfx:]
+        xf, w = g[:, self.latent_layout.force], g[:, self.latent_layout.noise]
         mech1 = self.mech0_mean + w[0]
 
         def _step(mech, inputs):
@@ -321,8 +333,7 @@ class ParticleModel:
 
     def latent(self, path: Float[Array, "T n"]) -> Float[Array, "T nl"]:
         """The latent path of a state path (inverse of :meth:`path`, vectorised over time)."""
-        nm = self.nm
-        mech, xf = path[:, :nm], path[:, nm:]
+        mech, xf = path[:, self.layout.mech], path[:, self.layout.force_states]
         pred = self.phi_particles(mech[:-1], xf[:-1])
         w = jnp.concatenate([(mech[0] - self.mech0_mean)[None], mech[1:] - pred])
         return jnp.concatenate([xf, w], axis=1)
@@ -335,16 +346,13 @@ class ParticleModel:
         linear systems (tests against the Kalman filter), the linearisation
         about rest otherwise; the extended Kalman smoother uses its pieces.
         """
-        nm, nfx = self.nm, self.nfx
-        perm = np.r_[np.arange(nfx, nfx + nm), np.arange(nfx)]  # (mech, x_f) order
-
-        def step(x):
-            return jnp.concatenate([self.phi(x[:nm], x[nm:]) + tr.A[nfx:, :nfx] @ x[nm:], tr.A[:nfx, :nfx] @ x[nm:]])
-
+        L, G = self.layout, self.latent_layout
+        latent = np.arange(G.n)
+        perm = np.r_[latent[G.noise], latent[G.force]]  # the latent's entries in the state's (mech, x_f) order
         x0 = jnp.zeros(self.n_state)
-        A_d = jax.jacfwd(step)(x0)
-        H = jax.jacfwd(lambda x: self._observe(x[:nm], x[nm:]))(x0)
-        m1 = jnp.concatenate([self.mech0_mean, jnp.zeros(nfx)])
+        A_d = jax.jacfwd(lambda x: self.state_step(tr, x))(x0)
+        H = jax.jacfwd(lambda x: self._observe(x[L.mech], x[L.force_states]))(x0)
+        m1 = jnp.concatenate([self.mech0_mean, jnp.zeros(self.nfx)])
         return A_d, tr.Q[perm][:, perm], H, m1, tr.Pinf[perm][:, perm]
 
 

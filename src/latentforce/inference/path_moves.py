@@ -239,10 +239,9 @@ class ResidualMove:
 
     def builder(self, pm: particle_model.ParticleModel, od: ObservationDensity, path: Float[Array, "T n"]):
         """``c -> (latent, path)``: the path with noise ``w + delta_w(c)`` and the residuals of ``path`` kept."""
-        nm = pm.nm
         rows, cols = self.rows, self.cols
         g0 = pm.latent(path)
-        xf0, w0 = g0[:, : pm.nfx], g0[:, pm.nfx:]
+        xf0, w0 = g0[:, pm.latent_layout.force], g0[:, pm.latent_layout.noise]
         # y_S,t - rho_t is the path's own noise-free prediction on S: the map keeps it,
         # whether or not y_S,t was observed
         target = predicted_observations(pm, path)[:, rows]
@@ -270,7 +269,7 @@ class ResidualMove:
 
             last, rows_ = jax.lax.scan(_step, mech1, (target[:-1], xf0[:-1], w[1:]))
             new_path = jnp.concatenate([rows_, jnp.concatenate([last, _force(last, target[-1], xf0[-1])])[None]])
-            return jnp.concatenate([new_path[:, nm:], w], axis=1), new_path
+            return jnp.concatenate([new_path[:, pm.layout.force_states], w], axis=1), new_path
 
         return build
 

@@ -219,7 +219,7 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     od = _observation_density(pm, y, mask, R)
     k_theta, k_chains = jax.random.split(key)
     xs0, tr0, trs0 = _start_transitions(k_theta, x0, pm, hyper, chains=int(chains))
-    rm = ResidualMove(pm, T, residual_modes, np.sqrt(np.diagonal(np.asarray(tr0.Q))[pm.nfx:]))
+    rm = ResidualMove(pm, T, residual_modes, np.sqrt(np.diagonal(np.asarray(tr0.Q))[pm.latent_layout.noise]))
     with_rp = rm.applies and int(residual_steps) > 0
     # the block's settings (static): make_block checks the step counts, here before any compile
     block_settings = dict(particles=int(particles), proposal=proposal, resampling=resampling,
@@ -339,7 +339,7 @@ def _shapes(pm, rm, basis, od, trs, paths, *, with_rp):
 def _init_chains(pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rps, R, *, chains, sched):
     """Every chain's first :class:`ChainState`, from the smoother's path moved by its own dispersion."""
     frame0 = LowFrequencyFrame(tr0, basis)
-    T, nq = eks.shape[0], 2 * pm.ndof + pm.nforce
+    T, nq = eks.shape[0], pm.layout.n_mech + pm.nforce  # displacement, velocity, force columns
     # every chain starts from the configured (initial) noise levels; None: none inferred
     var0 = noise_gibbs.initial_variances(noise, R) if noise.channels else None
 

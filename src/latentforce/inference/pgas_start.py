@@ -30,18 +30,15 @@ def extended_kalman_smoother(pm: particle_model.ParticleModel, tr: particle_mode
     Alg. 9.5). Exact for linear systems. ``R``: the channels' noise covariance
     (default ``pm.R``).
     """
-    nm, nfx = pm.nm, pm.nfx
     R = pm.R if R is None else R
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool)
     _, Qd, _, m0, P0 = pm.linear_discrete(tr)
-    A_f, E = tr.A[:nfx, :nfx], tr.A[nfx:, :nfx]
 
     def f(x):
-        return jnp.concatenate([pm.phi(x[:nm], x[nm:]) + E @ x[nm:], A_f @ x[nm:]])
+        return pm.state_step(tr, x)
 
-    def h(x):
-        return pm.offset(x[:nm]) + pm.D @ x[nm:]
+    h = pm.readout
 
     def _filter(carry, inputs):
         m, P = carry

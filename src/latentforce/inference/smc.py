@@ -322,8 +322,8 @@ def sweep_constants(pm: ParticleModel, tr: Transition, y, mask, proposal: str = 
         L = jax.vmap(_chol)(prior_cov)
         K = jnp.zeros((T, pm.nl, pm.n_obs))
         Sinv, S_const = Rinv, obs_const
-    return SweepConstants(yz, D_t, Rinv, obs_const, tr.A[:, :pm.nfx], q_scale, symmetrise(Q_inv), L, K, Sinv,
-                          S_const, pm.mech0_mean, maskf)
+    return SweepConstants(yz, D_t, Rinv, obs_const, tr.A[:, pm.latent_layout.force], q_scale, symmetrise(Q_inv), L,
+                          K, Sinv, S_const, pm.mech0_mean, maskf)
 
 
 def ancestor_information(pm: ParticleModel, sc: SweepConstants, reference: Float[Array, "T n"],
@@ -337,14 +337,15 @@ def ancestor_information(pm: ParticleModel, sc: SweepConstants, reference: Float
     systems, tangent-linear otherwise.
     """
     innovation = pm.is_linear if innovation is None else innovation
-    nm, nfx = pm.nm, pm.nfx
-    mech, xf = reference[:, :nm], reference[:, nm:]
-    A_f, E = sc.A[:nfx], sc.A[nfx:]
+    L, G = pm.layout, pm.latent_layout
+    mech, xf = reference[:, L.mech], reference[:, L.force_states]
+    A_f, E = sc.A[G.force], sc.A[G.noise]
     C_mech = jax.vmap(jax.jacfwd(pm.offset))(mech) * sc.maskf[:, :, None]  # (T, d, nm)
-    D_f = sc.D[:, :, :nfx]
+    D_f = sc.D[:, :, G.force]
     if innovation:
         def step(x):  # the state's mean one step on, its innovation held
-            return jnp.concatenate([pm.phi(x[:nm], x[nm:]) + E @ x[nm:], A_f @ x[nm:]])
+            mech_x, xf_x = x[L.mech], x[L.force_states]
+            return jnp.concatenate([pm.phi(mech_x, xf_x) + E @ xf_x, A_f @ xf_x])
 
         J = jax.vmap(jax.jacfwd(step))(reference[:-1])  # (T-1, n, n)
         C = jnp.concatenate([C_mech, D_f], axis=2)  # (T, d, n)
@@ -419,6 +420,7 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
         # the valid conditional resampler for the N-1 free ancestors (module doc)
         resampling = "multinomial"
     N, nm, nfx, nl = n_particles, pm.nm, pm.nfx, pm.nl
+    L, G = pm.layout, pm.latent_layout
     linear = pm.is_linear
     innovation = linear if innovation is None else bool(innovation)
     ref = N - 1
@@ -461,13 +463,13 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
         if innovation:
             # the reference's innovations q'_t = g'_t - A g'_{t-1} (q'_1 = g'_1: the prior mean
             # is 0), and its state's one-step prediction x'_t - q'_t, in (mech, x_f) order
-            m_ref = jnp.concatenate([jnp.zeros((1, nl), dtype), _mv(reference[:-1, nm:], sc.A)])
+            m_ref = jnp.concatenate([jnp.zeros((1, nl), dtype), _mv(reference[:-1, L.force_states], sc.A)])
             q_ref = g_ref - m_ref
-            ref_pred = reference - jnp.concatenate([q_ref[:, nfx:], q_ref[:, :nfx]], axis=1)
+            ref_pred = reference - jnp.concatenate([q_ref[:, G.noise], q_ref[:, G.force]], axis=1)
         else:
             # the reference's latent (x_f', w') and its one-step predictions Phi(x'_{t-1}) = mech'_t - w'_t
             q_ref = g_ref
-            ref_pred = reference[:, :nm] - g_ref[:, nfx:]
+            ref_pred = reference[:, L.mech] - g_ref[:, G.noise]
         n_as = nm + nfx if innovation else nm
         if with_as:
             Lam, eta = ancestor_information(pm, sc, reference, innovation)
@@ -499,7 +501,7 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
                     if innovation:
                         # the reference's future innovations driven from particle i: their
                         # density does not depend on i, the future likelihood's change does
-                        delta = jnp.concatenate([mech_pred + m[:, nfx:], m[:, :nfx]], axis=1) - rpred_t
+                        delta = jnp.concatenate([mech_pred + m[:, G.noise], m[:, G.force]], axis=1) - rpred_t
                         log_f = 0.0
                     else:
                         # the reference's future latent driven from particle i's mechanical state
@@ -521,12 +523,12 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
                 # innovation form: the reference's own innovation from the ancestor it drew;
                 # else its latent as it was
                 g_new = jnp.where(is_ref[:, None], moved[3] + qref_t if innovation else qref_t, g_new)
-            mech_new = mech_a + g_new[:, nfx:]
-            xf_new = g_new[:, :nfx]
+            mech_new = mech_a + g_new[:, G.noise]
+            xf_new = g_new[:, G.force]
             if optimal and linear:
                 g = jnp.zeros(N, dtype)
             else:
-                r_act = y_t - voffset(mech_new) * m_t - _mv(xf_new, D_t[:, :nfx])
+                r_act = y_t - voffset(mech_new) * m_t - _mv(xf_new, D_t[:, G.force])
                 g = _obs_loglik(r_act, Rinv_t, oc_t)
                 if optimal:
                     r_lin = r_a - _mv(g_new - moved[3], D_t)
@@ -547,8 +549,8 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
 
         def _step(carry, inputs):
             x_prev, g_prev = carry
-            mech_pred = pm.phi_particles(x_prev[:, :nm], x_prev[:, nm:])
-            m = _mv(x_prev[:, nm:], sc.A)
+            mech_pred = pm.phi_particles(x_prev[:, L.mech], x_prev[:, L.force_states])
+            m = _mv(x_prev[:, L.force_states], sc.A)
             x_new, anc, res_logw, g = _propagate(mech_pred, m, g_prev, *inputs, first=False)
             return (x_new, g), (x_new, anc, res_logw, g)
 
