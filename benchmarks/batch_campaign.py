@@ -111,8 +111,7 @@ def cli(*args: str, cache: Path | None = None) -> tuple[float, int, str]:
     if cache is not None:
         env["LATENTFORCE_CACHE_DIR"] = str(cache)
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "latentforce.cli", *args], env=env, capture_output=True,
-                          text=True)
+    proc = subprocess.run([sys.executable, "-m", "latentforce.cli", *args], env=env, capture_output=True, text=True)
     return time.perf_counter() - t0, proc.returncode, proc.stdout + proc.stderr
 
 
@@ -131,54 +130,89 @@ def main() -> None:
     for h in hours:
         k = K_BEFORE if h < DROP_HOUR else K_AFTER
         (work / "truth.toml").write_text(TRUTH.format(k=k))
-        _, code, text = cli("simulate", str(work / "truth.toml"), "--out",
-                            str(records / f"deck_2026-11-26T{h:02d}-00.csv"), "--duration", str(DURATION),
-                            "--sample-rate", str(RATE), "--seed", str(h))
+        _, code, text = cli(
+            "simulate",
+            str(work / "truth.toml"),
+            "--out",
+            str(records / f"deck_2026-11-26T{h:02d}-00.csv"),
+            "--duration",
+            str(DURATION),
+            "--sample-rate",
+            str(RATE),
+            "--seed",
+            str(h),
+        )
         assert code == 0, text
     (work / "campaign.toml").write_text(CAMPAIGN)
     started = f"{datetime.datetime.now().isoformat(timespec='seconds')}, load average {load()}"
 
     runs = [("1 worker, empty cache", "1", "c1", "camp1"), ("2 workers, empty cache", "2", "c2", "camp2")]
     if not args.quick:
-        runs += [("2 workers, cache of run 2", "2", "c2", "camp3"),
-                 ("rerun of run 3 (all skipped)", "2", "c2", "camp3")]
+        runs += [
+            ("2 workers, cache of run 2", "2", "c2", "camp3"),
+            ("rerun of run 3 (all skipped)", "2", "c2", "camp3"),
+        ]
     table = []
     for label, workers, cache, out in runs:
-        wall, code, text = cli("batch", str(work / "campaign.toml"), str(records / "*.csv"), "--out",
-                               str(work / out), "--workers", workers, cache=work / cache)
+        wall, code, text = cli(
+            "batch",
+            str(work / "campaign.toml"),
+            str(records / "*.csv"),
+            "--out",
+            str(work / out),
+            "--workers",
+            workers,
+            cache=work / cache,
+        )
         assert code == 0, text
         with open(work / out / "batch.csv", newline="") as fh:
             rows = list(csv.DictReader(fh))
         table.append((label, wall, rows))
-        print(f"{label}: {wall:.1f} s; per record " + ", ".join(f"{float(r['wall_time_s']):.1f}" for r in rows),
-              flush=True)
+        print(
+            f"{label}: {wall:.1f} s; per record " + ", ".join(f"{float(r['wall_time_s']):.1f}" for r in rows),
+            flush=True,
+        )
         if out == "camp2":
             shutil.copyfile(work / out / "trend.png", FIGURE)
 
-    lines = [f"# A campaign through `latentforce batch`{' (quick)' if args.quick else ''}", "",
-             f"{len(hours)} hourly SDOF records of {DURATION:g} s at {RATE:g} Hz "
-             f"({int(DURATION * RATE) + 1} samples), k = {K_BEFORE:g} N/m until hour {DROP_HOUR - 1}, then "
-             f"{K_AFTER:g}; kalman-mcmc at its defaults (until converged, 4 chains). Each run is "
-             "`latentforce batch` in a fresh process (benchmarks/batch_campaign.py).",
-             f"Start: {started}; end: load average {load()}; {platform.machine()}, {os.cpu_count()} cores, "
-             f"Python {platform.python_version()}.", "",
-             "Per-record wall time: `batch.csv`'s `wall_time_s` (reading, inference, writing the result folder "
-             "on the worker), in record order. A skipped record shows the time of the run that finished it.", "",
-             "| run | campaign s | record 1 s | records 2.. s (median, min-max) | converged |",
-             "|---|---:|---:|---|---|"]
+    lines = [
+        f"# A campaign through `latentforce batch`{' (quick)' if args.quick else ''}",
+        "",
+        f"{len(hours)} hourly SDOF records of {DURATION:g} s at {RATE:g} Hz "
+        f"({int(DURATION * RATE) + 1} samples), k = {K_BEFORE:g} N/m until hour {DROP_HOUR - 1}, then "
+        f"{K_AFTER:g}; kalman-mcmc at its defaults (until converged, 4 chains). Each run is "
+        "`latentforce batch` in a fresh process (benchmarks/batch_campaign.py).",
+        f"Start: {started}; end: load average {load()}; {platform.machine()}, {os.cpu_count()} cores, "
+        f"Python {platform.python_version()}.",
+        "",
+        "Per-record wall time: `batch.csv`'s `wall_time_s` (reading, inference, writing the result folder "
+        "on the worker), in record order. A skipped record shows the time of the run that finished it.",
+        "",
+        "| run | campaign s | record 1 s | records 2.. s (median, min-max) | converged |",
+        "|---|---:|---:|---|---|",
+    ]
     for label, wall, rows in table:
         times = [float(r["wall_time_s"]) for r in rows]
         later = sorted(times[1:])
         mid = len(later) // 2
         median = later[mid] if len(later) % 2 else 0.5 * (later[mid - 1] + later[mid])
         statuses = {r["status"] for r in rows}
-        lines.append(f"| {label} ({'/'.join(sorted(statuses))}) | {wall:.1f} | {times[0]:.1f} | "
-                     f"{median:.1f} ({later[0]:.1f}-{later[-1]:.1f}) | "
-                     f"{sum(r['converged'] == 'true' for r in rows)}/{len(rows)} |")
-    lines += ["", "Per record (s): " + "; ".join(
-        f"{label}: " + ", ".join(f"{float(r['wall_time_s']):.1f}" for r in rows) for label, _, rows in table), "",
-        "k posterior mean ± sd per record (run 2): " + ", ".join(
-            f"{float(r['k_mean']):.1f} ± {float(r['k_sd']):.1f}" for r in table[1][2]), ""]
+        lines.append(
+            f"| {label} ({'/'.join(sorted(statuses))}) | {wall:.1f} | {times[0]:.1f} | "
+            f"{median:.1f} ({later[0]:.1f}-{later[-1]:.1f}) | "
+            f"{sum(r['converged'] == 'true' for r in rows)}/{len(rows)} |"
+        )
+    lines += [
+        "",
+        "Per record (s): "
+        + "; ".join(
+            f"{label}: " + ", ".join(f"{float(r['wall_time_s']):.1f}" for r in rows) for label, _, rows in table
+        ),
+        "",
+        "k posterior mean ± sd per record (run 2): "
+        + ", ".join(f"{float(r['k_mean']):.1f} ± {float(r['k_sd']):.1f}" for r in table[1][2]),
+        "",
+    ]
     name = "batch_campaign_quick.md" if args.quick else "batch_campaign.md"
     (RESULTS_DIR / name).write_text("\n".join(lines))
     print("\n".join(lines))

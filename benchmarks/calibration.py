@@ -188,13 +188,28 @@ def run_linear(key, sampler: str, problem, y, mask, dt: float, settings: dict) -
 
     runner = {"kalman-mcmc": run_kalman_mcmc, "kalman-nuts": run_kalman_nuts}[sampler]
     free = {name: (spec.prior, spec.init) for name, spec in problem.free.items()}
-    out = runner(key, problem.model, dict(problem.fixed), free, y, mask, dt, iterations=None,
-                 initial=_initial(problem), **settings)
-    info = {"acceptance": float(np.mean(out.acceptance)), "start": out.start.get("method"),
-            "modes": len(out.start.get("modes", [])), "draws_per_chain": int(out.draws[out.names[0]].shape[1])}
+    out = runner(
+        key,
+        problem.model,
+        dict(problem.fixed),
+        free,
+        y,
+        mask,
+        dt,
+        iterations=None,
+        initial=_initial(problem),
+        **settings,
+    )
+    info = {
+        "acceptance": float(np.mean(out.acceptance)),
+        "start": out.start.get("method"),
+        "modes": len(out.start.get("modes", [])),
+        "draws_per_chain": int(out.draws[out.names[0]].shape[1]),
+    }
     if out.sampler_info:
-        info.update(steps=out.sampler_info.get("mean_integration_steps"),
-                    divergences=out.sampler_info.get("divergences"))
+        info.update(
+            steps=out.sampler_info.get("mean_integration_steps"), divergences=out.sampler_info.get("divergences")
+        )
     return Posterior(out.draws, out.convergence, info)
 
 
@@ -202,10 +217,14 @@ FAMILIES: dict[str, Family] = {"linear": Family(simulate_linear, run_linear)}
 
 #: sampler settings (keyword arguments of the runner besides the record), full and quick
 SETTINGS = {
-    "kalman-mcmc": {"full": dict(chains=4, burn_in=500, target_ess=400, max_time=120),
-                    "quick": dict(chains=4, burn_in=500, target_ess=100, max_time=30)},
-    "kalman-nuts": {"full": dict(chains=4, burn_in=300, target_ess=400, max_time=300),
-                    "quick": dict(chains=2, burn_in=100, target_ess=100, max_time=30)},
+    "kalman-mcmc": {
+        "full": dict(chains=4, burn_in=500, target_ess=400, max_time=120),
+        "quick": dict(chains=4, burn_in=500, target_ess=100, max_time=30),
+    },
+    "kalman-nuts": {
+        "full": dict(chains=4, burn_in=300, target_ess=400, max_time=300),
+        "quick": dict(chains=2, burn_in=100, target_ess=100, max_time=30),
+    },
 }
 
 
@@ -225,11 +244,19 @@ def sdof_config(c: dict, k: dict, variance: dict, lengthscale: dict) -> dict:
 
 #: SBC: informative priors, so that every prior draw is a plausible structure (about 2 Hz,
 #: 1-3 % damping) and force, and the sampler's init (the prior median) is a sensible start.
-SBC_CONFIG = sdof_config(c=_lognormal(0.5, 0.3, 0.5), k=_lognormal(150.0, 0.2, 150.0),
-                         variance=_lognormal(1.0, 0.5, 1.0), lengthscale=_lognormal(0.5, 0.3, 0.5))
+SBC_CONFIG = sdof_config(
+    c=_lognormal(0.5, 0.3, 0.5),
+    k=_lognormal(150.0, 0.2, 150.0),
+    variance=_lognormal(1.0, 0.5, 1.0),
+    lengthscale=_lognormal(0.5, 0.3, 0.5),
+)
 #: Coverage: weak priors (as tests/test_linear_samplers.py), inits off the truth.
-COVERAGE_CONFIG = sdof_config(c=_lognormal(0.5, 1.0, 0.8), k=_lognormal(150.0, 0.5, 120.0),
-                              variance=_lognormal(1.0, 2.0, 2.0), lengthscale=_lognormal(1.0, 1.0, 0.3))
+COVERAGE_CONFIG = sdof_config(
+    c=_lognormal(0.5, 1.0, 0.8),
+    k=_lognormal(150.0, 0.5, 120.0),
+    variance=_lognormal(1.0, 2.0, 2.0),
+    lengthscale=_lognormal(1.0, 1.0, 0.3),
+)
 COVERAGE_TRUTH = {"c": 0.5, "k": 158.0, "force_variance": 1.0, "force_lengthscale": 0.5}
 LINEAR_SAMPLERS = ("kalman-mcmc", "kalman-nuts")
 DT = 0.02
@@ -238,14 +265,29 @@ DT = 0.02
 def cases() -> list[Case]:
     """Every calibration case, in the order of the table."""
     return [
-        Case("sdof-sbc", "linear", SBC_CONFIG, 300, DT, None, LINEAR_SAMPLERS,
-             "SDOF (m = 1), Matérn-3/2 force, acceleration (noise sd 0.05), dt = 0.02 s; priors "
-             "log-normal: c median 0.5 (σ 0.3), k 150 (0.2), σ² 1 (0.5), ℓ 0.5 (0.3)"),
-        Case("sdof-T2000", "linear", COVERAGE_CONFIG, 2_000, DT, COVERAGE_TRUTH, LINEAR_SAMPLERS,
-             "as sdof-sbc, truth c = 0.5, k = 158, σ² = 1, ℓ = 0.5; weak log-normal priors: c median 0.5 "
-             "(σ 1), k 150 (0.5), σ² 1 (2), ℓ 1 (1)"),
-        Case("sdof-T20000", "linear", COVERAGE_CONFIG, 20_000, DT, COVERAGE_TRUTH, LINEAR_SAMPLERS,
-             "as sdof-T2000"),
+        Case(
+            "sdof-sbc",
+            "linear",
+            SBC_CONFIG,
+            300,
+            DT,
+            None,
+            LINEAR_SAMPLERS,
+            "SDOF (m = 1), Matérn-3/2 force, acceleration (noise sd 0.05), dt = 0.02 s; priors "
+            "log-normal: c median 0.5 (σ 0.3), k 150 (0.2), σ² 1 (0.5), ℓ 0.5 (0.3)",
+        ),
+        Case(
+            "sdof-T2000",
+            "linear",
+            COVERAGE_CONFIG,
+            2_000,
+            DT,
+            COVERAGE_TRUTH,
+            LINEAR_SAMPLERS,
+            "as sdof-sbc, truth c = 0.5, k = 158, σ² = 1, ℓ = 0.5; weak log-normal priors: c median 0.5 "
+            "(σ 1), k 150 (0.5), σ² 1 (2), ℓ 1 (1)",
+        ),
+        Case("sdof-T20000", "linear", COVERAGE_CONFIG, 20_000, DT, COVERAGE_TRUTH, LINEAR_SAMPLERS, "as sdof-T2000"),
     ]
 
 
@@ -263,10 +305,18 @@ class Study:
 
 #: replications per (case kind, sampler): full, then quick
 REPLICATIONS = {
-    "full": {("SBC", "kalman-mcmc"): 200, ("SBC", "kalman-nuts"): 200,
-             ("coverage", "kalman-mcmc"): 100, ("coverage", "kalman-nuts"): 50},
-    "quick": {("SBC", "kalman-mcmc"): 20, ("SBC", "kalman-nuts"): 2,
-              ("coverage", "kalman-mcmc"): 2, ("coverage", "kalman-nuts"): 0},
+    "full": {
+        ("SBC", "kalman-mcmc"): 200,
+        ("SBC", "kalman-nuts"): 200,
+        ("coverage", "kalman-mcmc"): 100,
+        ("coverage", "kalman-nuts"): 50,
+    },
+    "quick": {
+        ("SBC", "kalman-mcmc"): 20,
+        ("SBC", "kalman-nuts"): 2,
+        ("coverage", "kalman-mcmc"): 2,
+        ("coverage", "kalman-nuts"): 0,
+    },
 }
 
 
@@ -277,10 +327,10 @@ class RunRecord(NamedTuple):
 
     truth: dict
     u: dict
-    inside: dict           # name -> {level: bool}
+    inside: dict  # name -> {level: bool}
     r_hat: dict
     ess_bulk: dict
-    thinned: int           # L_i: thinned draws the ranks were taken among
+    thinned: int  # L_i: thinned draws the ranks were taken among
     converged: bool
     seconds: float
     info: dict
@@ -349,21 +399,35 @@ def replicate(study: Study, index: int, seed: int) -> RunRecord:
         post = family.run(key_run, study.sampler, problem, y, mask, case.dt, study.settings)
     except Exception as exc:  # a failed run is a result: counted and reported, the study goes on
         tb = traceback.format_exception(exc)
-        return RunRecord(truth, {}, {}, {}, {}, 0, False, time.perf_counter() - t0, {},
-                         error=f"{type(exc).__name__}: {exc} [{tb[-2].strip() if len(tb) > 1 else ''}]")
+        return RunRecord(
+            truth,
+            {},
+            {},
+            {},
+            {},
+            0,
+            False,
+            time.perf_counter() - t0,
+            {},
+            error=f"{type(exc).__name__}: {exc} [{tb[-2].strip() if len(tb) > 1 else ''}]",
+        )
     seconds = time.perf_counter() - t0
     thinned, stats = thin_by_ess(post.draws, rng_rank)
     names = list(problem.free)
     return RunRecord(
         truth=truth,
         u={n: pit(thinned[n], truth[n], rng_rank) for n in names},
-        inside={n: {lv: bool(lo <= truth[n] <= hi) for lv in LEVELS
-                    for lo, hi in [central_interval(post.draws[n], lv)]} for n in names},
+        inside={
+            n: {lv: bool(lo <= truth[n] <= hi) for lv in LEVELS for lo, hi in [central_interval(post.draws[n], lv)]}
+            for n in names
+        },
         r_hat={n: stats[n]["r_hat"] for n in names},
         ess_bulk={n: stats[n]["ess_bulk"] for n in names},
         thinned=int(next(iter(thinned.values())).size),
         converged=bool(post.convergence.get("converged", False)),
-        seconds=seconds, info=post.info)
+        seconds=seconds,
+        info=post.info,
+    )
 
 
 # ----- summaries ---------------------------------------------------------------------------------
@@ -386,17 +450,24 @@ def summarise(study: Study, records: list[RunRecord]) -> dict:
     names = _free_names(study.case)
     ok = [r for r in records if r.error is None]
     n = len(ok)
-    out = {"study": study, "runs": len(records), "ok": n, "errors": [r.error for r in records if r.error],
-           "converged": float(np.mean([r.converged for r in ok])) if ok else float("nan"),
-           "seconds": [r.seconds for r in records], "params": {},
-           "thinned_short": int(sum(r.thinned < SBC_DRAWS for r in ok)),
-           "info": _info_summary(ok)}
+    out = {
+        "study": study,
+        "runs": len(records),
+        "ok": n,
+        "errors": [r.error for r in records if r.error],
+        "converged": float(np.mean([r.converged for r in ok])) if ok else float("nan"),
+        "seconds": [r.seconds for r in records],
+        "params": {},
+        "thinned_short": int(sum(r.thinned < SBC_DRAWS for r in ok)),
+        "info": _info_summary(ok),
+    }
     bins = sbc_bins(n)
     for name in names:
-        p = {"coverage": {lv: float(np.mean([r.inside[name][lv] for r in ok])) if ok else float("nan")
-                          for lv in LEVELS},
-             "r_hat": float(np.median([r.r_hat[name] for r in ok])) if ok else float("nan"),
-             "ess": float(np.median([r.ess_bulk[name] for r in ok])) if ok else float("nan")}
+        p = {
+            "coverage": {lv: float(np.mean([r.inside[name][lv] for r in ok])) if ok else float("nan") for lv in LEVELS},
+            "r_hat": float(np.median([r.r_hat[name] for r in ok])) if ok else float("nan"),
+            "ess": float(np.median([r.ess_bulk[name] for r in ok])) if ok else float("nan"),
+        }
         if study.case.kind == "SBC" and ok:
             u = np.array([r.u[name] for r in ok])
             p["chi2_p"], p["ks_p"], p["counts"] = uniformity(u, bins)
@@ -448,27 +519,54 @@ def sparkline(counts: np.ndarray) -> str:
 
 
 def table(summaries: list[dict]) -> list[str]:
-    lines = ["| case | sampler | T | runs | param | cover 50 % | cover 90 % | SBC χ² p | SBC KS p | "
-             "ranks | converged | R-hat (median) | bulk ESS (median) | s/run (first) |",
-             "|---|---|---:|---:|---|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
+    lines = [
+        "| case | sampler | T | runs | param | cover 50 % | cover 90 % | SBC χ² p | SBC KS p | "
+        "ranks | converged | R-hat (median) | bulk ESS (median) | s/run (first) |",
+        "|---|---|---:|---:|---|---:|---:|---:|---:|---|---:|---:|---:|---:|",
+    ]
     for s in summaries:
         study = s["study"]
         seconds = s["seconds"]
         first = True
         for name, p in s["params"].items():
-            study_cells = ([study.case.name, study.sampler, f"{study.case.T:,}",
-                            f"{s['ok']}" + (f" (+{s['runs'] - s['ok']} failed)" if s["runs"] > s["ok"] else "")]
-                           if first else ["", "", "", ""])
-            run_cells = ([f"{s['converged']:.2f}" if np.isfinite(s["converged"]) else "–"] if first else [""])
-            time_cells = ([f"{np.median(seconds[1:] if len(seconds) > 1 else seconds):.1f} "
-                           f"({seconds[0]:.1f})" if seconds else "–"] if first else [""])
-            lines.append("| " + " | ".join(
-                study_cells + [LABELS.get(name, name),
-                               coverage_cell(p["coverage"][0.5], 0.5, s["ok"]),
-                               coverage_cell(p["coverage"][0.9], 0.9, s["ok"]),
-                               p_cell(p.get("chi2_p")), p_cell(p.get("ks_p")),
-                               f"`{sparkline(p['counts'])}`" if "counts" in p else "–"]
-                + run_cells + [fmt(p["r_hat"], 4), fmt(p["ess"], 3)] + time_cells) + " |")
+            study_cells = (
+                [
+                    study.case.name,
+                    study.sampler,
+                    f"{study.case.T:,}",
+                    f"{s['ok']}" + (f" (+{s['runs'] - s['ok']} failed)" if s["runs"] > s["ok"] else ""),
+                ]
+                if first
+                else ["", "", "", ""]
+            )
+            run_cells = [f"{s['converged']:.2f}" if np.isfinite(s["converged"]) else "–"] if first else [""]
+            time_cells = (
+                [
+                    f"{np.median(seconds[1:] if len(seconds) > 1 else seconds):.1f} ({seconds[0]:.1f})"
+                    if seconds
+                    else "–"
+                ]
+                if first
+                else [""]
+            )
+            lines.append(
+                "| "
+                + " | ".join(
+                    study_cells
+                    + [
+                        LABELS.get(name, name),
+                        coverage_cell(p["coverage"][0.5], 0.5, s["ok"]),
+                        coverage_cell(p["coverage"][0.9], 0.9, s["ok"]),
+                        p_cell(p.get("chi2_p")),
+                        p_cell(p.get("ks_p")),
+                        f"`{sparkline(p['counts'])}`" if "counts" in p else "–",
+                    ]
+                    + run_cells
+                    + [fmt(p["r_hat"], 4), fmt(p["ess"], 3)]
+                    + time_cells
+                )
+                + " |"
+            )
             first = False
     return lines
 
@@ -481,8 +579,10 @@ def histograms(summaries: list[dict]) -> list[str]:
         for name, p in s["params"].items():
             counts = p["counts"]
             expected = s["ok"] / counts.size
-            lines.append(f"{s['study'].label}, {LABELS.get(name, name)}: N = {s['ok']}, {counts.size} bins of u, "
-                         f"expected {expected:.1f} per bin (χ² p = {p['chi2_p']:.3f}, KS p = {p['ks_p']:.3f})")
+            lines.append(
+                f"{s['study'].label}, {LABELS.get(name, name)}: N = {s['ok']}, {counts.size} bins of u, "
+                f"expected {expected:.1f} per bin (χ² p = {p['chi2_p']:.3f}, KS p = {p['ks_p']:.3f})"
+            )
             scale = max(1.0, counts.max() / 40)
             for b, c in enumerate(counts):
                 lo, hi = b / counts.size, (b + 1) / counts.size
@@ -520,8 +620,11 @@ def report(summaries: list[dict], mode: str, seed: int, total_s: float) -> str:
     load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
     case_lines = []
     for case in dict.fromkeys(s["study"].case for s in summaries):
-        settings = "; ".join(f"{s['study'].sampler}: " + ", ".join(f"{k} {v}" for k, v in s["study"].settings.items())
-                             for s in summaries if s["study"].case is case)
+        settings = "; ".join(
+            f"{s['study'].sampler}: " + ", ".join(f"{k} {v}" for k, v in s["study"].settings.items())
+            for s in summaries
+            if s["study"].case is case
+        )
         case_lines.append(f"- **{case.name}** ({case.kind}, T = {case.T:,}): {case.description}. {settings}.")
     lines = [
         f"# Calibration of the samplers ({mode})",
@@ -557,8 +660,9 @@ def report(summaries: list[dict], mode: str, seed: int, total_s: float) -> str:
 
 
 # ----- the command line --------------------------------------------------------------------------
-def studies(mode: str, only: list[str] | None = None, sbc_n: int | None = None,
-            coverage_n: int | None = None) -> list[Study]:
+def studies(
+    mode: str, only: list[str] | None = None, sbc_n: int | None = None, coverage_n: int | None = None
+) -> list[Study]:
     out = []
     for case in cases():
         for sampler in case.samplers:
@@ -577,25 +681,40 @@ def run_study(study: Study, seed: int, log=print) -> dict:
     for i in range(study.replications):
         rec = replicate(study, i, seed)
         records.append(rec)
-        status = rec.error or (f"converged {rec.converged}, max R-hat {max(rec.r_hat.values()):.3f}, "
-                               f"min ESS {min(rec.ess_bulk.values()):.0f}, L {rec.thinned}")
+        status = rec.error or (
+            f"converged {rec.converged}, max R-hat {max(rec.r_hat.values()):.3f}, "
+            f"min ESS {min(rec.ess_bulk.values()):.0f}, L {rec.thinned}"
+        )
         log(f"  {study.label} {i + 1}/{study.replications}: {rec.seconds:.1f} s, {status}")
     return summarise(study, records)
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true",
-                        help="smoke mode (< 3 min): few replications, no NUTS on the T = 20 000 case")
+    parser.add_argument(
+        "--quick", action="store_true", help="smoke mode (< 3 min): few replications, no NUTS on the T = 20 000 case"
+    )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--only", action="append", help="run only studies whose 'case/sampler/kind' contains "
-                        "this (repeatable), e.g. sbc, kalman-nuts, sdof-T2000/")
+    parser.add_argument(
+        "--only",
+        action="append",
+        help="run only studies whose 'case/sampler/kind' contains "
+        "this (repeatable), e.g. sbc, kalman-nuts, sdof-T2000/",
+    )
     parser.add_argument("--sbc-replications", type=int, default=None)
     parser.add_argument("--coverage-replications", type=int, default=None)
-    parser.add_argument("--compile-cache", type=Path, default=None,
-                        help="persistent compilation cache directory (default: a temporary one for this run)")
-    parser.add_argument("--out", type=Path, default=None, help="Markdown output (default "
-                        "benchmarks/results/calibration.md; calibration_quick.md with --quick)")
+    parser.add_argument(
+        "--compile-cache",
+        type=Path,
+        default=None,
+        help="persistent compilation cache directory (default: a temporary one for this run)",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="Markdown output (default benchmarks/results/calibration.md; calibration_quick.md with --quick)",
+    )
     return parser.parse_args(argv)
 
 

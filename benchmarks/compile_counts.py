@@ -52,8 +52,12 @@ def config(method: str, record: int, quick: bool) -> dict:
     """The campaign's configuration with record ``record``'s numbers (the system's stiffness and
     damping and the noise differ; the shape is the same)."""
     nonlinear = method in ("ekf", "ukf", "pgas")
-    system = {"type": "duffing" if nonlinear else "linear", "m": 1.0, "c": 0.4 + 0.1 * record,
-              "k": 100.0 + 20.0 * record}
+    system = {
+        "type": "duffing" if nonlinear else "linear",
+        "m": 1.0,
+        "c": 0.4 + 0.1 * record,
+        "k": 100.0 + 20.0 * record,
+    }
     if nonlinear:
         system["k3"] = 1e4 * (1 + record)
     inference = {"method": method, "chains": 2, "seed": 1}
@@ -61,8 +65,11 @@ def config(method: str, record: int, quick: bool) -> dict:
         inference.update(particles=16, iterations=40 if quick else 200, burn_in=20 if quick else 100)
     elif method != "kalman":
         inference.update(iterations=60 if quick else 400, burn_in=40 if quick else 200)
-    force = {"kernel": "matern32", "variance": 1.0 + record,
-             "lengthscale": {"prior": "lognormal", "mu": float(np.log(0.3)), "sigma": 0.5}}
+    force = {
+        "kernel": "matern32",
+        "variance": 1.0 + record,
+        "lengthscale": {"prior": "lognormal", "mu": float(np.log(0.3)), "sigma": 0.5},
+    }
     if method == "kalman":
         force["lengthscale"] = 0.3
     return {
@@ -90,8 +97,15 @@ def measure_method(method: str, quick: bool, counter: CompileCounter, T: int = 2
         counter.reset()
         t0 = time.perf_counter()
         estimate.run(problem, ds, seed=0)
-        rows.append({"method": method, "record": r + 1, "compiles": counter.count,
-                     "compile_s": counter.seconds, "wall_s": time.perf_counter() - t0})
+        rows.append(
+            {
+                "method": method,
+                "record": r + 1,
+                "compiles": counter.count,
+                "compile_s": counter.seconds,
+                "wall_s": time.perf_counter() - t0,
+            }
+        )
     return rows
 
 
@@ -108,15 +122,24 @@ def main(argv=None) -> None:
     for method in args.methods.split(","):
         rows += measure_method(method, args.quick, counter)
         for row in rows[-2:]:
-            print(f"{row['method']:12s} record {row['record']}: {row['compiles']:4d} compiles "
-                  f"({row['compile_s']:.1f} s), {row['wall_s']:.1f} s", flush=True)
-    lines = ["# Compilations for two records of the same shape with different numbers",
-             "", f"`python benchmarks/compile_counts.py{' --quick' if args.quick else ''}`; one process, the "
-             "persistent compile cache off; backend compiles counted with `jax.monitoring`. T = 256, "
-             "2 chains; each record has its own c, k (k3), noise and force variance.", "",
-             "| method | record | compiles | compile s | wall s |", "|---|---:|---:|---:|---:|"]
-    lines += [f"| {r['method']} | {r['record']} | {r['compiles']} | {r['compile_s']:.1f} | {r['wall_s']:.1f} |"
-              for r in rows]
+            print(
+                f"{row['method']:12s} record {row['record']}: {row['compiles']:4d} compiles "
+                f"({row['compile_s']:.1f} s), {row['wall_s']:.1f} s",
+                flush=True,
+            )
+    lines = [
+        "# Compilations for two records of the same shape with different numbers",
+        "",
+        f"`python benchmarks/compile_counts.py{' --quick' if args.quick else ''}`; one process, the "
+        "persistent compile cache off; backend compiles counted with `jax.monitoring`. T = 256, "
+        "2 chains; each record has its own c, k (k3), noise and force variance.",
+        "",
+        "| method | record | compiles | compile s | wall s |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {r['method']} | {r['record']} | {r['compiles']} | {r['compile_s']:.1f} | {r['wall_s']:.1f} |" for r in rows
+    ]
     out = Path(args.out or Path(__file__).parent / "results" / f"compile_counts{'_quick' if args.quick else ''}.md")
     out.write_text("\n".join(lines) + "\n")
     print(f"wrote {out}")

@@ -70,10 +70,14 @@ def numpy_continuous(theta: np.ndarray, mass: float) -> tuple[np.ndarray, np.nda
     """
     k, c, variance, lengthscale = theta
     lam = np.sqrt(3.0) / lengthscale
-    F = np.array([[0.0, 1.0, 0.0, 0.0],
-                  [-k / mass, -c / mass, 1.0 / mass, 0.0],
-                  [0.0, 0.0, 0.0, 1.0],
-                  [0.0, 0.0, -lam**2, -2.0 * lam]])
+    F = np.array(
+        [
+            [0.0, 1.0, 0.0, 0.0],
+            [-k / mass, -c / mass, 1.0 / mass, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+            [0.0, 0.0, -(lam**2), -2.0 * lam],
+        ]
+    )
     W = np.zeros((4, 4))
     W[3, 3] = 4.0 * variance * lam**3
     return F, W
@@ -223,14 +227,24 @@ def run_ess(model, y, mask, chains: int, burn_in: int, iterations: int, chunk: i
     from latentforce.inference.kalman_mcmc import run_kalman_mcmc
 
     stamps = [time.perf_counter()]
-    out = run_kalman_mcmc(jax.random.PRNGKey(seed), model, {"m": MASS}, priors_and_inits(), y, mask, DT,
-                          iterations=iterations, burn_in=burn_in, chains=chains, chunk=chunk,
-                          progress=lambda done, total, acc: stamps.append(time.perf_counter()))
+    out = run_kalman_mcmc(
+        jax.random.PRNGKey(seed),
+        model,
+        {"m": MASS},
+        priors_and_inits(),
+        y,
+        mask,
+        DT,
+        iterations=iterations,
+        burn_in=burn_in,
+        chains=chains,
+        chunk=chunk,
+        progress=lambda done, total, acc: stamps.append(time.perf_counter()),
+    )
     ess = {n: float(np.asarray(az.ess(np.asarray(out.draws[n]), method="bulk"))) for n in out.names}
     worst = min(ess, key=ess.get)
     # R-hat tells a low ESS from chains that disagree (not yet converged) apart from slow mixing.
-    rhat = max(float(np.asarray(az.rhat(np.asarray(out.draws[n])))) for n in out.names) if chains > 1 \
-        else float("nan")
+    rhat = max(float(np.asarray(az.rhat(np.asarray(out.draws[n])))) for n in out.names) if chains > 1 else float("nan")
     # Chunk sizes, in the order run_kalman_mcmc scans them; the first chunk of each
     # (size, adapt) shape compiles, the others time the sampler alone.
     sizes, done, total = [], 0, burn_in + iterations
@@ -239,7 +253,7 @@ def run_ess(model, y, mask, chains: int, burn_in: int, iterations: int, chunk: i
         n = min(chunk, (burn_in if adapt else total) - done)
         sizes.append((n, adapt))
         done += n
-    durations = np.diff(stamps)[-len(sizes):]
+    durations = np.diff(stamps)[-len(sizes) :]
     seen, per_iter = set(), []
     for (n, adapt), d in zip(sizes, durations):
         if (n, adapt) in seen:
@@ -247,9 +261,16 @@ def run_ess(model, y, mask, chains: int, burn_in: int, iterations: int, chunk: i
         seen.add((n, adapt))
     steady = float(np.median(per_iter)) * total if per_iter else float("nan")
     return {
-        "chains": chains, "burn_in": burn_in, "iterations": iterations, "wall_s": out.wall_time_s,
-        "steady_s": steady, "ess": ess, "worst": worst, "min_ess": ess[worst],
-        "acceptance": float(np.mean(out.acceptance)), "rhat": rhat,
+        "chains": chains,
+        "burn_in": burn_in,
+        "iterations": iterations,
+        "wall_s": out.wall_time_s,
+        "steady_s": steady,
+        "ess": ess,
+        "worst": worst,
+        "min_ess": ess[worst],
+        "acceptance": float(np.mean(out.acceptance)),
+        "rhat": rhat,
     }
 
 
@@ -279,10 +300,9 @@ def dynamax_worker(npz_path: str, json_path: str) -> None:
         # dynamax's convention matches ours: z_1 ~ N(m0, P0), no prediction before the first update.
         params = ParamsLGSSM(
             initial=ParamsLGSSMInitial(mean=m0_, cov=P0_),
-            dynamics=ParamsLGSSMDynamics(weights=A_, bias=jnp.zeros(n), input_weights=jnp.zeros((n, 0)),
-                                         cov=Q_),
-            emissions=ParamsLGSSMEmissions(weights=H, bias=jnp.zeros(d), input_weights=jnp.zeros((d, 0)),
-                                           cov=R))
+            dynamics=ParamsLGSSMDynamics(weights=A_, bias=jnp.zeros(n), input_weights=jnp.zeros((n, 0)), cov=Q_),
+            emissions=ParamsLGSSMEmissions(weights=H, bias=jnp.zeros(d), input_weights=jnp.zeros((d, 0)), cov=R),
+        )
         return lgssm_filter(params, y).marginal_loglik
 
     out = {"version": getattr(dynamax, "__version__", "?"), "jax": jax.__version__}
@@ -290,8 +310,10 @@ def dynamax_worker(npz_path: str, json_path: str) -> None:
     for chains in (1, A.shape[0]):
         args = (A[:chains], Q[:chains], m0[:chains], P0[:chains])
         values = batched(*args).block_until_ready()
-        out[str(chains)] = {"seconds": median_time(lambda: batched(*args).block_until_ready(), reps),
-                            "loglik": np.asarray(values).tolist()}
+        out[str(chains)] = {
+            "seconds": median_time(lambda: batched(*args).block_until_ready(), reps),
+            "loglik": np.asarray(values).tolist(),
+        }
     Path(json_path).write_text(json.dumps(out))
 
 
@@ -302,8 +324,12 @@ def run_dynamax(python: str, mats: dict, y: np.ndarray, reps: int) -> dict | str
     with tempfile.TemporaryDirectory() as tmp:
         npz, out = Path(tmp) / "case.npz", Path(tmp) / "dynamax.json"
         np.savez(npz, y=y, reps=reps, **mats)
-        proc = subprocess.run([python, str(Path(__file__).resolve()), "--dynamax-worker", str(npz), str(out)],
-                              capture_output=True, text=True, timeout=600)
+        proc = subprocess.run(
+            [python, str(Path(__file__).resolve()), "--dynamax-worker", str(npz), str(out)],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         if proc.returncode != 0:
             last = (proc.stderr.strip().splitlines() or ["no output"])[-1]
             return f"unavailable: worker failed ({last[:150]})"
@@ -314,54 +340,83 @@ def run_dynamax(python: str, mats: dict, y: np.ndarray, reps: int) -> dict | str
 def fmt(x: float, digits: int = 3) -> str:
     if not np.isfinite(x):
         return "n/a"
-    return f"{x:.{digits}g}" if abs(x) < 10 ** digits else f"{x:,.0f}"
+    return f"{x:.{digits}g}" if abs(x) < 10**digits else f"{x:,.0f}"
 
 
 def likelihood_table(rows: list[dict], numpy_s: float) -> list[str]:
-    lines = ["| implementation | chains | evals/s | ms/eval (per chain) | × NumPy loop (per eval) | note |",
-             "|---|---:|---:|---:|---:|---|"]
+    lines = [
+        "| implementation | chains | evals/s | ms/eval (per chain) | × NumPy loop (per eval) | note |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
     for r in rows:
         if "seconds" not in r:
             lines.append(f"| {r['name']} | {r.get('chains', '')} | – | – | – | {r['note']} |")
             continue
         per_chain = r["seconds"] / r["chains"]
-        lines.append(f"| {r['name']} | {r['chains']} | {fmt(1.0 / per_chain)} | {fmt(1e3 * per_chain)} | "
-                     f"{fmt(numpy_s / per_chain)} | {r['note']} |")
+        lines.append(
+            f"| {r['name']} | {r['chains']} | {fmt(1.0 / per_chain)} | {fmt(1e3 * per_chain)} | "
+            f"{fmt(numpy_s / per_chain)} | {r['note']} |"
+        )
     return lines
 
 
 def ess_table(runs: list[dict]) -> list[str]:
-    lines = ["| chains | burn-in | draws/chain | wall s (incl. compile) | steady s (est.) | min bulk ESS "
-             "| ESS/s (wall) | ESS/s (steady) | acceptance | max R-hat |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "| chains | burn-in | draws/chain | wall s (incl. compile) | steady s (est.) | min bulk ESS "
+        "| ESS/s (wall) | ESS/s (steady) | acceptance | max R-hat |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in runs:
-        lines.append(f"| {r['chains']} | {r['burn_in']} | {r['iterations']} | {fmt(r['wall_s'])} | "
-                     f"{fmt(r['steady_s'])} | {fmt(r['min_ess'])} ({r['worst']}) | "
-                     f"{fmt(r['min_ess'] / r['wall_s'])} | {fmt(r['min_ess'] / r['steady_s'])} | "
-                     f"{r['acceptance']:.2f} | {fmt(r['rhat'])} |")
+        lines.append(
+            f"| {r['chains']} | {r['burn_in']} | {r['iterations']} | {fmt(r['wall_s'])} | "
+            f"{fmt(r['steady_s'])} | {fmt(r['min_ess'])} ({r['worst']}) | "
+            f"{fmt(r['min_ess'] / r['wall_s'])} | {fmt(r['min_ess'] / r['steady_s'])} | "
+            f"{r['acceptance']:.2f} | {fmt(r['rhat'])} |"
+        )
     return lines
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="CI mode: T=1024, few repetitions, short MCMC, "
-                        "no dynamax (< 60 s)")
+    parser.add_argument(
+        "--quick", action="store_true", help="CI mode: T=1024, few repetitions, short MCMC, no dynamax (< 60 s)"
+    )
     parser.add_argument("--T", type=int, default=None, help="number of samples (default 4096; 1024 with --quick)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--burn-in", type=int, default=None, help="MCMC burn-in (default 1000; 0 with --quick, "
-                        "which saves compiling the adaptive chunks)")
-    parser.add_argument("--iterations", type=int, default=None,
-                        help="MCMC draws per chain after burn-in (default 1000; 200 with --quick)")
-    parser.add_argument("--chunk", type=int, default=None, help="MCMC iterations per compiled chunk "
-                        "(default 250; 100 with --quick)")
-    parser.add_argument("--mcmc-chains", type=lambda s: tuple(int(c) for c in s.split(",")), default=None,
-                        help="comma-separated chain counts for the ESS table (default 1,16; 16 with --quick, "
-                        "where each extra count costs two more compilations)")
-    parser.add_argument("--dynamax-python", default=os.environ.get("DYNAMAX_PYTHON", DEFAULT_DYNAMAX_PYTHON),
-                        help="interpreter of a virtual environment with dynamax (default: $DYNAMAX_PYTHON "
-                        f"or {DEFAULT_DYNAMAX_PYTHON})")
-    parser.add_argument("--out", type=Path, default=None, help="Markdown output (default "
-                        "benchmarks/results/kalman_mcmc.md; kalman_mcmc_quick.md with --quick)")
+    parser.add_argument(
+        "--burn-in",
+        type=int,
+        default=None,
+        help="MCMC burn-in (default 1000; 0 with --quick, which saves compiling the adaptive chunks)",
+    )
+    parser.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="MCMC draws per chain after burn-in (default 1000; 200 with --quick)",
+    )
+    parser.add_argument(
+        "--chunk", type=int, default=None, help="MCMC iterations per compiled chunk (default 250; 100 with --quick)"
+    )
+    parser.add_argument(
+        "--mcmc-chains",
+        type=lambda s: tuple(int(c) for c in s.split(",")),
+        default=None,
+        help="comma-separated chain counts for the ESS table (default 1,16; 16 with --quick, "
+        "where each extra count costs two more compilations)",
+    )
+    parser.add_argument(
+        "--dynamax-python",
+        default=os.environ.get("DYNAMAX_PYTHON", DEFAULT_DYNAMAX_PYTHON),
+        help="interpreter of a virtual environment with dynamax (default: $DYNAMAX_PYTHON "
+        f"or {DEFAULT_DYNAMAX_PYTHON})",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="Markdown output (default benchmarks/results/kalman_mcmc.md; kalman_mcmc_quick.md with --quick)",
+    )
     parser.add_argument("--dynamax-worker", nargs=2, metavar=("NPZ", "JSON"), help=argparse.SUPPRESS)
     return parser.parse_args(argv)
 
@@ -380,8 +435,7 @@ def main(argv=None) -> int:
 
     T = args.T or (1024 if args.quick else 4096)
     reps = dict(numpy=3, one=5, many=5) if args.quick else dict(numpy=7, one=15, many=15)
-    mcmc = dict(burn_in=0, iterations=200, chunk=100) if args.quick else \
-        dict(burn_in=1000, iterations=1000, chunk=250)
+    mcmc = dict(burn_in=0, iterations=200, chunk=100) if args.quick else dict(burn_in=1000, iterations=1000, chunk=250)
     mcmc.update({k: getattr(args, k) for k in mcmc if getattr(args, k) is not None})
     mcmc_chains = args.mcmc_chains or ((MANY_CHAINS,) if args.quick else (1, MANY_CHAINS))
     started = time.perf_counter()
@@ -402,17 +456,24 @@ def main(argv=None) -> int:
     assert rel < RTOL, f"NumPy loop and latentforce disagree: max relative difference {rel:.2e}"
 
     medians = interleaved_medians(
-        {"numpy": lambda: numpy_loglik_of_theta(thetas[0], y, MASS, noise_sd**2, DT),
-         "one": lambda: one_f(one_x).block_until_ready(),
-         "many": lambda: many_f(many_x).block_until_ready()}, reps)
+        {
+            "numpy": lambda: numpy_loglik_of_theta(thetas[0], y, MASS, noise_sd**2, DT),
+            "one": lambda: one_f(one_x).block_until_ready(),
+            "many": lambda: many_f(many_x).block_until_ready(),
+        },
+        reps,
+    )
     numpy_s, one_s, many_s = medians["numpy"], medians["one"], medians["many"]
     discretise_s = median_time(lambda: numpy_discrete(thetas[0], MASS, noise_sd**2, DT), 20)
 
     rows = [
-        dict(name="NumPy loop (SciPy expm + Python per-step filter)", chains=1, seconds=numpy_s,
-             note=f"discretisation {1e3 * discretise_s:.2f} ms of it"),
-        dict(name="latentforce jit(vmap(logpost))", chains=1, seconds=one_s,
-             note=f"max rel. diff vs NumPy {rel:.1e}"),
+        dict(
+            name="NumPy loop (SciPy expm + Python per-step filter)",
+            chains=1,
+            seconds=numpy_s,
+            note=f"discretisation {1e3 * discretise_s:.2f} ms of it",
+        ),
+        dict(name="latentforce jit(vmap(logpost))", chains=1, seconds=one_s, note=f"max rel. diff vs NumPy {rel:.1e}"),
         dict(name="latentforce jit(vmap(logpost))", chains=MANY_CHAINS, seconds=many_s, note=""),
     ]
 
@@ -435,9 +496,14 @@ def main(argv=None) -> int:
             # dynamax's joint MVN update drifts from the scalar-update filters at ~1e-8 relative
             # on this lightly damped model; a real disagreement would be orders larger.
             assert d_rel < DYNAMAX_RTOL, f"dynamax and latentforce disagree: {d_rel:.2e} relative"
-            rows.append(dict(name=f"dynamax {dynamax['version']} lgssm_filter (jit, vmap)", chains=chains,
-                             seconds=res["seconds"],
-                             note=f"filter only (given A, Q); max rel. diff vs ours {d_rel:.1e}"))
+            rows.append(
+                dict(
+                    name=f"dynamax {dynamax['version']} lgssm_filter (jit, vmap)",
+                    chains=chains,
+                    seconds=res["seconds"],
+                    note=f"filter only (given A, Q); max rel. diff vs ours {d_rel:.1e}",
+                )
+            )
 
     runs = [run_ess(model, y, mask, chains, seed=args.seed, **mcmc) for chains in mcmc_chains]
 
@@ -457,14 +523,20 @@ def main(argv=None) -> int:
         "",
         *likelihood_table(rows, numpy_s),
         "",
-        f"Aim (16 chains at least 10× the NumPy loop per likelihood evaluation): **{verdict}** "
-        f"({ratio:.1f}×).",
+        f"Aim (16 chains at least 10× the NumPy loop per likelihood evaluation): **{verdict}** ({ratio:.1f}×).",
         "",
         "## Random-walk Metropolis (run_kalman_mcmc)",
         "",
         *ess_table(runs),
-        *([] if 1 in mcmc_chains else ["", "1-chain run skipped (--quick: each chain count costs two "
-                                        "compilations; pass --mcmc-chains 1,16 to include it)."]),
+        *(
+            []
+            if 1 in mcmc_chains
+            else [
+                "",
+                "1-chain run skipped (--quick: each chain count costs two "
+                "compilations; pass --mcmc-chains 1,16 to include it).",
+            ]
+        ),
         "",
         "Bulk ESS from arviz over all chains, minimum over the free parameters (the one in brackets); "
         "max R-hat over the parameters (n/a for one chain). Steady time: the median per-iteration time of "

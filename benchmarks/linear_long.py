@@ -87,9 +87,11 @@ SDOF_TRUTH = {"m": 1.0, "c": 0.5, "k": 158.0}
 FRAME_MASS, FRAME_STOREY_K, FRAME_STOREY_C = 1.0, 400.0, 0.5
 FRAME_TRUTH = {**{f"k_{i}": FRAME_STOREY_K for i in range(3)}, **{f"c_{i}": FRAME_STOREY_C for i in range(3)}}
 # Quoted from the issue (not measured here): the old kalman-mcmc on SDOF T = 50 000.
-BEFORE_NOTE = ("**Before (quoted from the issue, not measured by this script):** SDOF, T = 50 000, "
-               "kalman-mcmc on the old code (fixed iterations, no Laplace start): 72 s, peak 5.2 GB, "
-               "max R-hat 1.30, min bulk ESS 11, i.e. not converged.")
+BEFORE_NOTE = (
+    "**Before (quoted from the issue, not measured by this script):** SDOF, T = 50 000, "
+    "kalman-mcmc on the old code (fixed iterations, no Laplace start): 72 s, peak 5.2 GB, "
+    "max R-hat 1.30, min bulk ESS 11, i.e. not converged."
+)
 
 
 # ----- the cases ----------------------------------------------------------------
@@ -105,25 +107,38 @@ def case_config(case: str, method: str | None, max_time: float) -> dict:
     truth = method is None
     sensor = {"quantity": "acceleration", "noise_std": NOISE_SD}
     if case == "sdof":
-        system = {"type": "linear", "m": SDOF_TRUTH["m"],
-                  "c": SDOF_TRUTH["c"] if truth else lognormal(math.log(0.5), 1.0, 0.8),
-                  "k": SDOF_TRUTH["k"] if truth else lognormal(math.log(150.0), 0.5, 120.0)}
+        system = {
+            "type": "linear",
+            "m": SDOF_TRUTH["m"],
+            "c": SDOF_TRUTH["c"] if truth else lognormal(math.log(0.5), 1.0, 0.8),
+            "k": SDOF_TRUTH["k"] if truth else lognormal(math.log(150.0), 0.5, 120.0),
+        }
         sensors = [{"column": "acc0", "dof": 0, **sensor}]
     elif case == "frame":
         # A shear frame: storey springs and dampers, each inferred (p = 6 + 2 force hyperparameters).
-        system = {"type": "linear", "masses": [FRAME_MASS] * 3,
-                  "dampings": [FRAME_STOREY_C if truth else lognormal(math.log(0.5), 1.0, 0.8)] * 3,
-                  "stiffnesses": [FRAME_STOREY_K if truth else lognormal(math.log(400.0), 0.5, 300.0)] * 3,
-                  "force_dofs": [2]}
+        system = {
+            "type": "linear",
+            "masses": [FRAME_MASS] * 3,
+            "dampings": [FRAME_STOREY_C if truth else lognormal(math.log(0.5), 1.0, 0.8)] * 3,
+            "stiffnesses": [FRAME_STOREY_K if truth else lognormal(math.log(400.0), 0.5, 300.0)] * 3,
+            "force_dofs": [2],
+        }
         sensors = [{"column": "acc0", "dof": 0, **sensor}, {"column": "acc2", "dof": 2, **sensor}]
     else:
         raise ValueError(f"unknown case {case!r}")
-    force = {"kernel": "matern32",
-             "variance": FORCE_VARIANCE if truth else FORCE_PRIORS["variance"],
-             "lengthscale": FORCE_LENGTHSCALE if truth else FORCE_PRIORS["lengthscale"]}
+    force = {
+        "kernel": "matern32",
+        "variance": FORCE_VARIANCE if truth else FORCE_PRIORS["variance"],
+        "lengthscale": FORCE_LENGTHSCALE if truth else FORCE_PRIORS["lengthscale"],
+    }
     inference = {"method": "kalman"} if truth else {"method": method, "max_time": float(max_time)}
-    return {"data": {"sample_rate": 1.0 / DT}, "system": system, "force": force, "sensors": sensors,
-            "inference": inference}
+    return {
+        "data": {"sample_rate": 1.0 / DT},
+        "system": system,
+        "force": force,
+        "sensors": sensors,
+        "inference": inference,
+    }
 
 
 def simulate(case: str, T: int, rng: np.random.Generator) -> tuple[np.ndarray, list[str]]:
@@ -173,10 +188,17 @@ def worker(job_path: str, out_path: str) -> None:
     data = np.load(job["data"])
     y = np.asarray(data["y"], dtype=float)
     T = y.shape[0]
-    problem = config_from_dict(case_config(job["case"], job["sampler"], job["max_time"]),
-                               source=f"<{job['case']} T={T} {job['sampler']}>")
-    dataset = Dataset(time=np.arange(T) * DT, dt=DT, values=y, mask=np.ones_like(y, dtype=bool),
-                      columns=list(data["columns"]), truth={})
+    problem = config_from_dict(
+        case_config(job["case"], job["sampler"], job["max_time"]), source=f"<{job['case']} T={T} {job['sampler']}>"
+    )
+    dataset = Dataset(
+        time=np.arange(T) * DT,
+        dt=DT,
+        values=y,
+        mask=np.ones_like(y, dtype=bool),
+        columns=list(data["columns"]),
+        truth={},
+    )
     from latentforce.compile import persistent_cache
 
     with persistent_cache(job["cache"]):
@@ -188,46 +210,74 @@ def worker(job_path: str, out_path: str) -> None:
     diag = result.diagnostics
     start = diag.get("start", {})
     out = {
-        "wall_s": float(result.wall_time_s), "process_s": process_s, "peak_gb": peak_bytes / 1e9,
+        "wall_s": float(result.wall_time_s),
+        "process_s": process_s,
+        "peak_gb": peak_bytes / 1e9,
         "optimiser_s": float(start.get("seconds", float("nan"))),
         "sampler_s": float(diag.get("sampler_wall_time_s", float("nan"))),
-        "draws_per_chain": int(diag.get("draws_per_chain", 0)), "warmup": int(diag.get("warmup", 0)),
-        "chains": int(diag.get("chains", 0)), "mixture_draws": diag.get("mixture_draws"),
+        "draws_per_chain": int(diag.get("draws_per_chain", 0)),
+        "warmup": int(diag.get("warmup", 0)),
+        "chains": int(diag.get("chains", 0)),
+        "mixture_draws": diag.get("mixture_draws"),
         "acceptance": float(np.mean(result.acceptance)) if len(result.acceptance) else float("nan"),
-        "converged": bool(conv.get("converged", False)), "max_r_hat": float(conv.get("max_r_hat", float("nan"))),
+        "converged": bool(conv.get("converged", False)),
+        "max_r_hat": float(conv.get("max_r_hat", float("nan"))),
         "min_ess_bulk": float(conv.get("min_ess_bulk", float("nan"))),
         "min_ess_tail": float(conv.get("min_ess_tail", float("nan"))),
         "worst": [{k: (v if isinstance(v, str) else float(v)) for k, v in w.items()} for w in conv.get("worst", [])],
-        "reason": conv.get("reason"), "start_method": start.get("method"), "modes": len(start.get("modes", [])),
-        "mean_integration_steps": diag.get("mean_integration_steps"), "divergences": diag.get("divergences"),
-        "warnings": diag.get("warnings", []), "params": list(problem.free),
-        "summary": result.param_summary or {}, "jax": jax.__version__, "platform": jax.devices()[0].platform,
+        "reason": conv.get("reason"),
+        "start_method": start.get("method"),
+        "modes": len(start.get("modes", [])),
+        "mean_integration_steps": diag.get("mean_integration_steps"),
+        "divergences": diag.get("divergences"),
+        "warnings": diag.get("warnings", []),
+        "params": list(problem.free),
+        "summary": result.param_summary or {},
+        "jax": jax.__version__,
+        "platform": jax.devices()[0].platform,
     }
     Path(out_path).write_text(json.dumps(out, default=float))
 
 
-def run_job(case: str, T: int, sampler: str, data_file: Path, args, tmp: Path, cache: Path,
-            tag: str = "") -> dict:
+def run_job(case: str, T: int, sampler: str, data_file: Path, args, tmp: Path, cache: Path, tag: str = "") -> dict:
     """Run one (case, sampler) in a fresh process with JAX's persistent compilation cache in
     ``cache``; its record, or ``{"error": ...}``."""
     job = tmp / f"{case}-{T}-{sampler}{tag}.json"
     out = tmp / f"{case}-{T}-{sampler}{tag}.out.json"
-    job.write_text(json.dumps({"case": case, "sampler": sampler, "data": str(data_file), "seed": args.seed,
-                               "max_time": args.max_time, "cache": str(cache)}))
+    job.write_text(
+        json.dumps(
+            {
+                "case": case,
+                "sampler": sampler,
+                "data": str(data_file),
+                "seed": args.seed,
+                "max_time": args.max_time,
+                "cache": str(cache),
+            }
+        )
+    )
     env = dict(os.environ)
     src = str(Path(__file__).resolve().parent.parent / "src")
     env["PYTHONPATH"] = src + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     limit = args.timeout if args.timeout else args.max_time + 900.0
     t0 = time.perf_counter()
     try:
-        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", str(job), str(out)],
-                              capture_output=True, text=True, timeout=limit, env=env)
+        proc = subprocess.run(
+            [sys.executable, str(Path(__file__).resolve()), "--worker", str(job), str(out)],
+            capture_output=True,
+            text=True,
+            timeout=limit,
+            env=env,
+        )
     except subprocess.TimeoutExpired:
         return {"error": f"killed after {limit:.0f} s (--timeout)", "elapsed_s": time.perf_counter() - t0}
     if proc.returncode != 0 or not out.exists():
         tail = (proc.stderr or proc.stdout or "no output").strip().splitlines()
-        return {"error": f"worker failed (exit {proc.returncode}): {tail[-1][:200] if tail else ''}",
-                "traceback": "\n".join(tail[-40:]), "elapsed_s": time.perf_counter() - t0}
+        return {
+            "error": f"worker failed (exit {proc.returncode}): {tail[-1][:200] if tail else ''}",
+            "traceback": "\n".join(tail[-40:]),
+            "elapsed_s": time.perf_counter() - t0,
+        }
     return json.loads(out.read_text())
 
 
@@ -235,17 +285,19 @@ def run_job(case: str, T: int, sampler: str, data_file: Path, args, tmp: Path, c
 def fmt(x, digits: int = 3) -> str:
     if x is None or not np.isfinite(x):
         return "n/a"
-    return f"{x:.{digits}g}" if abs(x) < 10 ** digits else f"{x:,.0f}"
+    return f"{x:.{digits}g}" if abs(x) < 10**digits else f"{x:,.0f}"
 
 
 SHORT = {"force_variance": "variance", "force_lengthscale": "lengthscale", "log_posterior": "log post."}
 
 
 def result_table(rows: list[dict], max_time: float) -> list[str]:
-    lines = ["| case | T | p | sampler | converged | s to result | optimiser s | chains s | states s "
-             "| draws/chain (+warm-up) | min bulk ESS | max R-hat | bulk ESS/s | acceptance | peak GB "
-             "| second record s (converged) |",
-             "|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "| case | T | p | sampler | converged | s to result | optimiser s | chains s | states s "
+        "| draws/chain (+warm-up) | min bulk ESS | max R-hat | bulk ESS/s | acceptance | peak GB "
+        "| second record s (converged) |",
+        "|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
         head = f"| {r['label']} | {r['T']:,} | {r['p']} | {r['sampler']} |"
         res = r["result"]
@@ -253,8 +305,7 @@ def result_table(rows: list[dict], max_time: float) -> list[str]:
             lines.append(f"{head} **failed**: {res['error']} | " + " | ".join(["–"] * 11) + " |")
             continue
         sec = r.get("second") or {"error": "not run"}
-        second = ("failed" if "error" in sec else
-                  f"{fmt(sec['wall_s'])} ({'yes' if sec['converged'] else '**no**'})")
+        second = "failed" if "error" in sec else f"{fmt(sec['wall_s'])} ({'yes' if sec['converged'] else '**no**'})"
         if res["converged"]:
             verdict = "yes"
         elif res["sampler_s"] >= max_time:
@@ -271,13 +322,17 @@ def result_table(rows: list[dict], max_time: float) -> list[str]:
             f"{fmt(res['wall_s'] - res['sampler_s'])} | {res['draws_per_chain']:,} (+{res['warmup']}) | "
             f"{fmt(res['min_ess_bulk'])}{ess_name} | {res['max_r_hat']:.3f}{rhat_name} | "
             f"{fmt(res['min_ess_bulk'] / res['wall_s'])} | {fmt(res['acceptance'], 2)} | {res['peak_gb']:.2f} | "
-            f"{second} |")
+            f"{second} |"
+        )
     return lines
 
 
 def truth_of(case: str) -> dict:
-    return {**(SDOF_TRUTH if case == "sdof" else FRAME_TRUTH), "force_variance": FORCE_VARIANCE,
-            "force_lengthscale": FORCE_LENGTHSCALE}
+    return {
+        **(SDOF_TRUTH if case == "sdof" else FRAME_TRUTH),
+        "force_variance": FORCE_VARIANCE,
+        "force_lengthscale": FORCE_LENGTHSCALE,
+    }
 
 
 def recovery_table(rows: list[dict]) -> list[str]:
@@ -288,9 +343,10 @@ def recovery_table(rows: list[dict]) -> list[str]:
             if n not in names:
                 names.append(n)
     truth = {**truth_of("sdof"), **truth_of("frame")}
-    lines = ["| case | T | sampler | " + " | ".join(f"{SHORT.get(n, n)} (true {truth[n]:g})"
-                                                  for n in names) + " |",
-             "|---|---:|---|" + "---|" * len(names)]
+    lines = [
+        "| case | T | sampler | " + " | ".join(f"{SHORT.get(n, n)} (true {truth[n]:g})" for n in names) + " |",
+        "|---|---:|---|" + "---|" * len(names),
+    ]
     for r in rows:
         summary = r["result"].get("summary", {})
         if not summary:
@@ -309,13 +365,17 @@ def notes(rows: list[dict]) -> list[str]:
         res = r["result"]
         where = f"{r['label']} T = {r['T']:,} {r['sampler']}"
         if "error" in res:
-            out.append(f"- {where}: {res['error']} after {res['elapsed_s']:.0f} s."
-                       + ("\n\n  ```\n  " + res["traceback"].replace("\n", "\n  ") + "\n  ```"
-                          if res.get("traceback") else ""))
+            out.append(
+                f"- {where}: {res['error']} after {res['elapsed_s']:.0f} s."
+                + ("\n\n  ```\n  " + res["traceback"].replace("\n", "\n  ") + "\n  ```" if res.get("traceback") else "")
+            )
             continue
-        bits = [f"start {res['start_method']}" + (f" ({res['modes']} mode(s))" if res["modes"] else ""),
-                f"min tail ESS {fmt(res['min_ess_tail'])}", f"process {fmt(res['process_s'])} s incl. imports",
-                f"{res['mixture_draws']} draws mixed for the states"]
+        bits = [
+            f"start {res['start_method']}" + (f" ({res['modes']} mode(s))" if res["modes"] else ""),
+            f"min tail ESS {fmt(res['min_ess_tail'])}",
+            f"process {fmt(res['process_s'])} s incl. imports",
+            f"{res['mixture_draws']} draws mixed for the states",
+        ]
         if res.get("mean_integration_steps") is not None:
             bits.append(f"NUTS {res['mean_integration_steps']:.1f} steps/draw, {res['divergences']} divergences")
         out.append(f"- {where}: " + "; ".join(bits) + ".")
@@ -326,20 +386,38 @@ def notes(rows: list[dict]) -> list[str]:
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true",
-                        help=f"CI mode: {', '.join(QUICK_CASES)} with kalman-mcmc only (< 2 min)")
-    parser.add_argument("--cases", type=lambda s: [parse_case(c) for c in s.split(",")], default=None,
-                        help="comma-separated cases, sdof:T or frame (default: sdof:2000,sdof:10000,"
-                        "sdof:50000,sdof:200000,frame; with --quick: sdof:2000,sdof:10000)")
-    parser.add_argument("--samplers", type=lambda s: tuple(x.strip() for x in s.split(",")), default=None,
-                        help="comma-separated methods (default kalman-mcmc,kalman-nuts; kalman-mcmc with --quick)")
-    parser.add_argument("--max-time", type=float, default=None,
-                        help="[inference].max_time per run, seconds (default 600; 100 with --quick)")
-    parser.add_argument("--timeout", type=float, default=None,
-                        help="hard limit on one worker process, seconds (default max-time + 900)")
+    parser.add_argument(
+        "--quick", action="store_true", help=f"CI mode: {', '.join(QUICK_CASES)} with kalman-mcmc only (< 2 min)"
+    )
+    parser.add_argument(
+        "--cases",
+        type=lambda s: [parse_case(c) for c in s.split(",")],
+        default=None,
+        help="comma-separated cases, sdof:T or frame (default: sdof:2000,sdof:10000,"
+        "sdof:50000,sdof:200000,frame; with --quick: sdof:2000,sdof:10000)",
+    )
+    parser.add_argument(
+        "--samplers",
+        type=lambda s: tuple(x.strip() for x in s.split(",")),
+        default=None,
+        help="comma-separated methods (default kalman-mcmc,kalman-nuts; kalman-mcmc with --quick)",
+    )
+    parser.add_argument(
+        "--max-time",
+        type=float,
+        default=None,
+        help="[inference].max_time per run, seconds (default 600; 100 with --quick)",
+    )
+    parser.add_argument(
+        "--timeout", type=float, default=None, help="hard limit on one worker process, seconds (default max-time + 900)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the data and of the runs")
-    parser.add_argument("--out", type=Path, default=None, help="Markdown output (default "
-                        "benchmarks/results/linear_long.md; linear_long_quick.md with --quick)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="Markdown output (default benchmarks/results/linear_long.md; linear_long_quick.md with --quick)",
+    )
     parser.add_argument("--worker", nargs=2, metavar=("JOB", "OUT"), help=argparse.SUPPRESS)
     return parser.parse_args(argv)
 
@@ -387,12 +465,22 @@ def main(argv=None) -> int:
                 res = run_job(case, T, sampler, files[0], args, tmp, cache)
                 second = run_job(case, T, sampler, files[1], args, tmp, cache, "-second")
                 label = "SDOF" if case == "sdof" else "3-DOF frame"
-                rows.append({"label": label, "case": case, "T": T, "sampler": sampler,
-                             "p": len(res.get("params", [])) or (4 if case == "sdof" else 2), "result": res,
-                             "second": second})
+                rows.append(
+                    {
+                        "label": label,
+                        "case": case,
+                        "T": T,
+                        "sampler": sampler,
+                        "p": len(res.get("params", [])) or (4 if case == "sdof" else 2),
+                        "result": res,
+                        "second": second,
+                    }
+                )
                 for what, rr in (("first", res), ("second", second)):
-                    status = rr.get("error") or (f"converged={rr['converged']} wall {rr['wall_s']:.1f} s "
-                                                 f"ESS {rr['min_ess_bulk']:.0f} R-hat {rr['max_r_hat']:.3f}")
+                    status = rr.get("error") or (
+                        f"converged={rr['converged']} wall {rr['wall_s']:.1f} s "
+                        f"ESS {rr['min_ess_bulk']:.0f} R-hat {rr['max_r_hat']:.3f}"
+                    )
                     print(f"  {what}: {status}", file=sys.stderr, flush=True)
 
     load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
@@ -402,7 +490,7 @@ def main(argv=None) -> int:
         f"# Linear posteriors on long records ({'quick' if args.quick else 'full'})",
         "",
         f"Seconds to a converged posterior with `latentforce.estimate.run` at default settings "
-        f"(iterations = \"auto\", 4 chains, default warm-up), compilation included, each run in a fresh "
+        f'(iterations = "auto", 4 chains, default warm-up), compilation included, each run in a fresh '
         f"process; max_time = {args.max_time:g} s; 50 Hz (dt = {DT} s); data seed {args.seed}.",
         f"{datetime.datetime.now().isoformat(timespec='seconds')}; {platform.processor() or platform.machine()}, "
         f"{os.cpu_count()} cores, load average {load_before} at the start and {load} at the end; JAX "
@@ -413,9 +501,14 @@ def main(argv=None) -> int:
         *result_table(rows, args.max_time),
         "",
         "Cases: SDOF (m = 1 fixed; c, k, force variance and lengthscale inferred, p = 4; one accelerometer)"
-        + ("; 3-DOF shear frame (unit floor masses fixed; the three storey stiffnesses and dampers and "
-           "the force variance and lengthscale inferred, p = 8; accelerometers at DOFs 0 and 2, force at "
-           "DOF 2)" if frame_inferred else "") + ".",
+        + (
+            "; 3-DOF shear frame (unit floor masses fixed; the three storey stiffnesses and dampers and "
+            "the force variance and lengthscale inferred, p = 8; accelerometers at DOFs 0 and 2, force at "
+            "DOF 2)"
+            if frame_inferred
+            else ""
+        )
+        + ".",
         "",
         "Columns: *converged* is the library's verdict (max R-hat <= 1.01, min bulk ESS >= 400, min tail "
         "ESS >= 100, over the parameters and the log posterior). *s to result*: wall time of "
@@ -433,8 +526,18 @@ def main(argv=None) -> int:
         "",
         BEFORE_NOTE,
         "",
-        *(["## Parameter recovery", "", "Posterior median [5 %, 95 %] over all kept draws.", "",
-           *recovery_table(rows), ""] if any(r["result"].get("summary") for r in rows) else []),
+        *(
+            [
+                "## Parameter recovery",
+                "",
+                "Posterior median [5 %, 95 %] over all kept draws.",
+                "",
+                *recovery_table(rows),
+                "",
+            ]
+            if any(r["result"].get("summary") for r in rows)
+            else []
+        ),
         "## Notes per run",
         "",
         *notes(rows),

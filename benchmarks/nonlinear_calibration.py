@@ -53,18 +53,20 @@ NOMINAL = {1: 68.27, 2: 95.45, 3: 99.73}
 
 
 class Case(NamedTuple):
-    order: int          # Matérn nu = order + 1/2
+    order: int  # Matérn nu = order + 1/2
     k3: float
-    sensors: str        # "acc", "acc,vel", "disp"
-    noise: float        # noise sd as a fraction of each channel's rms
-    start: str          # "rest" or "moving"
+    sensors: str  # "acc", "acc,vel", "disp"
+    noise: float  # noise sd as a fraction of each channel's rms
+    start: str  # "rest" or "moving"
     T: int
     lengthscale: float = 0.05
 
     @property
     def label(self) -> str:
-        return (f"Matérn-{2 * self.order + 1}/2, k3={self.k3:g}, {self.sensors}, {100 * self.noise:g} % noise, "
-                f"{self.start}, T={self.T}")
+        return (
+            f"Matérn-{2 * self.order + 1}/2, k3={self.k3:g}, {self.sensors}, {100 * self.noise:g} % noise, "
+            f"{self.start}, T={self.T}"
+        )
 
 
 QUICK = [Case(order=1, k3=4e5, sensors="acc,disp", noise=0.01, start="rest", T=256)]
@@ -90,11 +92,17 @@ def case_config(case: Case, method: str, max_time: float) -> dict:
     inference = {"method": method}
     if method == "pgas":
         inference["max_time"] = float(max_time)
-    return {"data": {"sample_rate": 1.0 / DT},
-            "system": {"type": "duffing", **SYSTEM, "k3": case.k3},
-            "force": {"kernel": f"matern{2 * case.order + 1}2", "variance": FORCE_VARIANCE,
-                      "lengthscale": case.lengthscale},
-            "sensors": sensors, "inference": inference}
+    return {
+        "data": {"sample_rate": 1.0 / DT},
+        "system": {"type": "duffing", **SYSTEM, "k3": case.k3},
+        "force": {
+            "kernel": f"matern{2 * case.order + 1}2",
+            "variance": FORCE_VARIANCE,
+            "lengthscale": case.lengthscale,
+        },
+        "sensors": sensors,
+        "inference": inference,
+    }
 
 
 def simulate(case: Case, seed: int):
@@ -136,8 +144,14 @@ def worker(job_path: str, out_path: str) -> None:
         sensor["noise_std"] = float(sd)
     problem = config_from_dict(cfg, source=f"<{case.label} {job['method']}>")
     T = y.shape[0]
-    dataset = Dataset(time=np.arange(T) * DT, dt=DT, values=y, mask=np.ones_like(y, dtype=bool),
-                      columns=list(problem.columns), truth={})
+    dataset = Dataset(
+        time=np.arange(T) * DT,
+        dt=DT,
+        values=y,
+        mask=np.ones_like(y, dtype=bool),
+        columns=list(problem.columns),
+        truth={},
+    )
     with persistent_cache(job["cache"]):
         result, _ = estimate.run(problem, dataset, seed=job["seed"])
     out = {"share": share, "wall_s": float(result.wall_time_s)}
@@ -147,8 +161,9 @@ def worker(job_path: str, out_path: str) -> None:
         out[f"{state}_coverage"] = {k: float(100 * np.mean(err <= k * sd)) for k in (1, 2, 3)}
         out[f"{state}_nmse"] = float(100 * np.mean((truth[state] - mean) ** 2) / np.var(truth[state]))
     conv = dict(result.convergence or {})
-    out.update(converged=bool(conv.get("converged", False)), max_r_hat=conv.get("max_r_hat"),
-               min_ess=conv.get("min_ess_bulk"))
+    out.update(
+        converged=bool(conv.get("converged", False)), max_r_hat=conv.get("max_r_hat"), min_ess=conv.get("min_ess_bulk")
+    )
     sr = result.sample_stats.get("switch_rate")
     out["switch_rate"] = float(np.mean(sr)) if sr is not None and np.size(sr) else None
     Path(out_path).write_text(json.dumps(out))
@@ -156,15 +171,29 @@ def worker(job_path: str, out_path: str) -> None:
 
 def run_job(case: Case, method: str, args, tmp: Path) -> dict:
     job, out = tmp / f"job-{abs(hash((case, method)))}.json", tmp / f"out-{abs(hash((case, method)))}.json"
-    job.write_text(json.dumps({"case": case._asdict(), "method": method, "seed": args.seed,
-                               "max_time": args.max_time, "cache": str(tmp / "cache")}))
+    job.write_text(
+        json.dumps(
+            {
+                "case": case._asdict(),
+                "method": method,
+                "seed": args.seed,
+                "max_time": args.max_time,
+                "cache": str(tmp / "cache"),
+            }
+        )
+    )
     env = dict(os.environ)
     src = str(Path(__file__).resolve().parent.parent / "src")
     env["PYTHONPATH"] = src + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     t0 = time.perf_counter()
     try:
-        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", str(job), str(out)],
-                              capture_output=True, text=True, timeout=args.max_time + 900, env=env)
+        proc = subprocess.run(
+            [sys.executable, str(Path(__file__).resolve()), "--worker", str(job), str(out)],
+            capture_output=True,
+            text=True,
+            timeout=args.max_time + 900,
+            env=env,
+        )
     except subprocess.TimeoutExpired:
         return {"error": "timed out"}
     if proc.returncode != 0 or not out.exists():
@@ -192,14 +221,18 @@ def cov_cell(c: dict) -> str:
 
 def report(rows: list[tuple[Case, str, dict]], args, total_s: float) -> str:
     load = os.getloadavg()
-    lines = [f"# Calibration of the nonlinear methods on Duffing records ({'quick' if args.quick else 'full'})", "",
-             f"{time.strftime('%Y-%m-%dT%H:%M:%S')}; {platform.machine()}, {os.cpu_count()} cores, load average "
-             f"{load[0]:.2f} at the end; seed {args.seed}; pgas max_time {args.max_time:g} s. Duffing m = 1, "
-             f"c = 2, k = 400 (3.2 Hz, 8 % damping), force variance {FORCE_VARIANCE:g}, hyperparameters fixed "
-             "at the truth; noise sd as a fraction of each channel's rms.", "",
-             "| case | nonlinear share | method | force ±1/±2/±3 sd % | displacement ±1/±2/±3 sd % | force NMSE % "
-             "| converged | max R-hat | min bulk ESS | switch rate | s |",
-             "|---|---:|---|---|---|---:|---|---:|---:|---:|---:|"]
+    lines = [
+        f"# Calibration of the nonlinear methods on Duffing records ({'quick' if args.quick else 'full'})",
+        "",
+        f"{time.strftime('%Y-%m-%dT%H:%M:%S')}; {platform.machine()}, {os.cpu_count()} cores, load average "
+        f"{load[0]:.2f} at the end; seed {args.seed}; pgas max_time {args.max_time:g} s. Duffing m = 1, "
+        f"c = 2, k = 400 (3.2 Hz, 8 % damping), force variance {FORCE_VARIANCE:g}, hyperparameters fixed "
+        "at the truth; noise sd as a fraction of each channel's rms.",
+        "",
+        "| case | nonlinear share | method | force ±1/±2/±3 sd % | displacement ±1/±2/±3 sd % | force NMSE % "
+        "| converged | max R-hat | min bulk ESS | switch rate | s |",
+        "|---|---:|---|---|---|---:|---|---:|---:|---:|---:|",
+    ]
     for case, method, res in rows:
         if "error" in res:
             lines.append(f"| {case.label} | – | {method} | {res['error']} | | | | | | | |")
@@ -208,12 +241,18 @@ def report(rows: list[tuple[Case, str, dict]], args, total_s: float) -> str:
             f"| {case.label} | {100 * res['share']:.0f} % | {method} | {cov_cell(res['force_coverage'])} | "
             f"{cov_cell(res['displacement_coverage'])} | {fmt(res['force_nmse'])} | "
             f"{'yes' if res['converged'] else '**no**'} | {fmt(res['max_r_hat'], 4)} | {fmt(res['min_ess'])} | "
-            f"{fmt(res['switch_rate'], 2)} | {res['wall_s']:.0f} |")
-    lines += ["", "Coverage in **bold** misses the aims (±3 sd ≥ 95 %, ±1 sd 55-85 %; nominal 68.3 / 95.4 / "
-              "99.7 %). `ekf`/`ukf` at fixed parameters are deterministic (converged by definition); their "
-              "coverage shows where a Gaussian answer is too sure. Coverage is over the time samples of one "
-              "record: neighbouring samples are correlated, so it is a noisy measure; the calibration issue's "
-              "SBC is the exact check.", "", f"Total benchmark time {total_s:.0f} s."]
+            f"{fmt(res['switch_rate'], 2)} | {res['wall_s']:.0f} |"
+        )
+    lines += [
+        "",
+        "Coverage in **bold** misses the aims (±3 sd ≥ 95 %, ±1 sd 55-85 %; nominal 68.3 / 95.4 / "
+        "99.7 %). `ekf`/`ukf` at fixed parameters are deterministic (converged by definition); their "
+        "coverage shows where a Gaussian answer is too sure. Coverage is over the time samples of one "
+        "record: neighbouring samples are correlated, so it is a noisy measure; the calibration issue's "
+        "SBC is the exact check.",
+        "",
+        f"Total benchmark time {total_s:.0f} s.",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -246,8 +285,11 @@ def main(argv=None) -> int:
                 print(f"{case.label}: {method} ...", flush=True)
                 res = run_job(case, method, args, Path(tmp))
                 rows.append((case, method, res))
-                print("   ", {k: v for k, v in res.items() if k in ("error", "force_coverage", "converged", "wall_s")},
-                      flush=True)
+                print(
+                    "   ",
+                    {k: v for k, v in res.items() if k in ("error", "force_coverage", "converged", "wall_s")},
+                    flush=True,
+                )
     text = report(rows, args, time.perf_counter() - t0)
     out = args.out or RESULTS_DIR / ("nonlinear_calibration_quick.md" if args.quick else "nonlinear_calibration.md")
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -135,10 +135,20 @@ def measure(T_list, repeats: int, save=None) -> dict:
                     jax.block_until_ready(compiled(x, y, mask))
                     times.append(time.perf_counter() - t0)
                 results[op, c] = out
-                rows.append({"T": T, "op": op, "kalman": c, "seconds": statistics.median(times),
-                             "compile_s": compile_s, "repeats": repeats})
-                print(f"T={T:>7} {op:<26} {c:<10} {statistics.median(times):9.4f} s "
-                      f"(compile {compile_s:.1f} s)", flush=True)
+                rows.append(
+                    {
+                        "T": T,
+                        "op": op,
+                        "kalman": c,
+                        "seconds": statistics.median(times),
+                        "compile_s": compile_s,
+                        "repeats": repeats,
+                    }
+                )
+                print(
+                    f"T={T:>7} {op:<26} {c:<10} {statistics.median(times):9.4f} s (compile {compile_s:.1f} s)",
+                    flush=True,
+                )
             a, b = results[op, "sequential"], results[op, "parallel"]
             ll_a = float(a if op == "log-likelihood" else a[0] if op != "smoother" else a[2])
             ll_b = float(b if op == "log-likelihood" else b[0] if op != "smoother" else b[2])
@@ -160,8 +170,10 @@ def machine() -> str:
 
     devices = ", ".join(sorted({d.device_kind for d in jax.devices()}))
     load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
-    return (f"{platform.machine()}, {os.cpu_count()} cores, load average {load}; JAX {jax.__version__} on "
-            f"{jax.default_backend()} ({devices}); NumPy {np.__version__}")
+    return (
+        f"{platform.machine()}, {os.cpu_count()} cores, load average {load}; JAX {jax.__version__} on "
+        f"{jax.default_backend()} ({devices}); NumPy {np.__version__}"
+    )
 
 
 def backend_name() -> str:
@@ -192,30 +204,56 @@ def table(results: dict, quick: bool) -> str:
         s, p = cell(b, T, op, "sequential"), cell(b, T, op, "parallel")
         return "pending" if s is None or p is None else f"{s / p:.2g}"
 
-    lines = [f"# Sequential vs parallel-in-time Kalman{' (quick)' if quick else ''}", "",
-             ("Seconds per evaluation (median of repeats, compile time apart), SDOF + Matérn-3/2 force, one "
-              "accelerometer, 50 Hz, 1 % of samples missing at random; `benchmarks/parallel_kalman.py`. "
-              "*speed-up* = sequential / parallel (above 1: the parallel scan is faster). Compile times "
-              "depend strongly on the machine's load (given below)."), ""]
+    lines = [
+        f"# Sequential vs parallel-in-time Kalman{' (quick)' if quick else ''}",
+        "",
+        (
+            "Seconds per evaluation (median of repeats, compile time apart), SDOF + Matérn-3/2 force, one "
+            "accelerometer, 50 Hz, 1 % of samples missing at random; `benchmarks/parallel_kalman.py`. "
+            "*speed-up* = sequential / parallel (above 1: the parallel scan is faster). Compile times "
+            "depend strongly on the machine's load (given below)."
+        ),
+        "",
+    ]
     for b in BACKENDS:
         info = results.get(b)
-        lines.append(f"- {b.upper()}: " + (f"{info['date']}; {info['machine']}" if info else
-                                           "pending (run `benchmarks/parallel_kalman_gpu.sh` on a GPU machine)"))
-    lines += ["", ("| T | evaluation | CPU sequential s | CPU parallel s | CPU speed-up | GPU sequential s | "
-                   "GPU parallel s | GPU speed-up | compile s CPU (seq / par) |"),
-              "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+        lines.append(
+            f"- {b.upper()}: "
+            + (
+                f"{info['date']}; {info['machine']}"
+                if info
+                else "pending (run `benchmarks/parallel_kalman_gpu.sh` on a GPU machine)"
+            )
+        )
+    lines += [
+        "",
+        (
+            "| T | evaluation | CPU sequential s | CPU parallel s | CPU speed-up | GPU sequential s | "
+            "GPU parallel s | GPU speed-up | compile s CPU (seq / par) |"
+        ),
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for T, op in keys:
-        comp = (f"{fmt(cell('cpu', T, op, 'sequential', 'compile_s'))} / "
-                f"{fmt(cell('cpu', T, op, 'parallel', 'compile_s'))}")
-        lines.append(f"| {T:,} | {op} | {fmt(cell('cpu', T, op, 'sequential'))} "
-                     f"| {fmt(cell('cpu', T, op, 'parallel'))} "
-                     f"| {ratio('cpu', T, op)} | {fmt(cell('gpu', T, op, 'sequential'))} | "
-                     f"{fmt(cell('gpu', T, op, 'parallel'))} | {ratio('gpu', T, op)} | {comp} |")
-    lines += ["", ("*log-likelihood*: the samplers' log posterior (discretisation, priors, exact Kalman "
-                   "log-likelihood) at one parameter vector. *+ gradient*: with its gradient in the four "
-                   "unconstrained parameters by `jax.jacfwd` (what `kalman-nuts` evaluates). *smoother*: filter + "
-                   "RTS smoother, means and covariances (method `kalman`). Both recursions agree to 1e-9 "
-                   "relative in the log-likelihood on every row (checked by the script before timing)."), ""]
+        comp = (
+            f"{fmt(cell('cpu', T, op, 'sequential', 'compile_s'))} / {fmt(cell('cpu', T, op, 'parallel', 'compile_s'))}"
+        )
+        lines.append(
+            f"| {T:,} | {op} | {fmt(cell('cpu', T, op, 'sequential'))} "
+            f"| {fmt(cell('cpu', T, op, 'parallel'))} "
+            f"| {ratio('cpu', T, op)} | {fmt(cell('gpu', T, op, 'sequential'))} | "
+            f"{fmt(cell('gpu', T, op, 'parallel'))} | {ratio('gpu', T, op)} | {comp} |"
+        )
+    lines += [
+        "",
+        (
+            "*log-likelihood*: the samplers' log posterior (discretisation, priors, exact Kalman "
+            "log-likelihood) at one parameter vector. *+ gradient*: with its gradient in the four "
+            "unconstrained parameters by `jax.jacfwd` (what `kalman-nuts` evaluates). *smoother*: filter + "
+            "RTS smoother, means and covariances (method `kalman`). Both recursions agree to 1e-9 "
+            "relative in the log-likelihood on every row (checked by the script before timing)."
+        ),
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -224,14 +262,20 @@ def main(argv=None) -> None:
     parser.add_argument("--quick", action="store_true", help="T = 1e3 and 1e4 only")
     parser.add_argument("--T", default=None, help="comma-separated record lengths")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--table-only", action="store_true",
-                        help="rebuild the Markdown table from the JSON files already there; measure nothing")
+    parser.add_argument(
+        "--table-only",
+        action="store_true",
+        help="rebuild the Markdown table from the JSON files already there; measure nothing",
+    )
     args = parser.parse_args(argv)
 
     import latentforce  # noqa: F401  (float64)
 
-    T_list = [int(float(t)) for t in args.T.split(",")] if args.T else ([1000, 10000] if args.quick
-                                                                       else [1000, 10000, 100000])
+    T_list = (
+        [int(float(t)) for t in args.T.split(",")]
+        if args.T
+        else ([1000, 10000] if args.quick else [1000, 10000, 100000])
+    )
     stem = "parallel_kalman_quick" if args.quick else "parallel_kalman"
     RESULTS_DIR.mkdir(exist_ok=True)
 

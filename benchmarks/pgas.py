@@ -60,8 +60,9 @@ DT = 0.01
 
 
 def problem(T: int, seed: int = 0):
-    model = LatentForceModel(Duffing(), Matern(0),
-                             [Sensor("displacement", 0, NOISE[0]), Sensor("acceleration", 0, NOISE[1])])
+    model = LatentForceModel(
+        Duffing(), Matern(0), [Sensor("displacement", 0, NOISE[0]), Sensor("acceleration", 0, NOISE[1])]
+    )
     pm = smc.ParticleModel(model, PARAMS, DT, initial=(0.0, 0.01))
     tr = pm.transition(PARAMS["force_variance"], PARAMS["force_lengthscale"])
     path = pm.path(latent.gp_prior_path(jax.random.key(seed), tr, T))
@@ -93,6 +94,7 @@ def jax_sweeps(pm, tr, y, ref, N, chains, n_inner):
     def many(key, r):  # n_inner sweeps in a scan: what the Gibbs loop does
         def body(r, k):
             return one(k, r), None
+
         r, _ = jax.lax.scan(body, r, jax.random.split(key, n_inner))
         return r
 
@@ -105,10 +107,12 @@ def jax_sweeps(pm, tr, y, ref, N, chains, n_inner):
 
 def timed(f):
     """``f`` as a call that returns its own wall time in seconds."""
+
     def call():
         t0 = time.perf_counter()
         f()
         return time.perf_counter() - t0
+
     return call
 
 
@@ -164,15 +168,24 @@ class NumpySweep:
         eps = 1e-6
         for t in range(T - 1, -1, -1):
             z, v, u = ref[t]
-            C = np.stack([(self.offset(z + eps, v) - self.offset(z - eps, v)) / (2 * eps),
-                          (self.offset(z, v + eps) - self.offset(z, v - eps)) / (2 * eps)], axis=1)
+            C = np.stack(
+                [
+                    (self.offset(z + eps, v) - self.offset(z - eps, v)) / (2 * eps),
+                    (self.offset(z, v + eps) - self.offset(z, v - eps)) / (2 * eps),
+                ],
+                axis=1,
+            )
             e = self.y[t] - self.offset(z, v) - D * u
             Lam[t] = C.T @ self.Rinv @ C
             eta[t] = C.T @ self.Rinv @ e
             if t < T - 1:
-                J = np.stack([np.array(self.phi(z + eps, v, u)) - np.array(self.phi(z - eps, v, u)),
-                              np.array(self.phi(z, v + eps, u)) - np.array(self.phi(z, v - eps, u))],
-                             axis=1) / (2 * eps)
+                J = np.stack(
+                    [
+                        np.array(self.phi(z + eps, v, u)) - np.array(self.phi(z - eps, v, u)),
+                        np.array(self.phi(z, v + eps, u)) - np.array(self.phi(z, v - eps, u)),
+                    ],
+                    axis=1,
+                ) / (2 * eps)
                 Lam[t] += J.T @ Lam[t + 1] @ J
                 eta[t] += J.T @ eta[t + 1]
         S = self.Q * np.outer(D, D) + R
@@ -200,8 +213,12 @@ class NumpySweep:
             w = np.exp(lw - lw.max())
             a = np.searchsorted(np.cumsum(w), rng.uniform(size=N) * w.sum())
             delta = np.stack([zp - ref[t, 0], vp - ref[t, 1]], 1)
-            as_lw = (logw - 0.5 * (ref[t, 2] - m) ** 2 / self.Q
-                     - 0.5 * np.einsum("ni,ij,nj->n", delta, Lam[t], delta) + delta @ eta[t])
+            as_lw = (
+                logw
+                - 0.5 * (ref[t, 2] - m) ** 2 / self.Q
+                - 0.5 * np.einsum("ni,ij,nj->n", delta, Lam[t], delta)
+                + delta @ eta[t]
+            )
             wa = np.exp(as_lw - as_lw.max())
             a[-1] = np.searchsorted(np.cumsum(wa), rng.uniform() * wa.sum())
             a = np.minimum(a, N - 1)
@@ -283,11 +300,19 @@ class ParticlesPeer:
         with open(script, "w") as fh:
             fh.write(PARTICLES_SCRIPT % {"dt": DT, "noise": NOISE})
         np.save(os.path.join(d, "y.npy"), y)
-        cmd = [python, script, os.path.join(d, "y.npy"), str(N),
-               repr(float(ft.A[0, 0])), repr(float(ft.Q[0, 0])), repr(float(ft.Pinf[0, 0]))]
+        cmd = [
+            python,
+            script,
+            os.path.join(d, "y.npy"),
+            str(N),
+            repr(float(ft.A[0, 0])),
+            repr(float(ft.Q[0, 0])),
+            repr(float(ft.Pinf[0, 0])),
+        ]
         self._err = open(os.path.join(d, "stderr.txt"), "w+")
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._err,
-                                     text=True, bufsize=1)
+        self.proc = subprocess.Popen(
+            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._err, text=True, bufsize=1
+        )
         if self._read() != "ready":
             self._fail()
 
@@ -331,8 +356,9 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--particles-python", default="/tmp/pvenv/bin/python")
     ap.add_argument("--T", type=int, default=None)
-    ap.add_argument("--out", default=None, help="Markdown table (default benchmarks/results/pgas.md; "
-                    "none with --quick)")
+    ap.add_argument(
+        "--out", default=None, help="Markdown table (default benchmarks/results/pgas.md; none with --quick)"
+    )
     args = ap.parse_args(argv)
     T = args.T or 1024
     N = 50
@@ -351,17 +377,23 @@ def main(argv=None):
     try:
         peer.sweep()  # its first sweep warms up, as ours did
         # seconds per sweep (per chain-sweep for four chains), each entry once per round
-        calls = {"one": lambda: timed(one)() / n_inner, "four": lambda: timed(four)() / (4 * n_inner),
-                 "numpy": timed(lambda: nps(ref)), "peer": peer.sweep}
+        calls = {
+            "one": lambda: timed(one)() / n_inner,
+            "four": lambda: timed(four)() / (4 * n_inner),
+            "numpy": timed(lambda: nps(ref)),
+            "peer": peer.sweep,
+        }
         sec = interleaved_rounds(calls, reps)
     finally:
         peer.close()
     ms = {k: 1e3 * float(np.median(v)) if v else None for k, v in sec.items()}
     ms1, ms4 = ms["one"], ms["four"]
-    rows = [("JAX PGAS, 1 chain", ms1, ""),
-            ("JAX PGAS, 4 vmapped chains (per chain-sweep)", ms4, ""),
-            ("NumPy PGAS (same sweep)", ms["numpy"], ""),
-            ("particles CSMC", ms["peer"], "bootstrap CSMC, no AS" if ms["peer"] is not None else peer.why)]
+    rows = [
+        ("JAX PGAS, 1 chain", ms1, ""),
+        ("JAX PGAS, 4 vmapped chains (per chain-sweep)", ms4, ""),
+        ("NumPy PGAS (same sweep)", ms["numpy"], ""),
+        ("particles CSMC", ms["peer"], "bootstrap CSMC, no AS" if ms["peer"] is not None else peer.why),
+    ]
     table = ["| implementation | ms/sweep | × JAX 1 chain | note |", "|---|---:|---:|---|"]
     print(f"{'implementation':48s} {'ms/sweep':>10s} {'x JAX-1':>8s}  note")
     for name, t, note in rows:
@@ -378,10 +410,12 @@ def main(argv=None):
         # the ratio within each round (same load), then its median and range over the rounds
         r1 = np.array(sec["peer"]) / np.array(sec["one"][:n_peer])
         r4 = np.array(sec["peer"]) / np.array(sec["four"][:n_peer])
-        peer_line = (f"particles CSMC / JAX, per round of {n_peer}: one chain median {np.median(r1):.1f}x "
-                     f"(range {r1.min():.1f}-{r1.max():.1f}), a chain-sweep of 4 vmapped chains median "
-                     f"{np.median(r4):.1f}x (range {r4.min():.1f}-{r4.max():.1f}); aim: 50x, "
-                     f"{'met' if np.median(r1) >= 50 else 'not met'} one chain")
+        peer_line = (
+            f"particles CSMC / JAX, per round of {n_peer}: one chain median {np.median(r1):.1f}x "
+            f"(range {r1.min():.1f}-{r1.max():.1f}), a chain-sweep of 4 vmapped chains median "
+            f"{np.median(r4):.1f}x (range {r4.min():.1f}-{r4.max():.1f}); aim: 50x, "
+            f"{'met' if np.median(r1) >= 50 else 'not met'} one chain"
+        )
     else:
         peer_line = f"particles CSMC: unavailable ({peer.why})"
     print(f"-> {peer_line}")
@@ -389,13 +423,15 @@ def main(argv=None):
         out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "pgas.md")
         load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
         with open(out, "w") as fh:
-            fh.write(f"# PGAS sweep benchmark\n\nDuffing, Matérn-1/2 force, displacement + acceleration sensors; "
-                     f"T = {T}, N = {N} particles, optimal proposal, ancestor sampling.\n"
-                     f"{time.strftime('%Y-%m-%dT%H:%M:%S')}; {os.cpu_count()} cores, load average {load}; "
-                     f"JAX {jax.__version__} on {jax.default_backend()}; NumPy {np.__version__}. Medians of "
-                     f"{reps} rounds; a round times each row once in turn (JAX rows: {n_inner} sweeps, sweep "
-                     "constants included, as in the Gibbs loop; the peer: one sweep, timed in its own "
-                     "interpreter).\n\n")
+            fh.write(
+                f"# PGAS sweep benchmark\n\nDuffing, Matérn-1/2 force, displacement + acceleration sensors; "
+                f"T = {T}, N = {N} particles, optimal proposal, ancestor sampling.\n"
+                f"{time.strftime('%Y-%m-%dT%H:%M:%S')}; {os.cpu_count()} cores, load average {load}; "
+                f"JAX {jax.__version__} on {jax.default_backend()}; NumPy {np.__version__}. Medians of "
+                f"{reps} rounds; a round times each row once in turn (JAX rows: {n_inner} sweeps, sweep "
+                "constants included, as in the Gibbs loop; the peer: one sweep, timed in its own "
+                "interpreter).\n\n"
+            )
             fh.write("\n".join(table) + "\n\n")
             fh.write(f"2e4 sweeps at the 4-chain per-chain cost: {budget:.0f} s.\n\n{peer_line}.\n")
         print(f"wrote {out}")
@@ -404,14 +440,28 @@ def main(argv=None):
     iters = 100 if args.quick else 2000
     free = {"force_variance": (LogNormal(0.0, 1.0), 2.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 1.0)}
     t0 = time.perf_counter()
-    out = pgas.run_pgas(jax.random.key(1, impl="rbg"), model, PARAMS, free, y, np.isfinite(y), DT,
-                        particles=N, iterations=iters, burn_in=iters // 2, state_every=1, chains=4,
-                        initial=(0.0, 0.01))
+    out = pgas.run_pgas(
+        jax.random.key(1, impl="rbg"),
+        model,
+        PARAMS,
+        free,
+        y,
+        np.isfinite(y),
+        DT,
+        particles=N,
+        iterations=iters,
+        burn_in=iters // 2,
+        state_every=1,
+        chains=4,
+        initial=(0.0, 0.01),
+    )
     wall = time.perf_counter() - t0
     d = out.diagnostics
-    print(f"Gibbs: 4 chains x {iters + iters // 2} iterations in {wall:.1f} s (incl. compile); "
-          f"switch rate {np.mean(d['switch_rate']):.2f}, MH acceptance {np.mean(d['acceptance']):.2f}, "
-          f"ESS/N {np.mean(d['ess_per_particle']):.2f}")
+    print(
+        f"Gibbs: 4 chains x {iters + iters // 2} iterations in {wall:.1f} s (incl. compile); "
+        f"switch rate {np.mean(d['switch_rate']):.2f}, MH acceptance {np.mean(d['acceptance']):.2f}, "
+        f"ESS/N {np.mean(d['ess_per_particle']):.2f}"
+    )
     print(f"{'quantity':24s} {'R-hat':>7s} {'ESS':>8s} {'ESS/s':>8s}")
     for name, rh in d["rhat"].items():
         ess = d["ess_bulk"][name]

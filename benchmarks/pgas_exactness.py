@@ -35,8 +35,16 @@ from latentforce.systems import LinearSystem
 PARAMS = dict(m=1.0, c=20.0, k=1.0e4, force_variance=20.0, force_lengthscale=0.1)
 
 
-def case(sensors_kind: str, T: int, iterations: int, burn_in: int, particles: int, seed: int = 0,
-         lowfreq_modes: int = 16, lowfreq_steps: int = 5):
+def case(
+    sensors_kind: str,
+    T: int,
+    iterations: int,
+    burn_in: int,
+    particles: int,
+    seed: int = 0,
+    lowfreq_modes: int = 16,
+    lowfreq_steps: int = 5,
+):
     dt = 1 / 2048
     quantities = ["acceleration"] + (["displacement"] if sensors_kind == "acc+disp" else [])
     # Simulate from the exact discretisation of the continuous model (noise set after a dry run);
@@ -46,8 +54,11 @@ def case(sensors_kind: str, T: int, iterations: int, burn_in: int, particles: in
     H0, _ = model0.observation(PARAMS)
     pm0 = smc.ParticleModel(model0, PARAMS, dt)
     m0f = np.concatenate([np.asarray(pm0.mech0_mean), np.zeros(pm0.nfx)])
-    P0 = np.asarray(jax.scipy.linalg.block_diag(pm0.mech0_cov, pm0.force_transition(
-        PARAMS["force_variance"], PARAMS["force_lengthscale"])[2]))
+    P0 = np.asarray(
+        jax.scipy.linalg.block_diag(
+            pm0.mech0_cov, pm0.force_transition(PARAMS["force_variance"], PARAMS["force_lengthscale"])[2]
+        )
+    )
     rng = np.random.default_rng(seed)
     x = rng.multivariate_normal(m0f, P0)
     clean = []
@@ -62,9 +73,22 @@ def case(sensors_kind: str, T: int, iterations: int, burn_in: int, particles: in
     mask = jnp.ones(y.shape, bool)
     ks = kalman_smoother(A_d, Q_d, H, R, jnp.asarray(m0f), jnp.asarray(P0), jnp.asarray(y), mask)
     t0 = time.perf_counter()
-    out = pgas.run_pgas(jax.random.key(seed, impl="rbg"), model, PARAMS, {}, jnp.asarray(y), mask, dt,
-                        particles=particles, iterations=iterations, burn_in=burn_in, state_every=1, chains=4,
-                        lowfreq_modes=lowfreq_modes, lowfreq_steps=lowfreq_steps)
+    out = pgas.run_pgas(
+        jax.random.key(seed, impl="rbg"),
+        model,
+        PARAMS,
+        {},
+        jnp.asarray(y),
+        mask,
+        dt,
+        particles=particles,
+        iterations=iterations,
+        burn_in=burn_in,
+        state_every=1,
+        chains=4,
+        lowfreq_modes=lowfreq_modes,
+        lowfreq_steps=lowfreq_steps,
+    )
     wall = time.perf_counter() - t0
     km = np.asarray(ks.means)
     ksd = np.sqrt(np.asarray(jnp.diagonal(ks.covs, axis1=1, axis2=2)))
@@ -89,17 +113,23 @@ def main():
     ap.add_argument("--lowfreq-steps", type=int, default=5, help="0 disables the low-frequency move")
     a = ap.parse_args()
     T, it = (256, 300) if a.quick else (a.T, a.iterations)
-    lines = [f"PGAS vs exact Kalman smoother, linear analogue of the Duffing case, T = {T}, "
-             f"N = {a.particles}, 4 chains x {it} sweeps (+{it // 4} burn-in), hyperparameters fixed, "
-             f"{a.lowfreq_steps} low-frequency moves ({a.lowfreq_modes} modes) per sweep", "",
-             "| sensors | state | NMSE of PGAS mean vs Kalman mean [%] | mean abs(sd ratio - 1) | "
-             "max force R-hat | switch rate | low-freq acceptance | wall [s] |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"PGAS vs exact Kalman smoother, linear analogue of the Duffing case, T = {T}, "
+        f"N = {a.particles}, 4 chains x {it} sweeps (+{it // 4} burn-in), hyperparameters fixed, "
+        f"{a.lowfreq_steps} low-frequency moves ({a.lowfreq_modes} modes) per sweep",
+        "",
+        "| sensors | state | NMSE of PGAS mean vs Kalman mean [%] | mean abs(sd ratio - 1) | "
+        "max force R-hat | switch rate | low-freq acceptance | wall [s] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for kind in ("acc", "acc+disp"):
-        rows, rhat, sw, acc_lf, wall = case(kind, T, it, it // 4, a.particles,
-                                            lowfreq_modes=a.lowfreq_modes, lowfreq_steps=a.lowfreq_steps)
+        rows, rhat, sw, acc_lf, wall = case(
+            kind, T, it, it // 4, a.particles, lowfreq_modes=a.lowfreq_modes, lowfreq_steps=a.lowfreq_steps
+        )
         for s, name, nmse, ratio in rows:
-            lines.append(f"| {s} | {name} | {nmse:.4f} | {ratio:.3f} | {rhat:.3f} | {sw:.2f} | {acc_lf:.2f} "
-                         f"| {wall:.0f} |")
+            lines.append(
+                f"| {s} | {name} | {nmse:.4f} | {ratio:.3f} | {rhat:.3f} | {sw:.2f} | {acc_lf:.2f} | {wall:.0f} |"
+            )
     text = "\n".join(lines)
     print(text)
     out = Path(__file__).parent / "results" / ("pgas_exactness_quick.md" if a.quick else "pgas_exactness.md")

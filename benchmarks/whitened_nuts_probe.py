@@ -51,11 +51,13 @@ import numpy as np
 
 RESULTS = Path(__file__).resolve().parent / "results" / "whitened_nuts_probe.md"
 QUANTITY = {"acc": "acceleration", "vel": "velocity", "disp": "displacement"}
-HEADER = ("| date | order | sensors | k3 | force var | T | nonlinear share | max eig at mode / chain / N(0,I) draw "
-          "(stage 1) | same (stage 2) | step | leapfrog steps | draws/chain | force max R-hat | force min ESS "
-          "| disp max R-hat | inside ±1/2/3 sd | force NMSE | s (mode / stage 1 / stage 2) "
-          "| pgas on the same record: max R-hat / min ESS, inside ±1/2/3 sd, s |\n"
-          "|---|---:|---|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---|---:|---|---|\n")
+HEADER = (
+    "| date | order | sensors | k3 | force var | T | nonlinear share | max eig at mode / chain / N(0,I) draw "
+    "(stage 1) | same (stage 2) | step | leapfrog steps | draws/chain | force max R-hat | force min ESS "
+    "| disp max R-hat | inside ±1/2/3 sd | force NMSE | s (mode / stage 1 / stage 2) "
+    "| pgas on the same record: max R-hat / min ESS, inside ±1/2/3 sd, s |\n"
+    "|---|---:|---|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---|---:|---|---|\n"
+)
 
 
 def main(argv=None) -> int:
@@ -69,8 +71,13 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=60, help="stage 2 warm-up iterations")
     ap.add_argument("--draws", type=int, default=100)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--pgas", type=float, default=0.0, metavar="SECONDS",
-                    help="also run pgas (iterations auto, 4 chains, burn-in 2000) for at most this long")
+    ap.add_argument(
+        "--pgas",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="also run pgas (iterations auto, 4 chains, burn-in 2000) for at most this long",
+    )
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
 
@@ -169,8 +176,9 @@ def main(argv=None) -> int:
                     return (st, da_update(da, acc)), info.num_integration_steps
 
                 k1, k2 = jax.random.split(k)
-                (st, da), _ = jax.lax.scan(warm_step, (blackjax.mcmc.nuts.init(z, ld), da_init(step0)),
-                                           jax.random.split(k1, warm))
+                (st, da), _ = jax.lax.scan(
+                    warm_step, (blackjax.mcmc.nuts.init(z, ld), da_init(step0)), jax.random.split(k1, warm)
+                )
                 h = da_final(da)
 
                 def step(st, kk):
@@ -219,28 +227,47 @@ def main(argv=None) -> int:
         from latentforce.inference.pgas import run_pgas
 
         t0 = time.perf_counter()
-        out = run_pgas(jax.random.key(args.seed + 2), pm.model, params, {}, y, mask, dt, iterations=None,
-                       burn_in=2000, chains=4, initial=start, max_time=args.pgas)
+        out = run_pgas(
+            jax.random.key(args.seed + 2),
+            pm.model,
+            params,
+            {},
+            y,
+            mask,
+            dt,
+            iterations=None,
+            burn_in=2000,
+            chains=4,
+            initial=start,
+            max_time=args.pgas,
+        )
         verdict = out.diagnostics["convergence"]
         pm_mean, pm_sd = out.state_mean["force"][:, 0], out.state_sd["force"][:, 0]
         pin = [float(np.mean(np.abs(f_true - pm_mean) < k * pm_sd)) for k in (1, 2, 3)]
-        pgas_cell = (f"{verdict['max_r_hat']:.3f} / {verdict['min_ess_bulk']:.0f}, "
-                     + " / ".join(f"{100 * v:.1f} %" for v in pin) + f", {time.perf_counter() - t0:.0f} s")
+        pgas_cell = (
+            f"{verdict['max_r_hat']:.3f} / {verdict['min_ess_bulk']:.0f}, "
+            + " / ".join(f"{100 * v:.1f} %" for v in pin)
+            + f", {time.perf_counter() - t0:.0f} s"
+        )
 
     def eigs(e):
         return " / ".join(f"{v:.3g}" for v in e)
 
-    row = (f"| {datetime.date.today()} | {args.order} | {args.sensors} | {args.k3:g} | {args.variance:g} | {T} | "
-           f"{share:.2f} | {eigs(eig1)} | {eigs(eig2)} | {float(np.mean(h2)):.3f} | {float(np.mean(steps)):.0f} | "
-           f"{args.draws} (+{args.stage1}+{args.warmup}) | {rhat_f:.3f} | {ess_f:.0f} | {rhat_d:.3f} | "
-           + " / ".join(f"{100 * v:.1f} %" for v in inside)
-           + f" | {nmse:.2e} | {t_mode:.1f} / {t_stage1:.1f} / {t_stage2:.1f} | {pgas_cell} |\n")
+    row = (
+        f"| {datetime.date.today()} | {args.order} | {args.sensors} | {args.k3:g} | {args.variance:g} | {T} | "
+        f"{share:.2f} | {eigs(eig1)} | {eigs(eig2)} | {float(np.mean(h2)):.3f} | {float(np.mean(steps)):.0f} | "
+        f"{args.draws} (+{args.stage1}+{args.warmup}) | {rhat_f:.3f} | {ess_f:.0f} | {rhat_d:.3f} | "
+        + " / ".join(f"{100 * v:.1f} %" for v in inside)
+        + f" | {nmse:.2e} | {t_mode:.1f} / {t_stage1:.1f} / {t_stage2:.1f} | {pgas_cell} |\n"
+    )
     print(HEADER + row)
     if not args.out.exists():
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text("# NUTS on the whitened force noise: probe runs (benchmarks/whitened_nuts_probe.py)\n\n"
-                            "Duffing m = 1, c = 20, k = 1e4, 2048 Hz, Matérn force lengthscale 0.02 s, "
-                            "hyperparameters fixed at the truth, 4 chains, 2-core machine.\n\n" + HEADER)
+        args.out.write_text(
+            "# NUTS on the whitened force noise: probe runs (benchmarks/whitened_nuts_probe.py)\n\n"
+            "Duffing m = 1, c = 20, k = 1e4, 2048 Hz, Matérn force lengthscale 0.02 s, "
+            "hyperparameters fixed at the truth, 4 chains, 2-core machine.\n\n" + HEADER
+        )
     with args.out.open("a") as fh:
         fh.write(row)
     return 0

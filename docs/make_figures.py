@@ -50,8 +50,11 @@ def acc_only_bands(seeds=range(8), start="rest"):
         res = {}
         for label, sensors, y in (
             ("acceleration only", [Sensor("acceleration", 0, sa)], y_acc[:, None]),
-            ("acceleration + displacement", [Sensor("acceleration", 0, sa), Sensor("displacement", 0, sd_)],
-             np.stack([y_acc, y_disp], 1)),
+            (
+                "acceleration + displacement",
+                [Sensor("acceleration", 0, sa), Sensor("displacement", 0, sd_)],
+                np.stack([y_acc, y_disp], 1),
+            ),
         ):
             model = LatentForceModel(LinearSystem(), Matern(0), sensors)
             initial = rest_start(model, params) if start == "rest" else None
@@ -59,8 +62,16 @@ def acc_only_bands(seeds=range(8), start="rest"):
             mom = state_moments(model, sm.means, sm.covs)
             m, s = (np.asarray(a)[:, 0] for a in mom["force"])
             res[label] = (m, s)
-            rows.append((start, seed, label, nmse(sim.force[:, 0], m), coverage(sim.force[:, 0], m, s),
-                         float(np.mean(s**2)) / params["force_variance"]))
+            rows.append(
+                (
+                    start,
+                    seed,
+                    label,
+                    nmse(sim.force[:, 0], m),
+                    coverage(sim.force[:, 0], m, s),
+                    float(np.mean(s**2)) / params["force_variance"],
+                )
+            )
         if shown is None and start == "rest":
             shown = (sim, res)
     if shown is None:
@@ -70,8 +81,7 @@ def acc_only_bands(seeds=range(8), start="rest"):
     axes = fig.subplots(3, 1)
     for ax, (label, (m, s)) in zip(axes[:2], res.items()):
         for k, alpha in ((3, 0.15), (2, 0.25), (1, 0.4)):
-            ax.fill_between(sim.time, m - k * s, m + k * s, color="tab:blue", alpha=alpha, lw=0,
-                            label=f"±{k} sd")
+            ax.fill_between(sim.time, m - k * s, m + k * s, color="tab:blue", alpha=alpha, lw=0, label=f"±{k} sd")
         ax.plot(sim.time, m, color="tab:blue", lw=1, label="posterior mean")
         ax.plot(sim.time, sim.force[:, 0], color="red", lw=0.8, ls="--", label="truth")
         ax.set_title(f"Force, exact smoother, {label}", fontsize=10, loc="left")
@@ -109,8 +119,15 @@ def oma_readme_figure(result_dir: Path, window=(0.0, 400.0)):
         s = np.array([float(r[f"{name}_sd"]) for r in rows])[keep]
         truth = np.array([float(r[name]) for r in data])[keep]
         for k, alpha in ((3, 0.15), (2, 0.25), (1, 0.4)):
-            ax.fill_between(t[keep], m - k * s, m + k * s, color="tab:blue", alpha=alpha, lw=0,
-                            label=f"±{k} sd" if name == "force" else None)
+            ax.fill_between(
+                t[keep],
+                m - k * s,
+                m + k * s,
+                color="tab:blue",
+                alpha=alpha,
+                lw=0,
+                label=f"±{k} sd" if name == "force" else None,
+            )
         ax.plot(t[keep], m, color="tab:blue", lw=1.2, label="posterior mean")
         ax.plot(t[keep], truth, color="red", lw=1.0, ls="--", label="truth")
         ax.set_ylabel(f"{name} [{unit}]")
@@ -120,8 +137,10 @@ def oma_readme_figure(result_dir: Path, window=(0.0, 400.0)):
     axes[0].legend(ncol=5, fontsize=8, loc="upper right")
     axes[1].legend(ncol=3, fontsize=8, loc="lower left")
     axes[1].set_xlabel("time [s]")
-    axes[0].set_title("Unmeasured wave force recovered from noisy displacement; k and c inferred too "
-                      "(latentforce demo oma)", fontsize=10)
+    axes[0].set_title(
+        "Unmeasured wave force recovered from noisy displacement; k and c inferred too (latentforce demo oma)",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(OUT / "oma_force.png", dpi=110)
 
@@ -133,5 +152,7 @@ if __name__ == "__main__":
         oma_readme_figure(Path(sys.argv[1]))
     rows = acc_only_bands(start="rest") + acc_only_bands(start="stationary")
     for start, seed, label, nm, cov, ratio in rows:
-        print(f"{start:10s} seed {seed}  {label:28s}  force NMSE {nm:6.2f} %   within 3 sd {100 * cov:5.1f} %   "
-              f"posterior var / prior var {ratio:.3f}")
+        print(
+            f"{start:10s} seed {seed}  {label:28s}  force NMSE {nm:6.2f} %   within 3 sd {100 * cov:5.1f} %   "
+            f"posterior var / prior var {ratio:.3f}"
+        )

@@ -80,11 +80,26 @@ def write_uff(folder: Path, seed: int = 0) -> None:
     sets = []
     for name, data, dt in records:
         data = data + 0.002 * rng.standard_normal(data.size)
-        sets.append(pyuff.prepare_58(
-            binary=True, func_type=1, rsp_node=1, rsp_dir=1, ref_node=0, ref_dir=0, id1=name, data=data,
-            x=dt * np.arange(data.size), abscissa_spacing=1, abscissa_spec_data_type=17,
-            ordinate_spec_data_type=12, orddenom_spec_data_type=0, z_axis_spec_data_type=0,
-            ordinate_axis_units_lab="g", abscissa_axis_units_lab="s"))
+        sets.append(
+            pyuff.prepare_58(
+                binary=True,
+                func_type=1,
+                rsp_node=1,
+                rsp_dir=1,
+                ref_node=0,
+                ref_dir=0,
+                id1=name,
+                data=data,
+                x=dt * np.arange(data.size),
+                abscissa_spacing=1,
+                abscissa_spec_data_type=17,
+                ordinate_spec_data_type=12,
+                orddenom_spec_data_type=0,
+                z_axis_spec_data_type=0,
+                ordinate_axis_units_lab="g",
+                abscissa_axis_units_lab="s",
+            )
+        )
     path = folder / "frame.uff"
     if path.exists():
         path.unlink()
@@ -97,8 +112,10 @@ def main(argv: list[str]) -> int:
     (folder / "frame.toml").write_text(CONFIG)
     write_uff(folder)
     out = folder / "results"
-    subprocess.run([sys.executable, "-m", "latentforce.cli", "estimate", str(folder / "frame.toml"), "--out",
-                    str(out), "--force"], check=True)
+    subprocess.run(
+        [sys.executable, "-m", "latentforce.cli", "estimate", str(folder / "frame.toml"), "--out", str(out), "--force"],
+        check=True,
+    )
     images = Path(__file__).resolve().parent / "images"
     for name in ("output_weld_strain.png", "force_psd.png"):
         shutil.copy(out / "figures" / name, images / f"uff_{name}")

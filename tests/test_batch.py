@@ -61,8 +61,19 @@ def invoke(*args):
 
 def simulate(tmp, out, *, k=10.0, seed=0, duration=5.0):
     (tmp / "sim.toml").write_text(CONFIG.format(k=k, inference=KALMAN))
-    code, text = invoke("simulate", tmp / "sim.toml", "--out", out, "--duration", duration,
-                        "--sample-rate", 20, "--seed", seed, "--force")
+    code, text = invoke(
+        "simulate",
+        tmp / "sim.toml",
+        "--out",
+        out,
+        "--duration",
+        duration,
+        "--sample-rate",
+        20,
+        "--seed",
+        seed,
+        "--force",
+    )
     assert code == 0, text
 
 
@@ -94,6 +105,7 @@ def scheduler(cache_env):
 
 # ----- names, order, inputs -------------------------------------------------------------------
 
+
 def test_name_timestamp():
     assert name_timestamp("bridge_2026-11-26T01-00.csv") == datetime(2026, 11, 26, 1, 0)
     assert name_timestamp("acc-2026-11-26_01-02-03.h5") == datetime(2026, 11, 26, 1, 2, 3)
@@ -105,8 +117,13 @@ def test_name_timestamp():
 
 
 def test_folder_names_disambiguate(tmp_path):
-    paths = [tmp_path / "a" / "rec.csv", tmp_path / "a" / "rec.h5", tmp_path / "b" / "rec.csv",
-             tmp_path / "b" / "other.csv", tmp_path / "c" / "REC.nc"]
+    paths = [
+        tmp_path / "a" / "rec.csv",
+        tmp_path / "a" / "rec.h5",
+        tmp_path / "b" / "rec.csv",
+        tmp_path / "b" / "other.csv",
+        tmp_path / "c" / "REC.nc",
+    ]
     names = folder_names(paths)
     assert names == ["a--rec.csv", "rec.h5", "b--rec.csv", "other", "REC.nc"]
     assert len({n.casefold() for n in names}) == len(names)
@@ -131,6 +148,7 @@ def test_plan_records_order_and_inputs(tmp_path, monkeypatch):
 
 # ----- a campaign end to end ------------------------------------------------------------------
 
+
 def test_campaign_failures_rerun_and_changed_config(tmp_path, monkeypatch, scheduler):
     monkeypatch.chdir(tmp_path)
     rec = tmp_path / "rec"
@@ -143,8 +161,9 @@ def test_campaign_failures_rerun_and_changed_config(tmp_path, monkeypatch, sched
     (rec / "bridge_2026-11-26T05-00.csv").write_text("time,acc,disp\n" + nan_rows)  # NaN everywhere
     (tmp_path / "lf.toml").write_text(CONFIG.format(k=10.0, inference=KALMAN))
 
-    code, text = invoke("batch", "lf.toml", "rec/bridge_2026-11-26T03-00.csv", "rec/*.csv", "--out", "camp",
-                        "--scheduler", scheduler)
+    code, text = invoke(
+        "batch", "lf.toml", "rec/bridge_2026-11-26T03-00.csv", "rec/*.csv", "--out", "camp", "--scheduler", scheduler
+    )
     assert code == EXIT_SOME_FAILED, text
     assert "error: rec/bridge_2026-11-26T04-00.csv" in text and "'disp' not found" in text
     assert "error: rec/bridge_2026-11-26T05-00.csv" in text
@@ -164,11 +183,12 @@ def test_campaign_failures_rerun_and_changed_config(tmp_path, monkeypatch, sched
     assert (folder / "summary.csv").read_text() == (tmp_path / "single" / "summary.csv").read_text()
     ours, theirs = (json.loads((d / "summary.json").read_text()) for d in (folder, tmp_path / "single"))
     assert ours["log_likelihood"] == theirs["log_likelihood"] and ours["nmse"] == theirs["nmse"]
-    assert sorted(p.name for p in (folder / "figures").iterdir()) == \
-        sorted(p.name for p in (tmp_path / "single" / "figures").iterdir())
+    assert sorted(p.name for p in (folder / "figures").iterdir()) == sorted(
+        p.name for p in (tmp_path / "single" / "figures").iterdir()
+    )
     # force_rms: the root mean square of the posterior mean force, from summary.csv
     force_mean = np.loadtxt(folder / "summary.csv", delimiter=",", skiprows=1)[:, 5]
-    assert float(rows[1]["force_rms"]) == pytest.approx(np.sqrt(np.mean(force_mean ** 2)), rel=1e-12)
+    assert float(rows[1]["force_rms"]) == pytest.approx(np.sqrt(np.mean(force_mean**2)), rel=1e-12)
 
     # rerun: finished records skipped and untouched; the broken ones retried (and fail again)
     before = {h: mtimes(tmp_path / "camp" / f"bridge_2026-11-26T0{h}-00") for h in (1, 2, 3)}
@@ -193,8 +213,9 @@ def test_campaign_failures_rerun_and_changed_config(tmp_path, monkeypatch, sched
     assert code == 1 and "camp/bridge_2026-11-26T01-00" in text and "--force" in text
     assert "Traceback" not in text
     assert {h: mtimes(tmp_path / "camp" / f"bridge_2026-11-26T0{h}-00") for h in (1, 2, 3)} == before
-    code, text = invoke("batch", "lf.toml", "rec/bridge_2026-11-26T01-00.csv", "--out", "camp",
-                        "--scheduler", scheduler, "--force")
+    code, text = invoke(
+        "batch", "lf.toml", "rec/bridge_2026-11-26T01-00.csv", "--out", "camp", "--scheduler", scheduler, "--force"
+    )
     assert code == 0, text
     replaced = read_table(tmp_path / "camp" / "batch.csv")
     assert [(r["folder"], r["status"]) for r in replaced] == [("bridge_2026-11-26T01-00", "done")]

@@ -70,8 +70,12 @@ def test_simulated_records_have_the_exact_moments_of_the_discrete_model():
     np.testing.assert_allclose(A @ P0 @ A.T + Q, P0, rtol=1e-8, atol=1e-12 * np.abs(P0).max())
     n, T = 20_000, 4
     y = cal.simulate_discrete(np.random.default_rng(0), A, Q, H, R, m0, P0, T, records=n)[..., 0]  # (n, T)
-    exact = np.array([[(H @ np.linalg.matrix_power(A, abs(t - s)) @ P0 @ H.T)[0, 0] + R[0, 0] * (t == s)
-                       for s in range(T)] for t in range(T)])
+    exact = np.array(
+        [
+            [(H @ np.linalg.matrix_power(A, abs(t - s)) @ P0 @ H.T)[0, 0] + R[0, 0] * (t == s) for s in range(T)]
+            for t in range(T)
+        ]
+    )
     empirical = np.cov(y, rowvar=False)
     # sd of a sample covariance of Gaussians: sqrt((S_tt S_ss + S_ts^2) / n)
     se = np.sqrt((np.outer(np.diag(exact), np.diag(exact)) + exact**2) / n)
@@ -131,8 +135,7 @@ def test_kalman_mcmc_interval_of_k_covers_truths_drawn_from_its_prior():
 @pytest.mark.slow
 def test_kalman_mcmc_intervals_cover_truths_drawn_from_the_prior_all_four_free():
     """As above with k, c, force variance and lengthscale all free and drawn from their priors."""
-    _assert_calibrated(*_sbc(["k", "c", "force_variance", "force_lengthscale"], 20, seed=2,
-                             run_kwargs=MCMC_SHORT))
+    _assert_calibrated(*_sbc(["k", "c", "force_variance", "force_lengthscale"], 20, seed=2, run_kwargs=MCMC_SHORT))
 
 
 # ----- exact 1-D posterior -------------------------------------------------------------------
@@ -174,12 +177,13 @@ def test_both_linear_samplers_match_the_exact_posterior_of_one_parameter():
     mean, sd = _quadrature(problem, fixed, free["k"][0], y, mask)
     assert sd < 0.5 * 150.0 * 0.2  # the record informs k well beyond its prior (sd about 30)
     results = {}
-    for name, run, kwargs in (("kalman-mcmc", run_kalman_mcmc, MCMC_SHORT),
-                              # one warm-up chunk and one sampling chunk: every chunk whose state types
-                              # differ compiles anew (the dual-averaging state turns from weakly to
-                              # strongly typed over its first updates), so fewer chunks compile less
-                              ("kalman-nuts", run_kalman_nuts, dict(iterations=300, burn_in=300, chains=2,
-                                                                    chunk=300))):
+    for name, run, kwargs in (
+        ("kalman-mcmc", run_kalman_mcmc, MCMC_SHORT),
+        # one warm-up chunk and one sampling chunk: every chunk whose state types
+        # differ compiles anew (the dual-averaging state turns from weakly to
+        # strongly typed over its first updates), so fewer chunks compile less
+        ("kalman-nuts", run_kalman_nuts, dict(iterations=300, burn_in=300, chains=2, chunk=300)),
+    ):
         out = run(jax.random.key(3), problem.model, fixed, free, y, mask, DT, **kwargs)
         m, s, se_m, se_s, ess = _moments(out.draws["k"])
         assert ess > 150, (name, ess)
@@ -197,9 +201,23 @@ def test_nuts_and_metropolis_agree_on_the_four_parameter_posterior():
     problem = config_from_dict(cal.SBC_CONFIG)
     truth = dict(problem.fixed, c=0.5, k=150.0, force_variance=1.0, force_lengthscale=0.5)
     y, mask = cal.simulate_linear(np.random.default_rng(11), problem, truth, 300, DT)
-    outs = [run(jax.random.key(5), problem.model, dict(problem.fixed), _free(problem), y, mask, DT,
-                iterations=None, burn_in=burn, chains=4, target_ess=1000, max_time=300)
-            for run, burn in ((run_kalman_mcmc, 500), (run_kalman_nuts, 300))]
+    outs = [
+        run(
+            jax.random.key(5),
+            problem.model,
+            dict(problem.fixed),
+            _free(problem),
+            y,
+            mask,
+            DT,
+            iterations=None,
+            burn_in=burn,
+            chains=4,
+            target_ess=1000,
+            max_time=300,
+        )
+        for run, burn in ((run_kalman_mcmc, 500), (run_kalman_nuts, 300))
+    ]
     for out in outs:
         assert out.convergence["converged"], out.convergence
     for n in problem.free:

@@ -67,8 +67,15 @@ def test_simulate_estimate_report(workdir):
     # The exact smoother recovers the force from acceleration + displacement.
     assert summary["nmse"]["displacement"] < 1.0 and summary["nmse"]["force"] < 20.0
     header = (workdir / "res" / "summary.csv").read_text().splitlines()[0].split(",")
-    assert header == ["time", "displacement_mean", "displacement_sd", "velocity_mean", "velocity_sd",
-                      "force_mean", "force_sd"]
+    assert header == [
+        "time",
+        "displacement_mean",
+        "displacement_sd",
+        "velocity_mean",
+        "velocity_sd",
+        "force_mean",
+        "force_sd",
+    ]
     assert (workdir / "res" / "figures" / "force.png").stat().st_size > 1000
     code, out = invoke("report", "res")
     assert code == 0, out
@@ -116,8 +123,12 @@ def test_bad_config_gives_one_clear_paragraph(workdir, old, new, words):
 
 
 def test_nonlinear_system_with_kalman_is_refused(workdir):
-    text = (workdir / "lf.toml").read_text().replace('type = "linear"', 'type = "duffing"').replace(
-        "k = 10.0", "k = 10.0\nk3 = 100.0")
+    text = (
+        (workdir / "lf.toml")
+        .read_text()
+        .replace('type = "linear"', 'type = "duffing"')
+        .replace("k = 10.0", "k = 10.0\nk3 = 100.0")
+    )
     (workdir / "duff.toml").write_text(text)
     code, out = invoke("estimate", "duff.toml", "--out", "never")
     assert code != 0 and "pgas" in out and "Traceback" not in out
@@ -170,7 +181,8 @@ def test_data_override_and_unknown_demo(workdir):
 # ----- every method end to end, and the convergence verdict ------------------------
 def _inferred(method: str, extra: str = "") -> str:
     text = CONFIG.format(missing="error").replace(
-        "variance = 2.0", 'variance = { prior = "lognormal", mu = 0.7, sigma = 1.0, init = 1.0 }')
+        "variance = 2.0", 'variance = { prior = "lognormal", mu = 0.7, sigma = 1.0, init = 1.0 }'
+    )
     if method == "pgas":
         text = text.replace('type = "linear"', 'type = "duffing"').replace("k = 10.0", "k = 10.0\nk3 = 5.0")
         text = text.replace('method = "kalman"', 'method = "pgas"\nparticles = 16\nstate_every = 2')

@@ -14,7 +14,7 @@ def _program(x):
     # a scan with a nonlinear step: the loop and fusion code the options change
     def step(c, u):
         c = c + 0.01 * jnp.sin(c) * u
-        return c, jnp.exp(-c**2)
+        return c, jnp.exp(-(c**2))
 
     return jax.lax.scan(step, x, jnp.linspace(0.0, 1.0, 200))
 
@@ -67,8 +67,9 @@ def test_an_unknown_option_is_dropped_and_the_others_kept(monkeypatch):
 def test_threshold_is_added_to_xla_flags_unless_the_user_set_backend_options():
     env = {}
     assert lc.raise_small_loop_threshold(env)
-    assert env["XLA_FLAGS"] == (f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
-                                f"{lc.SMALL_LOOP_BYTES}")
+    assert env["XLA_FLAGS"] == (
+        f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={lc.SMALL_LOOP_BYTES}"
+    )
     env = {"XLA_FLAGS": "--xla_dump_to=/tmp/x"}
     assert lc.raise_small_loop_threshold(env)
     assert env["XLA_FLAGS"].startswith("--xla_dump_to=/tmp/x --xla_backend_extra_options=")
@@ -121,8 +122,7 @@ def test_the_threshold_makes_xla_run_batched_rebuild_loops_as_one_function(tmp_p
     env["PYTHONPATH"] = os.pathsep.join([str(Path(lc.__file__).parents[1]), env.get("PYTHONPATH", "")])
 
     def probe(mode):
-        out = subprocess.run([sys.executable, str(script), mode], capture_output=True, text=True, env=env,
-                             timeout=300)
+        out = subprocess.run([sys.executable, str(script), mode], capture_output=True, text=True, env=env, timeout=300)
         assert out.returncode == 0, out.stderr
         return out.stdout.split()[-1]
 
@@ -215,10 +215,15 @@ def test_persistent_cache_serves_a_new_process_and_restores_the_settings(tmp_pat
         "with persistent_cache(sys.argv[1]):\n"
         "    f = jit(lambda y: jnp.cumsum(jnp.sin(y)) @ y)\n"
         "    print(float(f(np.random.default_rng(int(sys.argv[2])).normal(size=64))))\n"
-        "print('HITS', len(hits))\n")
+        "print('HITS', len(hits))\n"
+    )
     env = {**__import__("os").environ, "PYTHONPATH": str(Path(lc.__file__).resolve().parents[1])}
-    runs = [subprocess.run([sys.executable, "-c", script, str(tmp_path), str(s)], capture_output=True, text=True,
-                           env=env, timeout=300) for s in (1, 2)]
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", script, str(tmp_path), str(s)], capture_output=True, text=True, env=env, timeout=300
+        )
+        for s in (1, 2)
+    ]
     for r in runs:
         assert r.returncode == 0, r.stderr
     assert any(tmp_path.iterdir())  # the first process wrote its program
@@ -260,8 +265,12 @@ def test_import_has_no_side_effects_and_float64_is_asked_for(tmp_path):
 
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64")}
     env["PYTHONPATH"] = str(Path(lc.__file__).resolve().parents[1])
-    outs = [subprocess.run([sys.executable, "-c", _IMPORT_PROBE, mode], capture_output=True, text=True, env=env,
-                           timeout=300) for mode in ("refuse", "enable")]
+    outs = [
+        subprocess.run(
+            [sys.executable, "-c", _IMPORT_PROBE, mode], capture_output=True, text=True, env=env, timeout=300
+        )
+        for mode in ("refuse", "enable")
+    ]
     for out in outs:
         assert out.returncode == 0, out.stderr
     refuse, enable = (out.stdout.splitlines() for out in outs)

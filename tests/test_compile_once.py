@@ -50,8 +50,9 @@ def _config(method: str, record: int) -> dict:
     inference = {"method": method}
     if method != "kalman":
         inference.update(iterations=40, burn_in=40, chains=2)
-    lengthscale = 0.3 if method == "kalman" else {"prior": "lognormal", "mu": float(np.log(0.3 + 0.1 * record)),
-                                                   "sigma": 0.5}
+    lengthscale = (
+        0.3 if method == "kalman" else {"prior": "lognormal", "mu": float(np.log(0.3 + 0.1 * record)), "sigma": 0.5}
+    )
     return {
         "system": {"type": "linear", "m": 1.0, "c": 0.4 + 0.2 * record, "k": 80.0 + 30.0 * record},
         "force": {"kernel": "matern32", "variance": 1.0 + record, "lengthscale": lengthscale},
@@ -78,7 +79,9 @@ def _same(a, b):
         np.testing.assert_array_equal(a.param_draws[name], b.param_draws[name], err_msg=name)
 
 
-@pytest.mark.parametrize("method", ["kalman", "kalman-mcmc"])
+# ukf: the same programs as kalman-mcmc with the Gaussian filter's likelihood (a Bound) inside;
+# slow-marked to keep CI's time (each case compiles everything twice)
+@pytest.mark.parametrize("method", ["kalman", "kalman-mcmc", pytest.param("ukf", marks=pytest.mark.slow)])
 def test_a_second_record_with_other_numbers_compiles_nothing(method, compiles):
     first, second = (_record(_config(method, r), seed=10 + 7 * r) for r in (0, 1))
     estimate.run(*first, seed=0)

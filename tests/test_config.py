@@ -41,19 +41,31 @@ chains = 2
 DUFFING = {
     "data": {"path": "d.h5", "sample_rate": 1024.0, "missing": "skip"},
     "system": {"type": "duffing", "m": 1.0, "c": 20.0, "k": 1.0e4, "k3": 1.0e9},
-    "force": {"kernel": "matern12", "variance": {"prior": "flat", "init": 10.0},
-              "lengthscale": {"prior": "lognormal", "mu": 0.0, "sigma": 2.0, "init": 0.2}},
-    "sensors": [{"column": "acc", "quantity": "acceleration", "noise_std": 0.05},
-                {"column": "disp", "quantity": "displacement", "noise_std": 1e-4}],
+    "force": {
+        "kernel": "matern12",
+        "variance": {"prior": "flat", "init": 10.0},
+        "lengthscale": {"prior": "lognormal", "mu": 0.0, "sigma": 2.0, "init": 0.2},
+    },
+    "sensors": [
+        {"column": "acc", "quantity": "acceleration", "noise_std": 0.05},
+        {"column": "disp", "quantity": "displacement", "noise_std": 1e-4},
+    ],
     "inference": {"particles": 20, "seed": 3},
 }
 
 MDOF = {
-    "system": {"type": "linear", "M": [[1.0, 0.0], [0.0, 2.0]], "C": [[0.3, -0.1], [-0.1, 0.2]],
-               "K": [[200.0, -100.0], [-100.0, 100.0]], "force_dofs": [1]},
+    "system": {
+        "type": "linear",
+        "M": [[1.0, 0.0], [0.0, 2.0]],
+        "C": [[0.3, -0.1], [-0.1, 0.2]],
+        "K": [[200.0, -100.0], [-100.0, 100.0]],
+        "force_dofs": [1],
+    },
     "force": {"kernel": "matern52", "variance": 1.0, "lengthscale": 0.5},
-    "sensors": [{"column": "a0", "quantity": "acceleration", "dof": 0, "noise_std": 0.1},
-                {"column": "v1", "quantity": "velocity", "dof": 1, "noise_std": 0.1}],
+    "sensors": [
+        {"column": "a0", "quantity": "acceleration", "dof": 0, "noise_std": 0.1},
+        {"column": "v1", "quantity": "velocity", "dof": 1, "noise_std": 0.1},
+    ],
 }
 
 
@@ -187,8 +199,7 @@ def test_bad_values_name_the_key():
 
 
 def test_system_types():
-    _bad(_edit(DUFFING, ["system", "type"], "bouc-wen"), "[system].type", "not available yet",
-         "linear, duffing")
+    _bad(_edit(DUFFING, ["system", "type"], "bouc-wen"), "[system].type", "not available yet", "linear, duffing")
     _bad(_edit(DUFFING, ["system", "type"], "dufing"), "[system].type", "did you mean 'duffing'?")
 
 
@@ -204,14 +215,22 @@ def test_mdof_matrix_checks():
 
 def test_prior_table_checks():
     _bad(_edit(DUFFING, ["force", "variance"], {"prior": "flat"}), "[force].variance.init", "init")
-    _bad(_edit(DUFFING, ["force", "variance"], {"prior": "cauchy", "init": 1.0}),
-         "[force].variance.prior", "Valid priors: flat, normal")
-    _bad(_edit(DUFFING, ["force", "variance"], {"prior": "normal", "mean": 1.0, "init": 1.0}),
-         "[force].variance", "missing: sd")
-    _bad(_edit(DUFFING, ["force", "variance"], {"prior": "gamma", "shape": 2.0, "rate": -1.0}),
-         "[force].variance", "positive")
-    _bad(_edit(DUFFING, ["force", "variance"], {"prior": "flat", "init": -1.0}),
-         "[force].variance.init", "positive")
+    _bad(
+        _edit(DUFFING, ["force", "variance"], {"prior": "cauchy", "init": 1.0}),
+        "[force].variance.prior",
+        "Valid priors: flat, normal",
+    )
+    _bad(
+        _edit(DUFFING, ["force", "variance"], {"prior": "normal", "mean": 1.0, "init": 1.0}),
+        "[force].variance",
+        "missing: sd",
+    )
+    _bad(
+        _edit(DUFFING, ["force", "variance"], {"prior": "gamma", "shape": 2.0, "rate": -1.0}),
+        "[force].variance",
+        "positive",
+    )
+    _bad(_edit(DUFFING, ["force", "variance"], {"prior": "flat", "init": -1.0}), "[force].variance.init", "positive")
 
 
 def test_method_consistency():
@@ -220,8 +239,9 @@ def test_method_consistency():
     d = _edit(DUFFING, ["system", "k"], {"prior": "normal", "mean": 1e4, "sd": 1e3})
     _bad(d, "[system].k", "pgas", "force variance and lengthscale")
     d = _edit(MDOF, ["force", "lengthscale"], {"prior": "lognormal", "mu": 0.0, "sigma": 1.0})
-    _bad(_edit(d, ["inference", "method"], "kalman"), "[inference].method", "fixed", "kalman-mcmc",
-         "[force].lengthscale")
+    _bad(
+        _edit(d, ["inference", "method"], "kalman"), "[inference].method", "fixed", "kalman-mcmc", "[force].lengthscale"
+    )
     _bad(_edit(MDOF, ["inference", "method"], "kalman-mcmc"), "[inference].method", "kalman")
 
 
@@ -257,10 +277,13 @@ def test_missing_config_file(tmp_path):
 
 
 FRAME = {
-    "system": {"type": "linear", "masses": [1.0, 1.0, 1.0],
-               "dampings": [0.5, {"prior": "lognormal", "mu": -0.7, "sigma": 1.0}, 0.5],
-               "stiffnesses": [{"prior": "lognormal", "mu": 6.0, "sigma": 0.5, "init": 400.0}, 400.0, 400.0],
-               "force_dofs": [2]},
+    "system": {
+        "type": "linear",
+        "masses": [1.0, 1.0, 1.0],
+        "dampings": [0.5, {"prior": "lognormal", "mu": -0.7, "sigma": 1.0}, 0.5],
+        "stiffnesses": [{"prior": "lognormal", "mu": 6.0, "sigma": 0.5, "init": 400.0}, 400.0, 400.0],
+        "force_dofs": [2],
+    },
     "force": {"kernel": "matern32", "variance": 1.0, "lengthscale": 0.5},
     "sensors": [{"column": "a0", "quantity": "acceleration", "dof": 0, "noise_std": 0.05}],
 }

@@ -160,8 +160,12 @@ def test_nan_refused_with_hint(tmp_path):
 def test_time_column_problems(tmp_path):
     _raises(_write_text(tmp_path, "t,acc\n0,1\n1,2\n"), "time column 'time' not found", "sample_rate")
     _raises(_write_text(tmp_path, "time,acc\n0,1\n2,2\n1,3\n", "back.csv"), "not increasing", "row 2")
-    _raises(_write_text(tmp_path, "time,acc\n0,1\n1,2\n2,3\n3.5,4\n", "uneven.csv"),
-            "not evenly sampled", "row 3", "nominal step is 1.0")
+    _raises(
+        _write_text(tmp_path, "time,acc\n0,1\n1,2\n2,3\n3.5,4\n", "uneven.csv"),
+        "not evenly sampled",
+        "row 3",
+        "nominal step is 1.0",
+    )
     _raises(_write_text(tmp_path, "time,acc\n0,1\nnan,2\n", "nantime.csv"), "'time'", "NaN")
 
 

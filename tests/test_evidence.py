@@ -23,8 +23,14 @@ TRUE = dict(m=1.0, c=0.5, k=158.0, force_variance=1.0, force_lengthscale=0.5)
 SDOF = {
     "system": {"type": "linear", "m": 1.0, "c": 0.5, "k": 158.0},
     "force": {"kernel": "matern32", "variance": 1.0, "lengthscale": 0.5},
-    "sensors": [{"column": "acc", "quantity": "acceleration", "dof": 0,
-                 "noise_std": {"prior": "lognormal", "mu": float(np.log(0.2)), "sigma": 1.0}}],
+    "sensors": [
+        {
+            "column": "acc",
+            "quantity": "acceleration",
+            "dof": 0,
+            "noise_std": {"prior": "lognormal", "mu": float(np.log(0.2)), "sigma": 1.0},
+        }
+    ],
     "inference": {"method": "kalman-mcmc", "iterations": 200, "burn_in": 100, "chains": 2},
 }
 
@@ -64,12 +70,10 @@ def _evidence_of_modes(config: dict, y: np.ndarray) -> dict:
     problem = config_from_dict(config, source="c.toml")
     names = tuple(problem.free)
     priors = tuple(problem.free[n].prior for n in names)
-    logpost, _ = make_log_posterior(problem.model, dict(problem.fixed), names, priors, y,
-                                    np.ones(y.shape, bool), DT)
+    logpost, _ = make_log_posterior(problem.model, dict(problem.fixed), names, priors, y, np.ones(y.shape, bool), DT)
     x0 = np.log(np.expm1(np.array([[problem.free[n].init for n in names]])))
     modes, _ = find_modes(logpost, x0)
-    return estimate._laplace_evidence(problem, [{"log_mass": m.log_mass, "laplace_ok": m.laplace_ok}
-                                                for m in modes])
+    return estimate._laplace_evidence(problem, [{"log_mass": m.log_mass, "laplace_ok": m.laplace_ok} for m in modes])
 
 
 def test_the_evidence_prefers_the_kernel_order_that_made_the_data():
@@ -77,9 +81,11 @@ def test_the_evidence_prefers_the_kernel_order_that_made_the_data():
     inferred) beats a Matern-1/2 one by many nats; a flat prior gives no evidence."""
     base = copy.deepcopy(SDOF)
     base["sensors"][0]["noise_std"] = 0.05
-    base["force"] = {"kernel": "matern52",
-                     "variance": {"prior": "lognormal", "mu": 0.0, "sigma": 1.0},
-                     "lengthscale": {"prior": "lognormal", "mu": float(np.log(0.5)), "sigma": 1.0}}
+    base["force"] = {
+        "kernel": "matern52",
+        "variance": {"prior": "lognormal", "mu": 0.0, "sigma": 1.0},
+        "lengthscale": {"prior": "lognormal", "mu": float(np.log(0.5)), "sigma": 1.0},
+    }
     problem = config_from_dict(base, source="c.toml")
     y, _ = _record(problem.model, TRUE, 400, DT, seed=2)
     ev = {}

@@ -18,10 +18,14 @@ def _config(method):
     return {
         "system": {"type": "linear", "m": 1.0, "c": 0.4, "k": 10.0},
         "force": {"kernel": "matern12", "variance": 1.0, "lengthscale": 0.5},
-        "sensors": [{"column": "disp", "quantity": "displacement", "noise_std": 0.02},
-                    {"column": "load", "quantity": "force", "noise_std": 0.05}],
-        "outputs": [{"name": "spring", "unit": "N", "displacement": [10.0]},
-                    {"name": "acc", "unit": "m/s^2", "acceleration": [1.0]}],
+        "sensors": [
+            {"column": "disp", "quantity": "displacement", "noise_std": 0.02},
+            {"column": "load", "quantity": "force", "noise_std": 0.05},
+        ],
+        "outputs": [
+            {"name": "spring", "unit": "N", "displacement": [10.0]},
+            {"name": "acc", "unit": "m/s^2", "acceleration": [1.0]},
+        ],
         "inference": inference,
     }
 
@@ -63,8 +67,11 @@ def test_pgas_with_a_load_cell_matches_the_exact_smoother():
     p = out.path_draws
     assert p["spring"].shape == p["displacement"].shape
     np.testing.assert_allclose(p["spring"], 10.0 * p["displacement"], rtol=1e-12)
-    np.testing.assert_allclose(out.state_mean["acc"][:, 0],
-                               (p["force"] - 0.4 * p["velocity"] - 10.0 * p["displacement"]).mean(axis=(0, 1))[:, 0],
-                               rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        out.state_mean["acc"][:, 0],
+        (p["force"] - 0.4 * p["velocity"] - 10.0 * p["displacement"]).mean(axis=(0, 1))[:, 0],
+        rtol=1e-9,
+        atol=1e-12,
+    )
     assert out.force_psd is not None and np.all(np.isfinite(out.force_psd["psd_mean"]))
     assert out.outputs == {"spring": "N", "acc": "m/s^2"}

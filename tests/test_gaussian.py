@@ -30,8 +30,13 @@ def _linear_case(order: int, T: int = 120, seed: int = 0, ndof: int = 1):
         sensors = [Sensor("displacement", 0, NOISE[0]), Sensor("acceleration", 0, NOISE[1])]
     else:
         system = LinearSystem(2, (1,))
-        params = dict(M=np.eye(2), C=np.array([[0.6, -0.2], [-0.2, 0.4]]),
-                      K=np.array([[30.0, -10.0], [-10.0, 10.0]]), force_variance=1.0, force_lengthscale=0.5)
+        params = dict(
+            M=np.eye(2),
+            C=np.array([[0.6, -0.2], [-0.2, 0.4]]),
+            K=np.array([[30.0, -10.0], [-10.0, 10.0]]),
+            force_variance=1.0,
+            force_lengthscale=0.5,
+        )
         sensors = [Sensor("acceleration", 0, NOISE[1]), Sensor("displacement", 1, NOISE[0])]
     model = LatentForceModel(system, Matern(order), sensors)
     pm = smc.ParticleModel(model, params, 0.05)
@@ -59,8 +64,9 @@ def test_linear_systems_give_the_exact_kalman_smoother(kind, order, ndof):
     ours = jax.jit(lambda y, m: gaussian_smoother(kind, pm, tr, y, m))(y, mask)
     sd = np.sqrt(np.diagonal(np.asarray(exact.covs), axis1=1, axis2=2))
     np.testing.assert_allclose(np.asarray(ours.means), np.asarray(exact.means), atol=1e-7 * sd.max(), rtol=0)
-    np.testing.assert_allclose(np.asarray(ours.covs), np.asarray(exact.covs),
-                               atol=1e-8 * np.max(np.abs(np.asarray(exact.covs))), rtol=0)
+    np.testing.assert_allclose(
+        np.asarray(ours.covs), np.asarray(exact.covs), atol=1e-8 * np.max(np.abs(np.asarray(exact.covs))), rtol=0
+    )
     assert float(ours.log_likelihood) == pytest.approx(float(exact.log_likelihood), rel=1e-9, abs=1e-8)
 
 
@@ -167,8 +173,9 @@ def test_ekf_and_ukf_as_methods_write_result_folders(tmp_path, monkeypatch):
     tree = az.from_netcdf(tmp_path / "fixed" / "posterior.nc")
     assert "force_mean" in tree.posterior and "force_sd" in tree.posterior
     prior = '{ prior = "lognormal", mu = -0.7, sigma = 1.0, init = 1.0 }'
-    (tmp_path / "ekf.toml").write_text(DUFFING_CONFIG.format(c=prior, method="ekf",
-                                                              extra="iterations = 60\nburn_in = 40\nchains = 2"))
+    (tmp_path / "ekf.toml").write_text(
+        DUFFING_CONFIG.format(c=prior, method="ekf", extra="iterations = 60\nburn_in = 40\nchains = 2")
+    )
     r = runner.invoke(app, ["estimate", "ekf.toml", "--out", "free"])
     assert r.exit_code == 0, r.output
     summary = json.loads((tmp_path / "free" / "summary.json").read_text())

@@ -30,11 +30,11 @@ def dense_gaussian(A, Q, H, R, m0, P0, y, mask):
     mx = np.concatenate(means)
     Sx = np.zeros((T * n, T * n))
     for t in range(T):
-        Sx[t * n:(t + 1) * n, t * n:(t + 1) * n] = covs[t]
+        Sx[t * n : (t + 1) * n, t * n : (t + 1) * n] = covs[t]
         for s in range(t):  # Cov(x_t, x_s) = A^{t-s} P_s
             C = np.linalg.matrix_power(A, t - s) @ covs[s]
-            Sx[t * n:(t + 1) * n, s * n:(s + 1) * n] = C
-            Sx[s * n:(s + 1) * n, t * n:(t + 1) * n] = C.T
+            Sx[t * n : (t + 1) * n, s * n : (s + 1) * n] = C
+            Sx[s * n : (s + 1) * n, t * n : (t + 1) * n] = C.T
     Hb = np.kron(np.eye(T), H)
     Rb = np.kron(np.eye(T), R)
     keep = mask.reshape(-1)
@@ -44,7 +44,7 @@ def dense_gaussian(A, Q, H, R, m0, P0, y, mask):
     K = Sx @ Hb.T @ np.linalg.inv(Sy)
     post_mean = mx + K @ (yv - Hb @ mx)
     post_cov = Sx - K @ Hb @ Sx
-    return ll, post_mean.reshape(T, n), np.array([post_cov[t * n:(t + 1) * n, t * n:(t + 1) * n] for t in range(T)])
+    return ll, post_mean.reshape(T, n), np.array([post_cov[t * n : (t + 1) * n, t * n : (t + 1) * n] for t in range(T)])
 
 
 def oma_like_model(noise=(1e-2, 5e-2)):
@@ -147,8 +147,11 @@ def test_steady_state_shortcut_is_exact(lengthscale, n_obs):
 def test_mdof_filter_smoother_match_dense_gaussian():
     M = jnp.diag(jnp.array([1.0, 2.0]))
     K = jnp.array([[30.0, -10.0], [-10.0, 10.0]])
-    model = LatentForceModel(LinearSystem(ndof=2, force_dofs=(0, 1)), Matern(1),
-                             [Sensor("acceleration", 0, 0.1), Sensor("displacement", 1, 0.01)])
+    model = LatentForceModel(
+        LinearSystem(ndof=2, force_dofs=(0, 1)),
+        Matern(1),
+        [Sensor("acceleration", 0, 0.1), Sensor("displacement", 1, 0.01)],
+    )
     params = dict(M=M, C=0.02 * K + 0.1 * M, K=K, force_variance=2.0, force_lengthscale=0.5)
     A, Q = model.discretise(params, 0.1)
     H, R = model.observation(params)

@@ -46,8 +46,12 @@ def test_discretisation_preserves_the_stationary_covariance(p):
     for dt in (1e-4, 0.01, 0.3, 5.0):
         A, Q = k.discretise(params, dt)
         np.testing.assert_allclose(np.asarray(A), np.asarray(expm_balanced(ss.F * dt)), rtol=1e-10, atol=1e-14)
-        np.testing.assert_allclose(np.asarray(A @ ss.Pinf @ A.T + Q), np.asarray(ss.Pinf), rtol=1e-9,
-                                   atol=1e-10 * float(jnp.max(jnp.abs(ss.Pinf))))
+        np.testing.assert_allclose(
+            np.asarray(A @ ss.Pinf @ A.T + Q),
+            np.asarray(ss.Pinf),
+            rtol=1e-9,
+            atol=1e-10 * float(jnp.max(jnp.abs(ss.Pinf))),
+        )
         assert np.all(np.linalg.eigvalsh(np.asarray(Q)) > -1e-12 * float(jnp.max(jnp.abs(Q))))
 
 
@@ -62,8 +66,7 @@ def test_expm_matches_eigendecomposition(n):
         exact = V @ np.diag(np.exp(lam)) @ np.linalg.inv(V)
         got = np.asarray(expm13(jnp.asarray(F)))
         np.testing.assert_allclose(got, exact, rtol=1e-9, atol=1e-11 * np.max(np.abs(exact)))
-        np.testing.assert_allclose(got, np.asarray(expm(jnp.asarray(F))), rtol=1e-9,
-                                   atol=1e-11 * np.max(np.abs(exact)))
+        np.testing.assert_allclose(got, np.asarray(expm(jnp.asarray(F))), rtol=1e-9, atol=1e-11 * np.max(np.abs(exact)))
     # a non-finite matrix (an MH proposal far out) comes back non-finite at once, no runaway squaring loop
     assert not np.any(np.isfinite(np.asarray(expm13(jnp.full((n, n), jnp.nan)))))
     # forward-mode derivative against the Fréchet derivative from the block-triangular identity
@@ -92,10 +95,16 @@ def test_sum_and_product_kernels():
     pa, pb = KernelParams(jnp.asarray(2.0), jnp.asarray(0.5)), KernelParams(jnp.asarray(1.0), jnp.asarray(2.0))
     tau = LAGS[:20]
     s, m = a + b, a * b
-    np.testing.assert_allclose(np.asarray(s.state_covariance(tau, (pa, pb))),
-                               closed_form(0, tau, 2.0, 0.5) + closed_form(1, tau, 1.0, 2.0), rtol=1e-9)
-    np.testing.assert_allclose(np.asarray(m.state_covariance(tau, (pa, pb))),
-                               closed_form(0, tau, 2.0, 0.5) * closed_form(1, tau, 1.0, 2.0), rtol=1e-8)
+    np.testing.assert_allclose(
+        np.asarray(s.state_covariance(tau, (pa, pb))),
+        closed_form(0, tau, 2.0, 0.5) + closed_form(1, tau, 1.0, 2.0),
+        rtol=1e-9,
+    )
+    np.testing.assert_allclose(
+        np.asarray(m.state_covariance(tau, (pa, pb))),
+        closed_form(0, tau, 2.0, 0.5) * closed_form(1, tau, 1.0, 2.0),
+        rtol=1e-8,
+    )
 
 
 def test_kernel_names_and_differentiability():
@@ -126,8 +135,11 @@ def test_mdof_augmented_model():
     M = jnp.diag(jnp.array([1.0, 2.0]))
     K = jnp.array([[30.0, -10.0], [-10.0, 10.0]])
     C = 0.02 * K + 0.1 * M
-    model = LatentForceModel(LinearSystem(ndof=2, force_dofs=(1,)), Matern(0),
-                             [Sensor("acceleration", 0, 0.1), Sensor("displacement", 1, 0.01)])
+    model = LatentForceModel(
+        LinearSystem(ndof=2, force_dofs=(1,)),
+        Matern(0),
+        [Sensor("acceleration", 0, 0.1), Sensor("displacement", 1, 0.01)],
+    )
     p = dict(M=M, C=C, K=K, force_variance=1.0, force_lengthscale=0.3)
     assert model.n_state == 5
     F, _ = model.continuous(p)

@@ -20,11 +20,17 @@ from latentforce.io.config import DEFAULT_BURN_IN, config_from_dict
 
 TRUE = dict(m=1.0, c=0.5, k=158.0, force_variance=1.0, force_lengthscale=0.5)
 SDOF = {
-    "system": {"type": "linear", "m": 1.0,
-               "c": {"prior": "lognormal", "mu": float(np.log(0.5)), "sigma": 1.0, "init": 0.8},
-               "k": {"prior": "lognormal", "mu": float(np.log(150.0)), "sigma": 0.5, "init": 120.0}},
-    "force": {"kernel": "matern32", "variance": {"prior": "lognormal", "mu": 0.0, "sigma": 2.0, "init": 2.0},
-              "lengthscale": {"prior": "lognormal", "mu": 0.0, "sigma": 1.0, "init": 0.3}},
+    "system": {
+        "type": "linear",
+        "m": 1.0,
+        "c": {"prior": "lognormal", "mu": float(np.log(0.5)), "sigma": 1.0, "init": 0.8},
+        "k": {"prior": "lognormal", "mu": float(np.log(150.0)), "sigma": 0.5, "init": 120.0},
+    },
+    "force": {
+        "kernel": "matern32",
+        "variance": {"prior": "lognormal", "mu": 0.0, "sigma": 2.0, "init": 2.0},
+        "lengthscale": {"prior": "lognormal", "mu": 0.0, "sigma": 1.0, "init": 0.3},
+    },
     "sensors": [{"column": "acc", "quantity": "acceleration", "dof": 0, "noise_std": 0.05}],
     "inference": {"method": "kalman-mcmc"},
 }
@@ -83,9 +89,11 @@ def test_laplace_reports_two_modes_and_starts_chains_in_each():
 
 def test_a_point_where_the_optimiser_stopped_short_is_no_mode():
     """A saddle (a start on a ridge's symmetry axis stays there) is rejected and listed."""
+
     def logdensity(x):  # two modes at x0 = +-4 (4 tanh 16, to 1e-13), a saddle at x0 = 0
-        return jnp.logaddexp(-0.5 * jnp.sum((x - jnp.array([4.0, 0.0])) ** 2),
-                             -0.5 * jnp.sum((x + jnp.array([4.0, 0.0])) ** 2))
+        return jnp.logaddexp(
+            -0.5 * jnp.sum((x - jnp.array([4.0, 0.0])) ** 2), -0.5 * jnp.sum((x + jnp.array([4.0, 0.0])) ** 2)
+        )
 
     # Alone, the saddle is still the best start known, and it says it is no mode.
     modes, record = laplace.find_modes(logdensity, np.array([[0.0, 0.5]]))
@@ -100,8 +108,19 @@ def test_chains_start_dispersed_around_the_mode_of_a_long_record():
     chains start, within a few Laplace sd, never at ``init`` (which is far off)."""
     problem = config_from_dict(SDOF)
     y, mask, _ = _record(problem, 5000)
-    out = run_kalman_mcmc(jax.random.key(1), problem.model, dict(problem.fixed), _free(problem), y, mask, 0.02,
-                          iterations=None, burn_in=500, chains=4, max_time=120)
+    out = run_kalman_mcmc(
+        jax.random.key(1),
+        problem.model,
+        dict(problem.fixed),
+        _free(problem),
+        y,
+        mask,
+        0.02,
+        iterations=None,
+        burn_in=500,
+        chains=4,
+        max_time=120,
+    )
     start = out.start
     assert start["method"] == "laplace" and len(start["modes"]) == 1
     mode = np.asarray(start["modes"][0]["x"])
@@ -128,13 +147,35 @@ def test_chains_start_dispersed_around_the_mode_of_a_long_record():
 def test_fixed_iterations_and_an_unconverged_auto_run_say_so():
     problem = config_from_dict(SDOF)
     y, mask, _ = _record(problem, 300, seed=4)
-    out = run_kalman_mcmc(jax.random.key(2), problem.model, dict(problem.fixed), _free(problem), y, mask, 0.02,
-                          iterations=30, burn_in=20, chains=2)
+    out = run_kalman_mcmc(
+        jax.random.key(2),
+        problem.model,
+        dict(problem.fixed),
+        _free(problem),
+        y,
+        mask,
+        0.02,
+        iterations=30,
+        burn_in=20,
+        chains=2,
+    )
     assert out.draws["k"].shape == (2, 30)
     assert not out.convergence["converged"]  # 30 draws cannot show an ESS of 400
     # "auto" with no time left stops after one chunk, not converged, and says why not.
-    out = run_kalman_mcmc(jax.random.key(2), problem.model, dict(problem.fixed), _free(problem), y, mask, 0.02,
-                          iterations=None, burn_in=20, chains=2, max_time=0.0, chunk=20)
+    out = run_kalman_mcmc(
+        jax.random.key(2),
+        problem.model,
+        dict(problem.fixed),
+        _free(problem),
+        y,
+        mask,
+        0.02,
+        iterations=None,
+        burn_in=20,
+        chains=2,
+        max_time=0.0,
+        chunk=20,
+    )
     assert out.draws["k"].shape == (2, 20)
     assert not out.convergence["converged"] and out.convergence["worst"]
 
@@ -146,12 +187,15 @@ def test_streamed_mixture_equals_the_mixture_of_every_stored_smoother():
     mask[10:14, 0] = False
     rng = np.random.default_rng(0)
     chains, n = 2, 40
-    draws = {"c": 0.5 * np.exp(0.2 * rng.standard_normal((chains, n))),
-             "k": 158.0 * np.exp(0.02 * rng.standard_normal((chains, n))),
-             "force_variance": np.exp(0.3 * rng.standard_normal((chains, n))),
-             "force_lengthscale": 0.5 * np.exp(0.1 * rng.standard_normal((chains, n)))}
-    mix = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask, 0.02,
-                                    thin_draws=5)
+    draws = {
+        "c": 0.5 * np.exp(0.2 * rng.standard_normal((chains, n))),
+        "k": 158.0 * np.exp(0.02 * rng.standard_normal((chains, n))),
+        "force_variance": np.exp(0.3 * rng.standard_normal((chains, n))),
+        "force_lengthscale": 0.5 * np.exp(0.1 * rng.standard_normal((chains, n))),
+    }
+    mix = mixture.mixture_posterior(
+        jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask, 0.02, thin_draws=5
+    )
     per_chain, n_paths = mixture.mixture_size(120, chains, n, 5, 3)
     assert mix.n_mix == chains * per_chain and mix.paths["force"].shape == (chains, n_paths, 120, 1)
     # Every mixed draw's smoother, stored, then mixed by the law of total variance.
@@ -160,8 +204,7 @@ def test_streamed_mixture_equals_the_mixture_of_every_stored_smoother():
     @jax.jit
     def smoother(theta):
         A, Q, H, R, m0, P0 = linear_gaussian(problem.model, dict(problem.fixed, **theta), 0.02)
-        sm = rts_smoother(A, kalman_filter(A, Q, H, R, m0, P0, jnp.asarray(np.where(mask, y, 0.0)),
-                                           jnp.asarray(mask)))
+        sm = rts_smoother(A, kalman_filter(A, Q, H, R, m0, P0, jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask)))
         return sm.means, jnp.diagonal(sm.covs, axis1=-2, axis2=-1)
 
     means, variances = [], []
@@ -197,8 +240,12 @@ def test_inference_defaults_are_auto_and_kalman_nuts_is_a_method():
     d = copy.deepcopy(SDOF)
     d["inference"] = {"method": "kalman-nuts", "iterations": 300, "target_ess": 100, "max_time": 5}
     p = config_from_dict(d)
-    assert (p.inference.method, p.inference.iterations, p.inference.target_ess, p.inference.max_time) == \
-        ("kalman-nuts", 300, 100, 5)
+    assert (p.inference.method, p.inference.iterations, p.inference.target_ess, p.inference.max_time) == (
+        "kalman-nuts",
+        300,
+        100,
+        5,
+    )
     d["inference"] = {"iterations": "forever"}
     with pytest.raises(latentforce.LatentForceError, match="iterations"):
         config_from_dict(d, source="c.toml")
@@ -206,11 +253,20 @@ def test_inference_defaults_are_auto_and_kalman_nuts_is_a_method():
 
 # ----- the steady-state smoother of long complete records --------------------------
 def _two_dof():
-    d = {"system": {"type": "linear", "M": [[1.0, 0.0], [0.0, 2.0]], "C": [[0.3, -0.1], [-0.1, 0.2]],
-                    "K": [[200.0, -100.0], [-100.0, 100.0]], "force_dofs": [1]},
-         "force": {"kernel": "matern52", "variance": 1.0, "lengthscale": 0.5},
-         "sensors": [{"column": "a0", "quantity": "acceleration", "dof": 0, "noise_std": 0.1},
-                     {"column": "d1", "quantity": "displacement", "dof": 1, "noise_std": 1e-3}]}
+    d = {
+        "system": {
+            "type": "linear",
+            "M": [[1.0, 0.0], [0.0, 2.0]],
+            "C": [[0.3, -0.1], [-0.1, 0.2]],
+            "K": [[200.0, -100.0], [-100.0, 100.0]],
+            "force_dofs": [1],
+        },
+        "force": {"kernel": "matern52", "variance": 1.0, "lengthscale": 0.5},
+        "sensors": [
+            {"column": "a0", "quantity": "acceleration", "dof": 0, "noise_std": 0.1},
+            {"column": "d1", "quantity": "displacement", "dof": 1, "noise_std": 1e-3},
+        ],
+    }
     return config_from_dict(d)
 
 
@@ -220,8 +276,7 @@ def test_steady_smoother_equals_the_full_smoother(which):
     from latentforce.inference.kalman import sample_smoothed_trajectory
 
     problem = config_from_dict(SDOF) if which == "sdof" else _two_dof()
-    params = dict(problem.fixed, **({} if which == "two-dof" else
-                                    {n: TRUE[n] for n in problem.free}))
+    params = dict(problem.fixed, **({} if which == "two-dof" else {n: TRUE[n] for n in problem.free}))
     A, Q, H, R, m0, P0 = linear_gaussian(problem.model, params, 0.02)
     y = np.random.default_rng(1).normal(size=(3000, H.shape[0]))
     sm = jax.jit(lambda y_: steady.steady_smoother(A, Q, H, R, m0, P0, y_, jax.random.key(0), K=1024))(y)
@@ -276,18 +331,18 @@ def test_mixture_redoes_draws_whose_transient_is_too_short(monkeypatch):
     problem = config_from_dict(SDOF)
     y, mask, _ = _record(problem, 800, seed=7)
     rng = np.random.default_rng(3)
-    draws = {"c": 0.5 * np.exp(0.2 * rng.standard_normal((2, 8))),
-             "k": 158.0 * np.exp(0.02 * rng.standard_normal((2, 8))),
-             "force_variance": np.exp(0.3 * rng.standard_normal((2, 8))),
-             "force_lengthscale": 0.5 * np.exp(0.1 * rng.standard_normal((2, 8)))}
+    draws = {
+        "c": 0.5 * np.exp(0.2 * rng.standard_normal((2, 8))),
+        "k": 158.0 * np.exp(0.02 * rng.standard_normal((2, 8))),
+        "force_variance": np.exp(0.3 * rng.standard_normal((2, 8))),
+        "force_lengthscale": 0.5 * np.exp(0.1 * rng.standard_normal((2, 8))),
+    }
     kw = dict(thin_draws=2, point={k: float(v[0, 0]) for k, v in draws.items()})
     monkeypatch.setattr(steady, "TRANSIENT", 200)
     monkeypatch.setattr(steady, "transient_for", lambda steps, T: 4)
-    short = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask,
-                                      0.02, **kw)
+    short = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask, 0.02, **kw)
     monkeypatch.setattr(steady, "TRANSIENT", 10**6)  # never applies: the full smoother
-    full = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask,
-                                     0.02, **kw)
+    full = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask, 0.02, **kw)
     for name in ("displacement", "velocity", "force"):
         np.testing.assert_allclose(short.moments[name][0], full.moments[name][0], rtol=1e-8, atol=1e-12)
         np.testing.assert_allclose(short.moments[name][1], full.moments[name][1], rtol=1e-8)
@@ -301,15 +356,35 @@ def test_streamed_mixture_on_a_long_record_uses_the_steady_smoother_exactly(monk
     y, mask, _ = _record(problem, 800, seed=6)
     assert steady.applies(800, True)
     rng = np.random.default_rng(2)
-    draws = {"c": 0.5 * np.exp(0.2 * rng.standard_normal((2, 16))),
-             "k": 158.0 * np.exp(0.02 * rng.standard_normal((2, 16))),
-             "force_variance": np.exp(0.3 * rng.standard_normal((2, 16))),
-             "force_lengthscale": 0.5 * np.exp(0.1 * rng.standard_normal((2, 16)))}
-    fast = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask,
-                                     0.02, thin_draws=2, point={k: 1.0 * v[0, 0] for k, v in draws.items()})
+    draws = {
+        "c": 0.5 * np.exp(0.2 * rng.standard_normal((2, 16))),
+        "k": 158.0 * np.exp(0.02 * rng.standard_normal((2, 16))),
+        "force_variance": np.exp(0.3 * rng.standard_normal((2, 16))),
+        "force_lengthscale": 0.5 * np.exp(0.1 * rng.standard_normal((2, 16))),
+    }
+    fast = mixture.mixture_posterior(
+        jax.random.key(0),
+        problem.model,
+        dict(problem.fixed),
+        draws,
+        y,
+        mask,
+        0.02,
+        thin_draws=2,
+        point={k: 1.0 * v[0, 0] for k, v in draws.items()},
+    )
     monkeypatch.setattr(steady, "TRANSIENT", 10**6)  # never applies: the full smoother
-    full = mixture.mixture_posterior(jax.random.key(0), problem.model, dict(problem.fixed), draws, y, mask,
-                                     0.02, thin_draws=2, point={k: 1.0 * v[0, 0] for k, v in draws.items()})
+    full = mixture.mixture_posterior(
+        jax.random.key(0),
+        problem.model,
+        dict(problem.fixed),
+        draws,
+        y,
+        mask,
+        0.02,
+        thin_draws=2,
+        point={k: 1.0 * v[0, 0] for k, v in draws.items()},
+    )
     for name in ("displacement", "velocity", "force"):
         np.testing.assert_allclose(fast.moments[name][0], full.moments[name][0], rtol=1e-8, atol=1e-12)
         np.testing.assert_allclose(fast.moments[name][1], full.moments[name][1], rtol=1e-8)

@@ -25,8 +25,11 @@ def test_rwm_recovers_correlated_gaussian():
     logdensity = lambda x: -0.5 * (x - mean) @ prec @ (x - mean)
     chains, burn, n = 4, 1500, 4000
     states = jax.vmap(lambda x: mcmc.init(x, logdensity, jnp.ones(2)))(jnp.zeros((chains, 2)) + 3.0)
-    burn_fn = jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, burn, adapt=True,
-                                                          adapt_shape_at=(500, 1000), target=0.3)))
+    burn_fn = jit(
+        jax.vmap(
+            lambda k, s: mcmc.run_chain(k, s, logdensity, burn, adapt=True, adapt_shape_at=(500, 1000), target=0.3)
+        )
+    )
     main_fn = jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, n, adapt=False, target=0.3)))
     keys = jax.random.split(jax.random.key(0), 2 * chains)
     states, _, _ = burn_fn(keys[:chains], states)
@@ -70,8 +73,9 @@ def test_kalman_mcmc_matches_grid_posterior_of_one_parameter():
     @jax.vmap
     def log_post_k(k):
         params = dict(fixed, k=k)
-        return (log_likelihood(*linear_gaussian(model, params, 0.05), jnp.asarray(y), jnp.asarray(mask))
-                + prior.log_prob(k))
+        return log_likelihood(
+            *linear_gaussian(model, params, 0.05), jnp.asarray(y), jnp.asarray(mask)
+        ) + prior.log_prob(k)
 
     grid = np.linspace(2.0, 20.0, 721)
     lp = np.asarray(log_post_k(jnp.asarray(grid)))
@@ -81,8 +85,9 @@ def test_kalman_mcmc_matches_grid_posterior_of_one_parameter():
     mean = integrate.trapezoid(grid * w, grid) / z
     sd = np.sqrt(integrate.trapezoid((grid - mean) ** 2 * w, grid) / z)
 
-    out = run_kalman_mcmc(jax.random.key(0), model, fixed, {"k": (prior, 12.0)}, y, mask, 0.05,
-                          iterations=3000, burn_in=1000, chains=4)
+    out = run_kalman_mcmc(
+        jax.random.key(0), model, fixed, {"k": (prior, 12.0)}, y, mask, 0.05, iterations=3000, burn_in=1000, chains=4
+    )
     draws = out.draws["k"]
     ess = float(az.ess(draws))
     assert ess > 300
@@ -107,8 +112,9 @@ def _proposal(means, covs, log_masses, scale=1.0, df=5.0):
     from latentforce.inference import independence
     from latentforce.inference.laplace import Mode
 
-    modes = [Mode(np.asarray(m, float), 0.0, np.asarray(c, float), True, lm)
-             for m, c, lm in zip(means, covs, log_masses)]
+    modes = [
+        Mode(np.asarray(m, float), 0.0, np.asarray(c, float), True, lm) for m, c, lm in zip(means, covs, log_masses)
+    ]
     return independence.from_modes(modes, scale=scale, df=df)
 
 
@@ -122,8 +128,9 @@ def test_independence_density_is_the_t_mixture():
     prop = _proposal(means, covs, [0.0, np.log(0.25)], scale=1.3, df=5.0)
     x = np.array([[0.2, 0.7], [2.5, -2.0], [10.0, 10.0]])
     w = np.array([0.8, 0.2])
-    expected = np.log(sum(wi * stats.multivariate_t(m, 1.3**2 * np.asarray(c), df=5.0).pdf(x)
-                          for wi, m, c in zip(w, means, covs)))
+    expected = np.log(
+        sum(wi * stats.multivariate_t(m, 1.3**2 * np.asarray(c), df=5.0).pdf(x) for wi, m, c in zip(w, means, covs))
+    )
     got = np.array([float(independence.log_density(prop, jnp.asarray(xi))) for xi in x])
     np.testing.assert_allclose(got, expected, rtol=1e-12)
     # draws: the mixture's mean and covariance (t variance nu / (nu - 2) times the scale matrix)
@@ -138,8 +145,11 @@ def _run_mixed(logdensity, prop, x0, *, chains=4, burn=500, n=4000, seed=0):
     p = x0.shape[-1]
     states = jax.vmap(lambda x: mcmc.init(x, logdensity, 0.5 * jnp.ones(p)))(x0)
     states = states._replace(imh_accept=jnp.zeros(chains), imh_count=jnp.zeros(chains))
-    burn_fn = jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, burn, adapt=True, adapt_shape_at=(250,),
-                                                          independent=prop)))
+    burn_fn = jit(
+        jax.vmap(
+            lambda k, s: mcmc.run_chain(k, s, logdensity, burn, adapt=True, adapt_shape_at=(250,), independent=prop)
+        )
+    )
     main_fn = jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, n, adapt=False, independent=prop)))
     keys = jax.random.split(jax.random.key(seed), 2 * chains)
     states, _, _ = burn_fn(keys[:chains], states)
@@ -157,8 +167,8 @@ def test_mixed_kernel_targets_a_skewed_posterior_exactly_with_a_poor_fit():
 
     from scipy import special
 
-    m0 = float(special.digamma(shape))                # E[log G], G ~ Gamma(3)
-    v0 = float(special.polygamma(1, shape))          # Var[log G]
+    m0 = float(special.digamma(shape))  # E[log G], G ~ Gamma(3)
+    v0 = float(special.polygamma(1, shape))  # Var[log G]
     truth_mean = np.array([m0, m0])
     truth_cov = np.array([[v0, v0], [v0, v0 + 0.25]])
     prop = _proposal([[m0 + 0.4, m0 - 0.3]], [[[0.2, 0.1], [0.1, 0.3]]], [0.0])
@@ -171,8 +181,13 @@ def test_mixed_kernel_targets_a_skewed_posterior_exactly_with_a_poor_fit():
         ess = float(az.ess(xs[..., i]))
         assert abs(xs[..., i].mean() - truth_mean[i]) < 5 * np.sqrt(truth_cov[i, i] / ess)
         assert abs(xs[..., i].var() / truth_cov[i, i] - 1.0) < 5 * np.sqrt(2 / ess) + 0.02
-    assert abs(np.corrcoef(xs[..., 0].ravel(), xs[..., 1].ravel())[0, 1]
-               - truth_cov[0, 1] / np.sqrt(truth_cov[0, 0] * truth_cov[1, 1])) < 0.05
+    assert (
+        abs(
+            np.corrcoef(xs[..., 0].ravel(), xs[..., 1].ravel())[0, 1]
+            - truth_cov[0, 1] / np.sqrt(truth_cov[0, 0] * truth_cov[1, 1])
+        )
+        < 0.05
+    )
     assert float(az.rhat(xs[..., 0])) < 1.02
 
 
@@ -188,8 +203,7 @@ def test_independence_steps_carry_a_well_fitted_posterior():
     mean = jnp.asarray(rng.normal(size=p))
     logdensity = lambda x: -0.5 * (x - mean) @ prec @ (x - mean)
     prop = _proposal([np.asarray(mean)], [cov], [0.0], scale=1.25, df=10.0)
-    _, _, xs, infos = _run_mixed(logdensity, prop, jnp.asarray(np.asarray(mean) + 3 * rng.normal(size=(4, p))),
-                                 n=1000)
+    _, _, xs, infos = _run_mixed(logdensity, prop, jnp.asarray(np.asarray(mean) + 3 * rng.normal(size=(4, p))), n=1000)
     ind = np.asarray(infos.independent)
     assert ind.mean() > 0.6
     assert np.asarray(infos.accepted)[ind].mean() > 0.4
@@ -198,8 +212,9 @@ def test_independence_steps_carry_a_well_fitted_posterior():
     x0 = jnp.asarray(np.asarray(mean) + 3 * rng.normal(size=(4, p)))
     states = jax.vmap(lambda x: mcmc.init(x, logdensity, 0.5 * jnp.ones(p)))(x0)
     keys = jax.random.split(jax.random.key(0), 8)
-    states, _, _ = jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, 500, adapt=True,
-                                                               adapt_shape_at=(250,))))(keys[:4], states)
+    states, _, _ = jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, 500, adapt=True, adapt_shape_at=(250,))))(
+        keys[:4], states
+    )
     _, xs_rw, _ = jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, 1000, adapt=False)))(keys[4:], states)
     ess_rw = min(float(az.ess(np.asarray(xs_rw)[..., i])) for i in range(p))
     assert ess > 4 * ess_rw, (ess, ess_rw)

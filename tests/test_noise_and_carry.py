@@ -28,8 +28,14 @@ TRUE = dict(m=1.0, c=0.5, k=158.0, force_variance=1.0, force_lengthscale=0.5)
 SDOF = {
     "system": {"type": "linear", "m": 1.0, "c": 0.5, "k": 158.0},
     "force": {"kernel": "matern32", "variance": 1.0, "lengthscale": 0.5},
-    "sensors": [{"column": "acc", "quantity": "acceleration", "dof": 0,
-                 "noise_std": {"prior": "lognormal", "mu": float(np.log(0.2)), "sigma": 1.0}}],
+    "sensors": [
+        {
+            "column": "acc",
+            "quantity": "acceleration",
+            "dof": 0,
+            "noise_std": {"prior": "lognormal", "mu": float(np.log(0.2)), "sigma": 1.0},
+        }
+    ],
     "inference": {"method": "kalman-mcmc"},
 }
 
@@ -74,8 +80,15 @@ def test_an_inferred_noise_keeps_its_channels_unit():
 
     problem = config_from_dict(SDOF)
     unit = resolve_unit("acceleration", "mm/s^2", None, who="sensor 'acc'", where="")
-    dataset = Dataset(time=np.arange(3) * 0.02, dt=0.02, values=np.zeros((3, 1)), mask=np.ones((3, 1), bool),
-                      columns=["acc"], truth={}, units={"acc": unit})
+    dataset = Dataset(
+        time=np.arange(3) * 0.02,
+        dt=0.02,
+        values=np.zeros((3, 1)),
+        mask=np.ones((3, 1), bool),
+        columns=["acc"],
+        truth={},
+        units={"acc": unit},
+    )
     model = noise_in_si(problem, dataset).model
     assert model.sensors[0].noise_scale == pytest.approx(1e-3)
     R = np.asarray(model.noise_covariance({"noise_std_acc": 70.0}))
@@ -87,8 +100,18 @@ def test_kalman_mcmc_recovers_a_simulated_noise_level():
     true_sd = 0.05
     y, mask = _record(problem.model, {**TRUE, "noise_std_acc": true_sd}, 1500, seed=3)
     free = {n: (s.prior, s.init) for n, s in problem.free.items()}
-    out = run_kalman_mcmc(jax.random.key(0), problem.model, dict(problem.fixed), free, y, mask, 0.02,
-                          iterations=600, burn_in=300, chains=2)
+    out = run_kalman_mcmc(
+        jax.random.key(0),
+        problem.model,
+        dict(problem.fixed),
+        free,
+        y,
+        mask,
+        0.02,
+        iterations=600,
+        burn_in=300,
+        chains=2,
+    )
     draws = np.asarray(out.draws["noise_std_acc"]).ravel()
     mean, sd = draws.mean(), draws.std()
     # started at the prior's median, 0.2, four times the truth
@@ -98,10 +121,12 @@ def test_kalman_mcmc_recovers_a_simulated_noise_level():
 
 def test_noise_config_errors_name_the_sensor():
     d = copy.deepcopy(SDOF)
-    d["sensors"].append({"column": "acc-1", "quantity": "acceleration", "dof": 0,
-                         "noise_std": {"prior": "halfnormal", "sd": 0.1}})
-    d["sensors"].append({"column": "acc_1", "quantity": "displacement", "dof": 0,
-                         "noise_std": {"prior": "halfnormal", "sd": 0.1}})
+    d["sensors"].append(
+        {"column": "acc-1", "quantity": "acceleration", "dof": 0, "noise_std": {"prior": "halfnormal", "sd": 0.1}}
+    )
+    d["sensors"].append(
+        {"column": "acc_1", "quantity": "displacement", "dof": 0, "noise_std": {"prior": "halfnormal", "sd": 0.1}}
+    )
     with pytest.raises(LatentForceError, match=r"\[\[sensors\]\]\[2\]\.noise_std: columns 'acc-1' and 'acc_1'"):
         config_from_dict(d)
     d = copy.deepcopy(SDOF)
@@ -160,8 +185,7 @@ def calibration(tmp_path_factory):
     runner = CliRunner()
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(root)
-        r = runner.invoke(app, ["simulate", "sim.toml", "--out", "data.csv", "--duration", "20",
-                                "--sample-rate", "20"])
+        r = runner.invoke(app, ["simulate", "sim.toml", "--out", "data.csv", "--duration", "20", "--sample-rate", "20"])
         assert r.exit_code == 0, r.output
         r = runner.invoke(app, ["estimate", "calib.toml", "--out", "calib"])
         assert r.exit_code == 0, r.output
@@ -169,11 +193,16 @@ def calibration(tmp_path_factory):
 
 
 def test_a_carried_prior_is_the_calibration_marginal(calibration):
-    d = {"system": {"type": "linear", "m": 1.0,
-                    "c": {"prior": "posterior", "from": "calib"},
-                    "k": {"prior": "posterior", "from": "calib", "param": "k"}},
-         "force": {"kernel": "matern32", "variance": 2.0, "lengthscale": 0.5},
-         "sensors": [{"column": "acc", "quantity": "acceleration", "noise_std": 0.05}]}
+    d = {
+        "system": {
+            "type": "linear",
+            "m": 1.0,
+            "c": {"prior": "posterior", "from": "calib"},
+            "k": {"prior": "posterior", "from": "calib", "param": "k"},
+        },
+        "force": {"kernel": "matern32", "variance": 2.0, "lengthscale": 0.5},
+        "sensors": [{"column": "acc", "quantity": "acceleration", "noise_std": 0.05}],
+    }
     problem = config_from_dict(d, base_dir=calibration)
     with xr.open_datatree(calibration / "calib" / "posterior.nc") as tree:
         post = tree["posterior"].to_dataset()
@@ -203,9 +232,11 @@ def test_a_carried_prior_is_the_calibration_marginal(calibration):
 
 def test_a_monitoring_run_records_its_carried_priors(calibration):
     text = CALIB.format(iterations=100).replace(
-        '{ prior = "lognormal", mu = -0.7, sigma = 1.0, init = 0.5 }', '{ prior = "posterior", from = "calib" }')
-    text = text.replace('{ prior = "lognormal", mu = 2.3, sigma = 1.0, init = 10.0 }',
-                        '{ prior = "posterior", from = "calib" }')
+        '{ prior = "lognormal", mu = -0.7, sigma = 1.0, init = 0.5 }', '{ prior = "posterior", from = "calib" }'
+    )
+    text = text.replace(
+        '{ prior = "lognormal", mu = 2.3, sigma = 1.0, init = 10.0 }', '{ prior = "posterior", from = "calib" }'
+    )
     text = text.replace('[[sensors]]\ncolumn = "disp"\nquantity = "displacement"\nnoise_std = 0.002\n', "")
     (calibration / "monitor.toml").write_text(text)
     with pytest.MonkeyPatch.context() as mp:
@@ -219,14 +250,18 @@ def test_a_monitoring_run_records_its_carried_priors(calibration):
 
 
 def test_carry_errors_name_the_folder_and_the_parameters(calibration):
-    base = {"system": {"type": "linear", "m": 1.0, "c": 0.4, "k": 10.0},
-            "force": {"kernel": "matern32", "variance": 2.0, "lengthscale": 0.5},
-            "sensors": [{"column": "acc", "quantity": "acceleration", "noise_std": 0.05}]}
-    cases = [({"prior": "posterior", "from": "missing"}, "does not exist"),
-             ({"prior": "posterior", "from": "calib", "param": "kk"}, "sampled parameters are: c, k"),
-             ({"prior": "posterior", "from": "calib", "param": "m"}, "it was fixed at 1"),
-             ({"prior": "posterior", "from": "calib", "mean": 3.0}, r"unknown key .*Valid keys: prior, from"),
-             ({"prior": "posterior"}, "needs from")]
+    base = {
+        "system": {"type": "linear", "m": 1.0, "c": 0.4, "k": 10.0},
+        "force": {"kernel": "matern32", "variance": 2.0, "lengthscale": 0.5},
+        "sensors": [{"column": "acc", "quantity": "acceleration", "noise_std": 0.05}],
+    }
+    cases = [
+        ({"prior": "posterior", "from": "missing"}, "does not exist"),
+        ({"prior": "posterior", "from": "calib", "param": "kk"}, "sampled parameters are: c, k"),
+        ({"prior": "posterior", "from": "calib", "param": "m"}, "it was fixed at 1"),
+        ({"prior": "posterior", "from": "calib", "mean": 3.0}, r"unknown key .*Valid keys: prior, from"),
+        ({"prior": "posterior"}, "needs from"),
+    ]
     for table, words in cases:
         d = copy.deepcopy(base)
         d["system"]["k"] = table

@@ -32,10 +32,11 @@ PARAMS = dict(M=M, C=C, K=K, force_variance=4.0, force_lengthscale=0.6)
 def two_dof_config(outputs=(), method="kalman", sensors=None, **system):
     """A 2-DOF shear-type system, the force at DOF 1, a strain gauge, a load cell, an accelerometer."""
     return {
-        "system": {"type": "linear", "M": M.tolist(), "C": C.tolist(), "K": K.tolist(), "force_dofs": [1],
-                   **system},
+        "system": {"type": "linear", "M": M.tolist(), "C": C.tolist(), "K": K.tolist(), "force_dofs": [1], **system},
         "force": {"kernel": "matern32", "variance": 4.0, "lengthscale": 0.6},
-        "sensors": sensors if sensors is not None else [
+        "sensors": sensors
+        if sensors is not None
+        else [
             {"column": "gauge", "quantity": "strain", "coefficients": [-1.0e-3, 1.0e-3], "noise_std": 2e-4},
             {"column": "load", "quantity": "force", "dof": 1, "noise_std": 0.3},
             {"column": "acc0", "quantity": "acceleration", "dof": 0, "noise_std": 0.2},
@@ -59,8 +60,12 @@ def test_strain_and_force_rows_are_the_readout():
     np.testing.assert_allclose(np.diag(R), [4e-8, 0.09, 0.04])
     pm = ParticleModel(model, PARAMS, 0.05)
     nm = model.n_mech
-    np.testing.assert_allclose(pm._observe(jnp.asarray(x[:nm]), jnp.asarray(x[nm:])),
-                               model.observe(PARAMS, jnp.asarray(x)), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(
+        pm._observe(jnp.asarray(x[:nm]), jnp.asarray(x[nm:])),
+        model.observe(PARAMS, jnp.asarray(x)),
+        rtol=1e-12,
+        atol=1e-14,
+    )
     np.testing.assert_allclose(pm.offset(jnp.asarray(x[:nm])) + pm.D @ x[nm:], H @ x, rtol=1e-10, atol=1e-12)
 
 
@@ -142,8 +147,12 @@ def test_output_config_errors():
     _bad(two_dof_config([drift, dict(drift)]), "[[outputs]][1].name", "'drift'", "already used by output 0")
     _bad(two_dof_config([{"name": "force", "force": [1.0]}]), "[[outputs]][0].name", "'force'", "taken")
     _bad(two_dof_config([{"name": "displacement_1", "force": [1.0]}]), "[[outputs]][0].name", "taken")
-    _bad(two_dof_config([{"name": "drift", "displacement": [1.0]}]), "[[outputs]][0].displacement",
-         "1 coefficient(s)", "2 DOF(s)")
+    _bad(
+        two_dof_config([{"name": "drift", "displacement": [1.0]}]),
+        "[[outputs]][0].displacement",
+        "1 coefficient(s)",
+        "2 DOF(s)",
+    )
     _bad(two_dof_config([{"name": "shear", "force": [1.0, 2.0]}]), "[[outputs]][0].force", "1 latent force(s)")
     _bad(two_dof_config([{"name": "nothing", "unit": "m"}]), "[[outputs]][0]", "no coefficients")
     _bad(two_dof_config([{"name": "2bad", "force": [1.0]}]), "[[outputs]][0].name", "start with a letter")
@@ -210,6 +219,7 @@ def test_outputs_under_kalman_match_dense_gaussian(tmp_path):
         assert f"{spec['name']}_mean" in header and f"{spec['name']}_sd" in header
         assert (tmp_path / "out" / "figures" / f"output_{spec['name']}.png").is_file()
     import xarray as xr
+
     with xr.open_datatree(tmp_path / "out" / "posterior.nc", engine="h5netcdf") as tree:
         v = tree["posterior"]["drift_sd"]
         assert v.attrs["units"] == "m"
@@ -235,10 +245,11 @@ def test_output_named_like_a_component_reads_back(tmp_path):
 def test_outputs_mixture_matches_hand_mixture_of_two_parameter_values():
     """kalman-mcmc's outputs: the mixture over two stiffness values equals the hand mixture
     (mean of G m, mean of G P G^T plus the variance of G m), G depending on the draw."""
-    model = LatentForceModel(LinearSystem(), Matern(1), [Sensor("acceleration", 0, 0.2),
-                                                         Sensor("force", 0, 0.5)])
-    outputs = (OutputSpec("spring", "N", displacement=(1.0,)),  # fixed G
-               OutputSpec("acc", "m/s^2", acceleration=(1.0,)))  # G depends on k
+    model = LatentForceModel(LinearSystem(), Matern(1), [Sensor("acceleration", 0, 0.2), Sensor("force", 0, 0.5)])
+    outputs = (
+        OutputSpec("spring", "N", displacement=(1.0,)),  # fixed G
+        OutputSpec("acc", "m/s^2", acceleration=(1.0,)),
+    )  # G depends on k
     fixed = dict(m=1.0, c=0.4, force_variance=1.0, force_lengthscale=0.5)
     ks = np.array([6.0, 20.0])
     T, dt = 30, 0.05
@@ -271,7 +282,7 @@ def test_outputs_mixture_matches_hand_mixture_of_two_parameter_values():
     p = mix.paths
     assert p["acc"].shape == p["displacement"].shape
     k_of_path = ks[mix.path_index]
-    acc_hand = (p["force"][..., 0] - 0.4 * p["velocity"][..., 0] - k_of_path[None, :, None] * p["displacement"][..., 0])
+    acc_hand = p["force"][..., 0] - 0.4 * p["velocity"][..., 0] - k_of_path[None, :, None] * p["displacement"][..., 0]
     np.testing.assert_allclose(p["acc"][..., 0], acc_hand, rtol=1e-9, atol=1e-9)
 
 
@@ -290,8 +301,12 @@ def test_mass_warning_without_a_force_channel():
 
     def warnings_for(sensors):
         d = two_dof_config(method="kalman-mcmc", sensors=sensors)
-        d["system"] = {"type": "linear", "m": {"prior": "lognormal", "mu": 0.0, "sigma": 0.5, "init": 1.0},
-                       "c": 0.4, "k": 10.0}
+        d["system"] = {
+            "type": "linear",
+            "m": {"prior": "lognormal", "mu": 0.0, "sigma": 0.5, "init": 1.0},
+            "c": 0.4,
+            "k": 10.0,
+        }
         problem = config_from_dict(d, source="c.toml")
         r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, {}, {}, {}, [], 0.0, {})
         estimate._mass_warning(problem, r)
@@ -309,10 +324,13 @@ def test_no_mass_warning_for_a_mass_carried_from_a_calibration(tmp_path):
     is not warned: the mass was identified there."""
     from latentforce.results import RunResult
 
-    d = two_dof_config(method="kalman-mcmc", sensors=[{"column": "a", "quantity": "acceleration",
-                                                       "noise_std": 0.1}])
-    d["system"] = {"type": "linear", "m": {"prior": "lognormal", "mu": 0.0, "sigma": 0.5, "init": 1.0},
-                   "c": 0.4, "k": 10.0}
+    d = two_dof_config(method="kalman-mcmc", sensors=[{"column": "a", "quantity": "acceleration", "noise_std": 0.1}])
+    d["system"] = {
+        "type": "linear",
+        "m": {"prior": "lognormal", "mu": 0.0, "sigma": 0.5, "init": 1.0},
+        "c": 0.4,
+        "k": 10.0,
+    }
     problem = config_from_dict(d, source="c.toml")
     for carried, expected in (({"[system].m": {}}, 0), ({"[system].c": {}}, 1)):
         r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, {}, {}, {}, [], 0.0, {})
@@ -324,8 +342,12 @@ def test_outputs_and_mass_warning_through_kalman_mcmc(tmp_path):
     """kalman-mcmc end to end: the outputs are mixed (in the result, its paths and its files), and a
     run inferring m with only motion measured warns."""
     d = {
-        "system": {"type": "linear", "m": {"prior": "lognormal", "mu": 0.0, "sigma": 0.3, "init": 1.0},
-                   "c": 0.4, "k": 10.0},
+        "system": {
+            "type": "linear",
+            "m": {"prior": "lognormal", "mu": 0.0, "sigma": 0.3, "init": 1.0},
+            "c": 0.4,
+            "k": 10.0,
+        },
         "force": {"kernel": "matern12", "variance": 1.0, "lengthscale": 0.5},
         "sensors": [{"column": "acc", "quantity": "acceleration", "noise_std": 0.2}],
         "outputs": [{"name": "acc_model", "unit": "m/s^2", "acceleration": [1.0]}],
@@ -334,8 +356,11 @@ def test_outputs_and_mass_warning_through_kalman_mcmc(tmp_path):
     problem = config_from_dict(d, source="c.toml")
     model = problem.model
     T, dt = 40, 0.05
-    y = simulate_lg(*linear_gaussian(model, dict(m=1.0, c=0.4, k=10.0, force_variance=1.0,
-                                                 force_lengthscale=0.5), dt), T, np.random.default_rng(3))
+    y = simulate_lg(
+        *linear_gaussian(model, dict(m=1.0, c=0.4, k=10.0, force_variance=1.0, force_lengthscale=0.5), dt),
+        T,
+        np.random.default_rng(3),
+    )
     ds = Dataset(np.arange(T) * dt, dt, y, np.ones((T, 1), bool), ["acc"], {})
     result, _ = estimate.run(problem, ds, seed=0)
     assert any("no sensor measures the force" in w for w in result.diagnostics["warnings"])
@@ -346,6 +371,7 @@ def test_outputs_and_mass_warning_through_kalman_mcmc(tmp_path):
     assert result.state_sd["acc_model"].shape == (T, 1) and np.all(result.state_sd["acc_model"] > 0)
     write_results(tmp_path / "o", result, figures=False)
     import xarray as xr
+
     with xr.open_datatree(tmp_path / "o" / "posterior.nc", engine="h5netcdf") as tree:
         post = tree["posterior"]
         assert post["acc_model"].dims == ("chain", "draw", "time")
@@ -357,15 +383,17 @@ def test_a_weakly_identified_parameter_is_named():
     """A posterior barely narrower than its prior is named in a warning; an identified one is not."""
     from latentforce.results import RunResult
 
-    d = two_dof_config(method="kalman-mcmc", sensors=[{"column": "a", "quantity": "acceleration",
-                                                       "noise_std": 0.1}])
-    d["system"] = {"type": "linear", "m": 1.0, "c": {"prior": "lognormal", "mu": -1.0, "sigma": 0.5},
-                   "k": {"prior": "lognormal", "mu": 2.3, "sigma": 1.0}}
+    d = two_dof_config(method="kalman-mcmc", sensors=[{"column": "a", "quantity": "acceleration", "noise_std": 0.1}])
+    d["system"] = {
+        "type": "linear",
+        "m": 1.0,
+        "c": {"prior": "lognormal", "mu": -1.0, "sigma": 0.5},
+        "k": {"prior": "lognormal", "mu": 2.3, "sigma": 1.0},
+    }
     problem = config_from_dict(d, source="c.toml")
     rng = np.random.default_rng(0)
     # c: draws from its prior (the data said nothing); k: a posterior 10x narrower than its prior
-    draws = {"c": np.exp(-1.0 + 0.5 * rng.normal(size=(4, 500))),
-             "k": np.exp(2.3 + 0.1 * rng.normal(size=(4, 500)))}
+    draws = {"c": np.exp(-1.0 + 0.5 * rng.normal(size=(4, 500))), "k": np.exp(2.3 + 0.1 * rng.normal(size=(4, 500)))}
     r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, draws, {}, {}, [], 0.0, {})
     estimate._weak_identification_warning(problem, r)
     (msg,) = r.diagnostics["warnings"]

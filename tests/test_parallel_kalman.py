@@ -31,7 +31,6 @@ from latentforce.systems import LinearSystem
 TOL = 1e-9
 
 
-
 @jax.jit
 def _seq(*args):
     filt = kalman_filter(*args)
@@ -54,8 +53,11 @@ def sdof_matern32(sensors=(("acceleration", 0, 0.05),), **over):
 def two_dof():
     M = jnp.diag(jnp.array([1.0, 2.0]))
     K = jnp.array([[30.0, -10.0], [-10.0, 10.0]])
-    model = LatentForceModel(LinearSystem(ndof=2, force_dofs=(0, 1)), Matern(1),
-                             [Sensor("acceleration", 0, 0.1), Sensor("displacement", 1, 0.01)])
+    model = LatentForceModel(
+        LinearSystem(ndof=2, force_dofs=(0, 1)),
+        Matern(1),
+        [Sensor("acceleration", 0, 0.1), Sensor("displacement", 1, 0.01)],
+    )
     params = dict(M=M, C=0.02 * K + 0.1 * M, K=K, force_variance=2.0, force_lengthscale=0.5)
     return model, params
 
@@ -132,8 +134,9 @@ def test_parallel_matches_dense_gaussian():
     model, params = two_dof()
     lg = discrete(model, params, 0.1)
     y, mask = record(37, 2, 2, 0.3, (4,))
-    ll_dense, mean_dense, cov_dense = dense_gaussian(*map(np.asarray, lg), np.nan_to_num(np.asarray(y)),
-                                                     np.asarray(mask))
+    ll_dense, mean_dense, cov_dense = dense_gaussian(
+        *map(np.asarray, lg), np.nan_to_num(np.asarray(y)), np.asarray(mask)
+    )
     _, sm = _par(*lg, y, mask)
     assert np.isclose(float(sm.log_likelihood), ll_dense, rtol=1e-9)
     scale = np.sqrt(np.diagonal(cov_dense, axis1=1, axis2=2))
@@ -147,8 +150,14 @@ def test_long_stiff_record_with_gaps():
     of 40 steps with nothing observed. Tolerance 1e-8 here: both float64 recursions are ~5e-9
     prior sd from an 80-bit (NumPy longdouble) sequential filter on this case, and 3e-9 apart
     (measured 2026-11-26), so 1e-9 would test rounding, not the method."""
-    model, params = sdof_matern32((("displacement", 0, 1e-4), ("acceleration", 0, 1e-3)), m=2000.0, c=5.0,
-                                  k=100.0, force_variance=1e6, force_lengthscale=500.0)
+    model, params = sdof_matern32(
+        (("displacement", 0, 1e-4), ("acceleration", 0, 1e-3)),
+        m=2000.0,
+        c=5.0,
+        k=100.0,
+        force_variance=1e6,
+        force_lengthscale=500.0,
+    )
     y, mask = record(5000, 2, 3, 0.2, range(1000, 1040))
     assert_same(discrete(model, params, 0.5), y * 1e-2, mask, tol=1e-8)
 
@@ -163,7 +172,8 @@ def test_reverse_mode_gradient_matches_sequential():
 
     def grads(fn):
         return jax.jit(jax.grad(lambda A, Q, R, m0, P0: fn(A, Q, H, R, m0, P0, y, mask), argnums=(0, 1, 2, 3, 4)))(
-            A, Q, R, m0, P0)
+            A, Q, R, m0, P0
+        )
 
     for name, gs, gp in zip(("A", "Q", "R", "m0", "P0"), grads(log_likelihood), grads(parallel_log_likelihood)):
         gs, gp = np.asarray(gs), np.asarray(gp)
@@ -219,8 +229,11 @@ def test_programs_hold_no_lapack_call():
     def run(a, key):
         f = parallel_kalman_filter(a * A, Q, H, R, m0, P0, y, mask)
         s = parallel_rts_smoother(a * A, f)
-        return s.means, parallel_sample_smoothed_trajectory(key, a * A, Q, f), jax.grad(
-            lambda b: parallel_log_likelihood(b * A, Q, H, R, m0, P0, y, mask))(a)
+        return (
+            s.means,
+            parallel_sample_smoothed_trajectory(key, a * A, Q, f),
+            jax.grad(lambda b: parallel_log_likelihood(b * A, Q, H, R, m0, P0, y, mask))(a),
+        )
 
     text = jax.jit(jax.vmap(run)).lower(jnp.ones(2), jax.random.split(jax.random.key(0), 2)).as_text()
     assert "lapack" not in text
@@ -291,8 +304,12 @@ def test_smooth_and_mixture_follow_the_choice():
     fixed = {n: v for n, v in params.items() if n != "k"}
     draws = {"k": np.array([[95.0, 100.0, 105.0], [98.0, 102.0, 110.0]])}
     # thin_draws = draws mixed per chain: every draw stores a path, so one program per choice
-    mixed = {c: mixture_posterior(jax.random.key(0), model, fixed, draws, y, mask, 0.01, thin_draws=3,
-                                  point={"k": 100.0}, kalman=c) for c in ("sequential", "parallel")}
+    mixed = {
+        c: mixture_posterior(
+            jax.random.key(0), model, fixed, draws, y, mask, 0.01, thin_draws=3, point={"k": 100.0}, kalman=c
+        )
+        for c in ("sequential", "parallel")
+    }
     s, p = mixed["sequential"], mixed["parallel"]
     for state in ("displacement", "velocity", "force"):
         (ms, ss), (mp, sp) = s.moments[state], p.moments[state]

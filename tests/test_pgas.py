@@ -19,10 +19,23 @@ from latentforce.systems import Duffing
 @pytest.fixture(scope="module")
 def linear_run():
     prob = linear_problem(T=100, missing=True)
-    ks = kalman_smoother(prob["A_d"], prob["Q_d"], prob["H"], prob["pm"].R, prob["m0f"], prob["P0"],
-                         prob["y"], prob["mask"])
-    out = pgas.run_pgas(jax.random.key(3, impl="rbg"), prob["model"], prob["params"], {}, prob["y"], prob["mask"],
-                        prob["dt"], particles=32, iterations=1200, burn_in=100, chains=4, initial=(0.0, 0.1))
+    ks = kalman_smoother(
+        prob["A_d"], prob["Q_d"], prob["H"], prob["pm"].R, prob["m0f"], prob["P0"], prob["y"], prob["mask"]
+    )
+    out = pgas.run_pgas(
+        jax.random.key(3, impl="rbg"),
+        prob["model"],
+        prob["params"],
+        {},
+        prob["y"],
+        prob["mask"],
+        prob["dt"],
+        particles=32,
+        iterations=1200,
+        burn_in=100,
+        chains=4,
+        initial=(0.0, 0.1),
+    )
     return prob, ks, out
 
 
@@ -63,8 +76,19 @@ def test_pgas_matches_kalman_smoother_for_smooth_forces_from_the_stationary_star
     nm = pm.nm
     assert np.max(np.abs(np.asarray(P0)[:nm, nm:])) > 1e-3 * np.sqrt(np.max(np.diag(np.asarray(P0))[:nm]))  # joint
     ks = kalman_smoother(A_d, Q_d, H, pm.R, m0, P0, prob["y"], prob["mask"])
-    out = pgas.run_pgas(jax.random.key(3, impl="rbg"), prob["model"], prob["params"], {}, prob["y"], prob["mask"],
-                        prob["dt"], particles=32, iterations=1000, burn_in=100, chains=4)
+    out = pgas.run_pgas(
+        jax.random.key(3, impl="rbg"),
+        prob["model"],
+        prob["params"],
+        {},
+        prob["y"],
+        prob["mask"],
+        prob["dt"],
+        particles=32,
+        iterations=1000,
+        burn_in=100,
+        chains=4,
+    )
     km = np.asarray(ks.means)
     ksd = np.sqrt(np.asarray(jnp.diagonal(ks.covs, axis1=1, axis2=2)))
     for name, i in [("displacement", 0), ("velocity", 1), ("force", 2)]:
@@ -86,8 +110,11 @@ def test_pgas_matches_kalman_smoother_two_dof():
     M = np.diag([1.0, 0.5])
     K = np.array([[30.0, -10.0], [-10.0, 10.0]])
     params = dict(M=M, C=0.02 * K + 0.1 * M, K=K, force_variance=1.0, force_lengthscale=0.5)
-    model = LatentForceModel(LinearSystem(ndof=2, force_dofs=(0,)), Matern(0),
-                             [Sensor("acceleration", 0, 0.05), Sensor("acceleration", 1, 0.05)])
+    model = LatentForceModel(
+        LinearSystem(ndof=2, force_dofs=(0,)),
+        Matern(0),
+        [Sensor("acceleration", 0, 0.05), Sensor("acceleration", 1, 0.05)],
+    )
     dt, T = 0.05, 80
     pm = smc.ParticleModel(model, params, dt, initial=(0.0, 0.1))
     rm = path_moves.ResidualMove(pm, T, 8, jnp.ones(pm.nm))
@@ -103,8 +130,20 @@ def test_pgas_matches_kalman_smoother_two_dof():
     mask[20:26, 0] = False
     y[~mask] = np.nan
     ks = kalman_smoother(A_d, Q_d, H, pm.R, m1, P1, jnp.asarray(y), jnp.asarray(mask))
-    out = pgas.run_pgas(jax.random.key(5, impl="rbg"), model, params, {}, y, mask, dt, particles=32,
-                        iterations=1200, burn_in=100, chains=4, initial=(0.0, 0.1))
+    out = pgas.run_pgas(
+        jax.random.key(5, impl="rbg"),
+        model,
+        params,
+        {},
+        y,
+        mask,
+        dt,
+        particles=32,
+        iterations=1200,
+        burn_in=100,
+        chains=4,
+        initial=(0.0, 0.1),
+    )
     km = np.asarray(ks.means)
     ksd = np.sqrt(np.asarray(jnp.diagonal(ks.covs, axis1=1, axis2=2)))
     for name, cols in [("displacement", (0, 1)), ("velocity", (2, 3)), ("force", (4,))]:
@@ -166,13 +205,29 @@ def test_gibbs_with_free_hyperparameters_matches_exact_marginal_posterior():
     n = pm.n_state
     state_mean, state_sd = mom[:, :n], np.sqrt(mom[:, n:] - mom[:, :n] ** 2)
 
-    out = pgas.run_pgas(jax.random.key(4, impl="rbg"), prob["model"], prob["params"], free, y, mask, prob["dt"],
-                        particles=32, iterations=1000, burn_in=200, state_every=2, chains=4, mh_steps=2,
-                        residual_steps=20, initial=(0.0, 0.1))
+    out = pgas.run_pgas(
+        jax.random.key(4, impl="rbg"),
+        prob["model"],
+        prob["params"],
+        free,
+        y,
+        mask,
+        prob["dt"],
+        particles=32,
+        iterations=1000,
+        burn_in=200,
+        state_every=2,
+        chains=4,
+        mh_steps=2,
+        residual_steps=20,
+        initial=(0.0, 0.1),
+    )
     x = np.log(np.stack([out.theta[k] for k in hyper.names], axis=-1))  # (chains, draws, 2)
     assert np.all(np.abs(x.reshape(-1, 2).mean(0) - exact_mean) < 5 * _batch_se(x)), (x.mean((0, 1)), exact_mean)
     assert np.all(np.abs((x**2).reshape(-1, 2).mean(0) - exact_m2) < 5 * _batch_se(x**2)), (
-        (x**2).mean((0, 1)), exact_m2)
+        (x**2).mean((0, 1)),
+        exact_m2,
+    )
     assert max(out.diagnostics["rhat"].values()) < 1.1, out.diagnostics["rhat"]
     for name, i in [("displacement", 0), ("velocity", 1), ("force", 2)]:
         mean, sd = out.state_mean[name][:, 0], out.state_sd[name][:, 0]
@@ -195,7 +250,7 @@ def _on_grid(f, X, chunk=4096):
     XLA's CPU runtime (batches above ~30000, jax 0.10.2); chunks of a few thousand take milliseconds."""
     fv = jit(jax.vmap(f))
     Xp = jnp.concatenate([X, jnp.zeros((-X.shape[0] % chunk, X.shape[1]))])
-    return np.concatenate([np.asarray(fv(Xp[i:i + chunk])) for i in range(0, Xp.shape[0], chunk)])[: X.shape[0]]
+    return np.concatenate([np.asarray(fv(Xp[i : i + chunk])) for i in range(0, Xp.shape[0], chunk)])[: X.shape[0]]
 
 
 def _grid_moments(pm, hyper, xf):
@@ -248,8 +303,7 @@ def test_hyperparameter_mh_matches_grid_posterior():
 
         def step(s, inp):
             k, i = inp
-            s, info = hyper_moves.mh_step(k, s, log_target, adapt=i < burn, reshape=jnp.any(i == schedule),
-                                   target=0.38)
+            s, info = hyper_moves.mh_step(k, s, log_target, adapt=i < burn, reshape=jnp.any(i == schedule), target=0.38)
             return s, (s.x, info.accepted)
 
         s, (xs, accs) = jax.lax.scan(step, state, (jax.random.split(k1, burn + n), jnp.arange(burn + n)))
@@ -289,9 +343,22 @@ def test_duffing_gibbs_runs_and_converges():
     y = jax.vmap(lambda x: pm._observe(x[:2], x[2:]))(path)
     y = y + jax.random.normal(jax.random.key(6), y.shape) * jnp.array([0.01, 0.1])
     free = {"force_variance": (LogNormal(0.0, 1.0), 2.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 1.0)}
-    out = pgas.run_pgas(jax.random.key(0, impl="rbg"), model, params, free, y, jnp.isfinite(y), 0.02,
-                        particles=32, iterations=4000, burn_in=1000, state_every=2, chains=4, mh_steps=2,
-                        initial=(0.0, 0.01))
+    out = pgas.run_pgas(
+        jax.random.key(0, impl="rbg"),
+        model,
+        params,
+        free,
+        y,
+        jnp.isfinite(y),
+        0.02,
+        particles=32,
+        iterations=4000,
+        burn_in=1000,
+        state_every=2,
+        chains=4,
+        mh_steps=2,
+        initial=(0.0, 0.01),
+    )
     assert np.all(np.isfinite(out.state_mean["force"]))
     assert max(out.diagnostics["rhat"].values()) < 1.1, out.diagnostics["rhat"]
     force_nmse = np.mean((out.state_mean["force"][:, 0] - xf[:, 0]) ** 2) / np.var(xf[:, 0])
@@ -409,7 +476,7 @@ def test_lowfreq_move_matches_exact_conditional():
     od = latent.observation_density(pm, prob["y"], mask)
     frame = path_moves.LowFrequencyFrame(tr, path_moves.lowfreq_basis(60, 8))
     g_start = 2.0 * latent.gp_prior_path(jax.random.key(4), tr, 60)
-    start = pm.path(g_start.at[0, pm.nfx:].set(jnp.array([0.3, -1.0]) - pm.mech0_mean))
+    start = pm.path(g_start.at[0, pm.nfx :].set(jnp.array([0.3, -1.0]) - pm.mech0_mean))
     w_start, eps_perp = path_moves.lowfreq_coordinates(pm, frame, start)
     assert np.allclose(path_moves.lowfreq_path(pm, frame, eps_perp, w_start), start, atol=1e-9)
 
@@ -433,13 +500,20 @@ def test_lowfreq_move_matches_exact_conditional():
     assert np.allclose(np.asarray(init.cov), cov, rtol=1e-6, atol=1e-10)
 
     def move(k, rwm, path, b):
-        return path_moves.lowfreq_move(k, rwm, pm, od, frame, path, steps, adapt=b < burn, step0=b * steps,
-                                 reshape_steps=jnp.asarray((-1,)))
+        return path_moves.lowfreq_move(
+            k, rwm, pm, od, frame, path, steps, adapt=b < burn, step0=b * steps, reshape_steps=jnp.asarray((-1,))
+        )
 
     _check_move_against_gaussian(
-        move, lambda rwm, path: functionals(rwm.x), init,
+        move,
+        lambda rwm, path: functionals(rwm.x),
+        init,
         lambda key: path_moves.lowfreq_path(pm, frame, eps_perp, w_start + 0.5 * jax.random.normal(key, w_start.shape)),
-        burn, n, exact_mean, exact_sd)
+        burn,
+        n,
+        exact_mean,
+        exact_sd,
+    )
 
 
 @pytest.mark.parametrize("kernel,acc_only", [(Matern(0), True), (Matern(1), False)])
@@ -463,18 +537,18 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
     if acc_only:
         mask[:, 0] = False
     od = latent.observation_density(pm, prob["y"], mask)
-    rm = path_moves.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx:]))
+    rm = path_moves.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx :]))
     assert rm.applies and list(rm.rows) == [1] and list(rm.cols) == [0]
     g_start = 2.0 * latent.gp_prior_path(jax.random.key(4), tr, T)
-    start = pm.path(g_start.at[0, pm.nfx:].set(jnp.array([0.3, -1.0]) - pm.mech0_mean))
+    start = pm.path(g_start.at[0, pm.nfx :].set(jnp.array([0.3, -1.0]) - pm.mech0_mean))
     build = rm.builder(pm, od, start)
     c0 = jnp.zeros(rm.dim)
     assert np.allclose(build(c0)[1], start, atol=1e-9)
     # the map keeps the acceleration residuals (and the force's derivative states)
     moved = build(jax.random.normal(jax.random.key(1), (rm.dim,)))[1]
-    resid = lambda x: prob["y"][:, 1] - jax.vmap(pm._observe)(x[:, :pm.nm], x[:, pm.nm:])[:, 1]  # noqa: E731
+    resid = lambda x: prob["y"][:, 1] - jax.vmap(pm._observe)(x[:, : pm.nm], x[:, pm.nm :])[:, 1]  # noqa: E731
     assert np.allclose(np.where(mask[:, 1], resid(moved) - resid(start), 0.0), 0.0, atol=1e-9)
-    assert np.allclose(moved[:, pm.nm + 1:], start[:, pm.nm + 1:])
+    assert np.allclose(moved[:, pm.nm + 1 :], start[:, pm.nm + 1 :])
     assert np.max(np.abs(moved[:, 0] - start[:, 0])) > 1e-3
 
     def functionals(path):
@@ -497,8 +571,11 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
 
     prec_ss = -np.asarray(jit(jax.hessian(state_space_density))(c0))
     np.testing.assert_allclose(prec_ss, prec, rtol=1e-5, atol=1e-6 * np.abs(prec).max())
-    np.testing.assert_allclose(np.linalg.solve(prec_ss, np.asarray(jax.grad(state_space_density)(c0))), c_mean,
-                               atol=1e-5 * np.sqrt(np.diag(cov)).max())
+    np.testing.assert_allclose(
+        np.linalg.solve(prec_ss, np.asarray(jax.grad(state_space_density)(c0))),
+        c_mean,
+        atol=1e-5 * np.sqrt(np.diag(cov)).max(),
+    )
     J = np.asarray(jit(jax.jacfwd(lambda c: functionals(build(c)[1])))(c0))
     exact_mean = np.asarray(functionals(build(jnp.asarray(c_mean))[1]))
     exact_sd = np.sqrt(np.diag(J @ cov @ J.T))
@@ -512,9 +589,15 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
         return path_moves.residual_move(k, rwm, rm, pm, od, tr, path, steps, adapt=b < burn)
 
     _check_move_against_gaussian(
-        move, lambda rwm, path: functionals(path), init,
+        move,
+        lambda rwm, path: functionals(path),
+        init,
         lambda key: build(3.0 * jnp.sqrt(jnp.diag(cov)) * jax.random.normal(key, (rm.dim,)) + c_mean)[1],
-        burn, n, exact_mean, exact_sd)
+        burn,
+        n,
+        exact_mean,
+        exact_sd,
+    )
 
 
 def test_residual_move_is_skipped_without_a_force_channel():
@@ -549,8 +632,9 @@ def test_dispersed_start_fits_data_and_spreads_the_slow_directions():
 
     T, dt = 256, 1 / 2048
     params = dict(m=1.0, c=20.0, k=1e4, k3=1e9, force_variance=20.0, force_lengthscale=0.1)
-    sim = simulate(jax.random.key(0), LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 1.0)]),
-                   params, T, dt)
+    sim = simulate(
+        jax.random.key(0), LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 1.0)]), params, T, dt
+    )
     acc = np.asarray(sim.acceleration)
     sd = 0.01 * np.sqrt(np.mean(acc**2))
     y = jnp.asarray(acc + sd * np.random.default_rng(1).normal(size=acc.shape))
@@ -564,7 +648,8 @@ def test_dispersed_start_fits_data_and_spreads_the_slow_directions():
     rwm_lf = path_moves.lowfreq_init(pm, od, frame, eks)
     q = rwm_lf.x.shape[0]
     starts = jit(jax.vmap(lambda k: pgas_start.dispersed_start(k, pm, frame, rwm_lf, eks)))(
-        jax.random.split(jax.random.key(5), 64))
+        jax.random.split(jax.random.key(5), 64)
+    )
     ll = jax.vmap(lambda p: latent.observation_log_likelihood(pm, od, p))(starts)
     ll_eks = float(latent.observation_log_likelihood(pm, od, eks))
     assert np.all(np.asarray(ll) > ll_eks - 4 * q), (np.asarray(ll).min(), ll_eks)
@@ -584,8 +669,9 @@ _JOINT_PARAMS = dict(m=1.0, c=0.5, k=10.0, k3=1000.0, force_variance=1.0, force_
 
 def _joint_model():
     """The stiffening Duffing model of the joint checks and its missing samples (both channels)."""
-    model = LatentForceModel(Duffing(), Matern(0), [Sensor("displacement", 0, _JOINT_NOISE[0]),
-                                                     Sensor("acceleration", 0, _JOINT_NOISE[1])])
+    model = LatentForceModel(
+        Duffing(), Matern(0), [Sensor("displacement", 0, _JOINT_NOISE[0]), Sensor("acceleration", 0, _JOINT_NOISE[1])]
+    )
     pm = smc.ParticleModel(model, _JOINT_PARAMS, _JOINT_DT, initial=(0.0, 0.05))
     mask = np.ones((_JOINT_T, 2), bool)
     mask[10:15, 1] = False
@@ -607,7 +693,8 @@ def duffing_joint():
     pm, mask = _joint_model()
     tr = pm.transition(1.0, 0.5)
     xs, ys = jit(jax.vmap(lambda key: _joint_draw(pm, tr, mask, *jax.random.split(key))))(
-        jax.random.split(jax.random.key(0), 2000))
+        jax.random.split(jax.random.key(0), 2000)
+    )
     assert 3.0 * _JOINT_PARAMS["k3"] * float(jnp.mean(xs[:, :, 0] ** 2)) > _JOINT_PARAMS["k"]
     return pm, tr, mask, xs, ys
 
@@ -619,9 +706,20 @@ def _joint_statistics(pm, tr, mask, x, y):
     u, z = x[:, pm.nm], x[:, 0]
     r = (jnp.nan_to_num(y) - latent.predicted_observations(pm, x)) / jnp.asarray(_JOINT_NOISE) * mask
     eps = latent.whiten(tr, pm.latent(x))
-    return jnp.array([jnp.mean(u), jnp.mean(u**2), jnp.mean(z), jnp.mean(z**2), 100.0 * jnp.mean(z**4),
-                      x[0, 0], x[0, 1], jnp.mean(eps**2),
-                      jnp.sum(r[:, 0] ** 2) / jnp.sum(mask[:, 0]), jnp.sum(r[:, 1] ** 2) / jnp.sum(mask[:, 1])])
+    return jnp.array(
+        [
+            jnp.mean(u),
+            jnp.mean(u**2),
+            jnp.mean(z),
+            jnp.mean(z**2),
+            100.0 * jnp.mean(z**4),
+            x[0, 0],
+            x[0, 1],
+            jnp.mean(eps**2),
+            jnp.sum(r[:, 0] ** 2) / jnp.sum(mask[:, 0]),
+            jnp.sum(r[:, 1] ** 2) / jnp.sum(mask[:, 1]),
+        ]
+    )
 
 
 @pytest.mark.parametrize("kind", ["sweep", "sweep-bootstrap", "residual", "lowfreq"])
@@ -643,7 +741,7 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
     tempering of a move's likelihood is below this test's resolution (|z| < 4).
     """
     pm, tr, mask, xs, ys = duffing_joint
-    rm = path_moves.ResidualMove(pm, _JOINT_T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx:]))
+    rm = path_moves.ResidualMove(pm, _JOINT_T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx :]))
     frame = path_moves.LowFrequencyFrame(tr, path_moves.lowfreq_basis(_JOINT_T, 8))
     proposal = "bootstrap" if kind == "sweep-bootstrap" else "optimal"
     sweep = smc.make_sweep(pm, 16, proposal=proposal)
@@ -651,6 +749,7 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
     def move(key, x, y):
         if kind.startswith("sweep"):
             sc = smc.sweep_constants(pm, tr, y, mask, proposal)
+
             def one(x_, k):
                 out = sweep(k, sc, x_)
                 return out.trajectory, out.info.switched
@@ -661,11 +760,20 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
         eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
         if kind == "residual":
             init = path_moves.residual_init(rm, pm, od, tr, eks)
-            _, x, acc = path_moves.residual_move(key, init, rm, pm, od, tr, x, 30,
-                                           adapt=False)
+            _, x, acc = path_moves.residual_move(key, init, rm, pm, od, tr, x, 30, adapt=False)
         else:
-            _, x, acc = path_moves.lowfreq_move(key, path_moves.lowfreq_init(pm, od, frame, eks), pm, od, frame, x, 30,
-                                          adapt=False, step0=0, reshape_steps=jnp.asarray((-1,)))
+            _, x, acc = path_moves.lowfreq_move(
+                key,
+                path_moves.lowfreq_init(pm, od, frame, eks),
+                pm,
+                od,
+                frame,
+                x,
+                30,
+                adapt=False,
+                step0=0,
+                reshape_steps=jnp.asarray((-1,)),
+            )
         return x, jnp.mean(acc.astype(float))
 
     x1, acc = jit(jax.vmap(move))(jax.random.split(jax.random.key(1), xs.shape[0]), xs, ys)
@@ -701,11 +809,21 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
     hyper = hyper_moves.Hyper(_JOINT_PARAMS, free)
     tr_ref = pm.transition(1.0, 0.5)
     basis = path_moves.lowfreq_basis(T, 8)
-    rm = path_moves.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr_ref.Q)[pm.nfx:]))
+    rm = path_moves.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr_ref.Q)[pm.nfx :]))
     sched = pgas.schedule(0, 6, state_every=2, mh_steps=2, thin_draws=1)
     assert sched.burn_blocks == 0 and sched.n_blocks == 3
-    block = pgas.make_block(pm, hyper, sched, rm, basis, np.array([0, T - 1]), np.array([0, T // 2]),
-                            particles=16, lowfreq_steps=5, residual_steps=20)
+    block = pgas.make_block(
+        pm,
+        hyper,
+        sched,
+        rm,
+        basis,
+        np.array([0, T - 1]),
+        np.array([0, T // 2]),
+        particles=16,
+        lowfreq_steps=5,
+        residual_steps=20,
+    )
     n_draws = sched.n_draws
 
     def draw(key):
@@ -721,17 +839,29 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
         rwm_lf = path_moves.lowfreq_init(pm, od, path_moves.LowFrequencyFrame(tr_ref, basis), eks)
         nq = 2 * pm.ndof + pm.nforce
         rwm_rp = path_moves.residual_init(rm, pm, od, tr_ref, eks)
-        state = pgas.ChainState(k_chain, path, rwm, rwm_nc, rwm_lf, rwm_rp, tr,
-                                jnp.zeros((), jnp.int32),
-                                jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
-                                jnp.zeros((n_draws + 1, T, pm.n_state)), jnp.asarray(sched.thin, jnp.int32))
+        state = pgas.ChainState(
+            k_chain,
+            path,
+            rwm,
+            rwm_nc,
+            rwm_lf,
+            rwm_rp,
+            tr,
+            jnp.zeros((), jnp.int32),
+            jnp.zeros((T, nq)),
+            jnp.zeros((T, nq)),
+            jnp.zeros(()),
+            jnp.zeros((n_draws + 1, T, pm.n_state)),
+            jnp.asarray(sched.thin, jnp.int32),
+        )
         return state, pgas.BlockData(y, mask, pm.R, od, jnp.zeros((T, nq)))
 
     @jit
     def run(keys):
         states, data = jax.vmap(draw)(keys)
-        end, info = jax.lax.scan(lambda s, b: jax.vmap(block, (0, None, 0))(s, b, data), states,
-                                 jnp.arange(sched.n_blocks, dtype=jnp.int32))
+        end, info = jax.lax.scan(
+            lambda s, b: jax.vmap(block, (0, None, 0))(s, b, data), states, jnp.arange(sched.n_blocks, dtype=jnp.int32)
+        )
         return states, end, data, info
 
     states, end, data, info = run(jax.random.split(jax.random.key(2), 2000))
@@ -782,9 +912,14 @@ def test_observe_through_keeps_the_likelihood_and_checks_the_sensors():
     np.testing.assert_array_equal(mask2[:, 1], mask[:, 0])
     pm, pm2 = (smc.ParticleModel(m, params, 0.02, initial=(0.0, 0.01)) for m in (acc_only, model2))
     path = jax.jit(lambda k: pm.path(latent.gp_prior_path(k, pm.transition(1.0, 0.5), y.shape[0])))(jax.random.key(3))
-    lls = [float(jax.jit(lambda yy, mm: latent.observation_log_likelihood(p, latent.observation_density(p, yy, mm, p.R),
-                                                                        path))(yy, mm))
-           for p, yy, mm in ((pm, y, mask), (pm2, y2, mask2))]
+    lls = [
+        float(
+            jax.jit(
+                lambda yy, mm: latent.observation_log_likelihood(p, latent.observation_density(p, yy, mm, p.R), path)
+            )(yy, mm)
+        )
+        for p, yy, mm in ((pm, y, mask), (pm2, y2, mask2))
+    ]
     assert abs(lls[0] - lls[1]) < 1e-10 * abs(lls[0])
     with pytest.raises(ValueError, match="no channel of their own"):
         pgas.observe_through(acc_only, [("displacement", 0)], y, mask)
@@ -803,12 +938,22 @@ def test_runs_through_the_same_channels_compile_once_and_agree_with_their_own_se
 
     params, both, y, acc_only, y_acc = _two_sensor_records()
     channels = [("acceleration", 0), ("displacement", 0)]
-    settings = dict(particles=16, iterations=12, burn_in=8, state_every=2, chains=2,
-                    initial=(0.0, 0.01), lowfreq_modes=4, residual_modes=4, residual_steps=4)
+    settings = dict(
+        particles=16,
+        iterations=12,
+        burn_in=8,
+        state_every=2,
+        chains=2,
+        initial=(0.0, 0.01),
+        lowfreq_modes=4,
+        residual_modes=4,
+        residual_steps=4,
+    )
 
     def run(model, y_, channels_):
-        return pgas.run_pgas(jax.random.key(2), model, params, {}, y_, np.isfinite(y_), 0.02,
-                             channels=channels_, **settings)
+        return pgas.run_pgas(
+            jax.random.key(2), model, params, {}, y_, np.isfinite(y_), 0.02, channels=channels_, **settings
+        )
 
     with counting_compiles() as compiles:
         run(both, y, channels)
@@ -851,9 +996,22 @@ def test_auto_runs_until_converged_and_matches_the_exact_smoother():
     pm = smc.ParticleModel(prob["model"], prob["params"], prob["dt"])
     A_d, Q_d, H, m0, P0 = pm.linear_discrete(pm.transition(1.0, 0.5))
     ks = kalman_smoother(A_d, Q_d, H, pm.R, m0, P0, prob["y"], prob["mask"])
-    out = pgas.run_pgas(jax.random.key(3), prob["model"], prob["params"], {}, prob["y"], prob["mask"], prob["dt"],
-                        particles=32, iterations=None, burn_in=200, chains=4, thin_draws=50, max_time=600,
-                        max_iterations=20_000)
+    out = pgas.run_pgas(
+        jax.random.key(3),
+        prob["model"],
+        prob["params"],
+        {},
+        prob["y"],
+        prob["mask"],
+        prob["dt"],
+        particles=32,
+        iterations=None,
+        burn_in=200,
+        chains=4,
+        thin_draws=50,
+        max_time=600,
+        max_iterations=20_000,
+    )
     d = out.diagnostics
     assert d["stopped"] == "converged" and d["convergence"]["converged"], d["convergence"]
     assert d["convergence"]["max_r_hat"] <= 1.01 and d["convergence"]["min_ess_bulk"] >= 400
@@ -869,8 +1027,21 @@ def test_auto_runs_until_converged_and_matches_the_exact_smoother():
 
 def test_auto_stops_at_max_time_and_says_so():
     prob = linear_problem(T=50, missing=False, kernel=Matern(1))
-    out = pgas.run_pgas(jax.random.key(4), prob["model"], prob["params"], {}, prob["y"], prob["mask"], prob["dt"],
-                        particles=16, iterations=None, burn_in=100, chains=2, max_time=0.0, target_ess=1e6)
+    out = pgas.run_pgas(
+        jax.random.key(4),
+        prob["model"],
+        prob["params"],
+        {},
+        prob["y"],
+        prob["mask"],
+        prob["dt"],
+        particles=16,
+        iterations=None,
+        burn_in=100,
+        chains=2,
+        max_time=0.0,
+        target_ess=1e6,
+    )
     d = out.diagnostics
     assert d["stopped"] == "max_time" and not d["convergence"]["converged"]
     assert 0 < d["iterations_run"] <= 200  # the first check, after a handful of post-burn-in sweeps

@@ -30,10 +30,19 @@ PRIOR = {"prior": "lognormal", "mu": float(np.log(0.05)), "sigma": 1.0}  # start
 CONFIG = {
     "system": {"type": "linear", "m": 1.0, "c": 0.4, "k": 10.0},
     "force": {"kernel": "matern32", "variance": 1.0, "lengthscale": 0.5},
-    "sensors": [{"column": "disp", "quantity": "displacement", "dof": 0, "noise_std": 0.005},
-                {"column": "acc", "quantity": "acceleration", "dof": 0, "noise_std": PRIOR}],
-    "inference": {"method": "pgas", "particles": 32, "burn_in": 100, "iterations": 800, "state_every": 1, "chains": 4,
-                  "seed": 11},
+    "sensors": [
+        {"column": "disp", "quantity": "displacement", "dof": 0, "noise_std": 0.005},
+        {"column": "acc", "quantity": "acceleration", "dof": 0, "noise_std": PRIOR},
+    ],
+    "inference": {
+        "method": "pgas",
+        "particles": 32,
+        "burn_in": 100,
+        "iterations": 800,
+        "state_every": 1,
+        "chains": 4,
+        "seed": 11,
+    },
 }
 
 
@@ -45,10 +54,15 @@ def test_noise_gibbs_step_keeps_the_joint_distribution():
     fixed, missing samples. Few observations (5 and 8), so that the prior weighs: measured by
     breaking it (largest |z| over the statistics): the Jacobian 1/(2s) of the prior on the variance
     dropped, 33; the proposal's shape n/2 instead of n/2 - 1, 55."""
-    model = LatentForceModel(LinearSystem(), Matern(0),
-                             [Sensor("displacement", 0, 0.01, "d"), Sensor("acceleration", 0, 1e-3, "a",
-                                                                           noise_scale=1e-3),
-                              Sensor("velocity", 0, 0.2, "v")])
+    model = LatentForceModel(
+        LinearSystem(),
+        Matern(0),
+        [
+            Sensor("displacement", 0, 0.01, "d"),
+            Sensor("acceleration", 0, 1e-3, "a", noise_scale=1e-3),
+            Sensor("velocity", 0, 0.2, "v"),
+        ],
+    )
     pm = particle_model.ParticleModel(model, PARAMS, DT, initial=(0.0, 0.1))
     mask = np.ones((8, 3), bool)
     mask[[1, 4, 6], 1] = False  # five observed acceleration samples
@@ -84,12 +98,24 @@ def test_the_verdict_waits_for_the_noise_levels():
     chains, blocks, k = 4, 300, 2
     rng = np.random.default_rng(0)
     theta = np.exp(0.1 * rng.standard_normal((chains, blocks, k, 1)))
-    noise = (1.0 + np.arange(chains)[:, None, None, None] + 0.01 * rng.standard_normal((chains, blocks, 1, 1)))
+    noise = 1.0 + np.arange(chains)[:, None, None, None] + 0.01 * rng.standard_normal((chains, blocks, 1, 1))
     noise = np.repeat(noise, k, axis=2)
     mon = rng.standard_normal((chains, blocks, 24, 3))
     z = np.zeros((chains, blocks))
-    info = pgas_block.BlockInfo(theta, z[..., None].repeat(k, 2), z[..., None].repeat(k, 2), z, z, z, z, z,
-                                np.zeros((chains, blocks, 5, 1)), mon, noise, np.ones((chains, blocks, 1)))
+    info = pgas_block.BlockInfo(
+        theta,
+        z[..., None].repeat(k, 2),
+        z[..., None].repeat(k, 2),
+        z,
+        z,
+        z,
+        z,
+        z,
+        np.zeros((chains, blocks, 5, 1)),
+        mon,
+        noise,
+        np.ones((chains, blocks, 1)),
+    )
     hyper = Hyper(PARAMS, {"force_variance": (LogNormal(0.0, 1.0), 1.0)})
     pm = SimpleNamespace(ndof=1, nforce=1)
     sched = pgas_block.schedule(0, blocks * k, state_every=k)
@@ -157,8 +183,9 @@ def test_pgas_noise_level_matches_the_exact_posterior_end_to_end():
     def quadrature(u):  # log p(y | s) p(s) of u = log s (its density), the smoother's first two moments
         sm = kalman_smoother(A, Q, H, R(u[0]), m0, P0, yz, mask)
         log_post = sm.log_likelihood + prior.log_prob(jnp.exp(u[0])) + u[0]
-        return jnp.concatenate([log_post[None], sm.means.ravel(),
-                                (jnp.diagonal(sm.covs, axis1=1, axis2=2) + sm.means**2).ravel()])
+        return jnp.concatenate(
+            [log_post[None], sm.means.ravel(), (jnp.diagonal(sm.covs, axis1=1, axis2=2) + sm.means**2).ravel()]
+        )
 
     g = np.log(truth) + np.linspace(-2.5, 1.0, 176)
     grid = _on_grid(quadrature, jnp.asarray(g)[:, None], chunk=176)
@@ -205,12 +232,27 @@ def test_pgas_with_an_inferred_noise_restored_in_process_draws_the_same(tmp_path
 
     problem = config_from_dict(CONFIG)
     y, _ = _record(0.1)
-    free = {"noise_std_acc": (LogNormal(PRIOR["mu"], PRIOR["sigma"]), 0.05),
-            "force_variance": (LogNormal(0.0, 1.0), 1.0)}
+    free = {
+        "noise_std_acc": (LogNormal(PRIOR["mu"], PRIOR["sigma"]), 0.05),
+        "force_variance": (LogNormal(0.0, 1.0), 1.0),
+    }
 
     def run(checkpoint=None):
-        return run_pgas(jax.random.key(5), problem.model, dict(problem.fixed), free, y, np.isfinite(y), DT,
-                        particles=16, iterations=30, burn_in=10, chains=2, chunk_blocks=10, checkpoint=checkpoint)
+        return run_pgas(
+            jax.random.key(5),
+            problem.model,
+            dict(problem.fixed),
+            free,
+            y,
+            np.isfinite(y),
+            DT,
+            particles=16,
+            iterations=30,
+            burn_in=10,
+            chains=2,
+            chunk_blocks=10,
+            checkpoint=checkpoint,
+        )
 
     reference = run()
     with pytest.raises(_Killed):
@@ -246,10 +288,21 @@ def test_gibbs_block_with_an_inferred_noise_keeps_the_joint_distribution():
     hyper = Hyper(_JOINT_PARAMS, {})
     tr = pm.transition(1.0, 0.5)
     basis = path_moves.lowfreq_basis(T, 8)
-    rm = path_moves.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx:]))
+    rm = path_moves.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr.Q)[pm.nfx :]))
     sched = pgas_block.schedule(0, 3, thin_draws=1)
-    block = pgas_block.make_block(pm, hyper, sched, rm, basis, np.array([0, T - 1]), np.array([0, T // 2]),
-                                  particles=16, lowfreq_steps=5, residual_steps=20, noise=nl)
+    block = pgas_block.make_block(
+        pm,
+        hyper,
+        sched,
+        rm,
+        basis,
+        np.array([0, T - 1]),
+        np.array([0, T // 2]),
+        particles=16,
+        lowfreq_steps=5,
+        residual_steps=20,
+        noise=nl,
+    )
     nq = 2 * pm.ndof + pm.nforce
 
     def draw(key):
@@ -262,17 +315,29 @@ def test_gibbs_block_with_an_inferred_noise_keeps_the_joint_distribution():
         eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
         rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), jnp.zeros(0))  # no hyperparameter is free
         state = pgas_block.ChainState(
-            k_chain, x, rwm, rwm, path_moves.lowfreq_init(pm, od, path_moves.LowFrequencyFrame(tr, basis), eks),
-            path_moves.residual_init(rm, pm, od, tr, eks), tr, jnp.zeros((), jnp.int32), jnp.zeros((T, nq)),
-            jnp.zeros((T, nq)), jnp.zeros(()), jnp.zeros((sched.n_draws + 1, T, pm.n_state)),
-            jnp.asarray(sched.thin, jnp.int32), sd**2)
+            k_chain,
+            x,
+            rwm,
+            rwm,
+            path_moves.lowfreq_init(pm, od, path_moves.LowFrequencyFrame(tr, basis), eks),
+            path_moves.residual_init(rm, pm, od, tr, eks),
+            tr,
+            jnp.zeros((), jnp.int32),
+            jnp.zeros((T, nq)),
+            jnp.zeros((T, nq)),
+            jnp.zeros(()),
+            jnp.zeros((sched.n_draws + 1, T, pm.n_state)),
+            jnp.asarray(sched.thin, jnp.int32),
+            sd**2,
+        )
         return state, pgas_block.BlockData(y, mask, pm.R, od, jnp.zeros((T, nq)))
 
     @jit
     def run(keys):
         states, data = jax.vmap(draw)(keys)
-        end, info = jax.lax.scan(lambda s, b: jax.vmap(block, (0, None, 0))(s, b, data), states,
-                                 jnp.arange(sched.n_blocks, dtype=jnp.int32))
+        end, info = jax.lax.scan(
+            lambda s, b: jax.vmap(block, (0, None, 0))(s, b, data), states, jnp.arange(sched.n_blocks, dtype=jnp.int32)
+        )
         return states, end, data, info
 
     states, end, data, info = run(jax.random.split(jax.random.key(3), 2000))
@@ -281,9 +346,21 @@ def test_gibbs_block_with_an_inferred_noise_keeps_the_joint_distribution():
         x, sd = st.reference, jnp.sqrt(st.noise_var)
         u, z = x[:, pm.nm], x[:, 0]
         r = (jnp.nan_to_num(y) - latent.predicted_observations(pm, x)) / sd * mask
-        return jnp.array([sd[1], sd[1] ** 2 * 100, jnp.log(sd[1]), jnp.mean(u), jnp.mean(u**2), jnp.mean(z),
-                          jnp.mean(z**2), x[0, 0], x[0, 1], jnp.sum(r[:, 0] ** 2) / jnp.sum(mask[:, 0]),
-                          jnp.sum(r[:, 1] ** 2) / jnp.sum(mask[:, 1])])
+        return jnp.array(
+            [
+                sd[1],
+                sd[1] ** 2 * 100,
+                jnp.log(sd[1]),
+                jnp.mean(u),
+                jnp.mean(u**2),
+                jnp.mean(z),
+                jnp.mean(z**2),
+                x[0, 0],
+                x[0, 1],
+                jnp.sum(r[:, 0] ** 2) / jnp.sum(mask[:, 0]),
+                jnp.sum(r[:, 1] ** 2) / jnp.sum(mask[:, 1]),
+            ]
+        )
 
     d = np.asarray(jax.vmap(stats)(end, data.y) - jax.vmap(stats)(states, data.y))
     assert float(jnp.mean(info.accept_noise)) > 0.5

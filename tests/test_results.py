@@ -29,8 +29,9 @@ def _result(method="pgas", ndof=1, nforce=1, seed=0):
     rng = np.random.default_rng(seed)
     time = np.arange(T) * 0.01
     widths = {"displacement": ndof, "velocity": ndof, "force": nforce}
-    truth = {s: np.sin(2 * np.pi * (1 + j) * time)[:, None] * np.ones((1, w))
-             for j, (s, w) in enumerate(widths.items())}
+    truth = {
+        s: np.sin(2 * np.pi * (1 + j) * time)[:, None] * np.ones((1, w)) for j, (s, w) in enumerate(widths.items())
+    }
     mean = {s: truth[s] + 0.1 * rng.standard_normal((T, w)) for s, w in widths.items()}
     sd = {s: np.full((T, w), 0.1) for s, w in widths.items()}
     sampled = method != "kalman"
@@ -213,8 +214,13 @@ def test_mdof_result(tmp_path):
     write_results(tmp_path / "mdof", result)
     with open(tmp_path / "mdof" / "summary.csv", newline="") as f:
         header = next(csv.reader(f))
-    assert header[:5] == ["time", "displacement_0_mean", "displacement_0_sd", "displacement_1_mean",
-                          "displacement_1_sd"]
+    assert header[:5] == [
+        "time",
+        "displacement_0_mean",
+        "displacement_0_sd",
+        "displacement_1_mean",
+        "displacement_1_sd",
+    ]
     assert header[-2:] == ["force_1_mean", "force_1_sd"]
     summary = json.loads((tmp_path / "mdof" / "summary.json").read_text())
     assert set(summary["nmse"]) == {f"{s}_{i}" for s in ("displacement", "velocity", "force") for i in (0, 1)}

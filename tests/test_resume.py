@@ -66,12 +66,14 @@ chains = 2
 
 # kalman-mcmc runs until the verdict holds (chunks of 50 iterations): the stopping rule that
 # reads the draws is exercised across the kills
-KALMAN_MCMC = CONFIG.format(system="linear", k3="", inference='method = "kalman-mcmc"\nburn_in = 50\n'
-                            'target_ess = 100')
+KALMAN_MCMC = CONFIG.format(system="linear", k3="", inference='method = "kalman-mcmc"\nburn_in = 50\ntarget_ess = 100')
 # a Duffing system: the path moves are re-shaped during the burn-in, so the blocks run in
 # several segments (0-1, 1-3, 3-6, 6-end), each ending in a checkpoint
-PGAS = CONFIG.format(system="duffing", k3="k3 = 5.0",
-                     inference='method = "pgas"\nparticles = 16\nstate_every = 2\niterations = 60\nburn_in = 20')
+PGAS = CONFIG.format(
+    system="duffing",
+    k3="k3 = 5.0",
+    inference='method = "pgas"\nparticles = 16\nstate_every = 2\niterations = 60\nburn_in = 20',
+)
 
 runner = CliRunner()
 
@@ -109,8 +111,14 @@ def _env(work: Path, stop: str | None = None) -> dict:
 
 
 def estimate(work: Path, *args, stop: str | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "latentforce.cli", "estimate", *map(str, args)], cwd=work,
-                            env=_env(work, stop), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "latentforce.cli", "estimate", *map(str, args)],
+        cwd=work,
+        env=_env(work, stop),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
 
 
 def finish(proc: subprocess.Popen) -> str:
@@ -225,8 +233,7 @@ def test_pgas_killed_three_times_resumes_bit_identical(work):
 
 # ----- the checkpoint file on its own ------------------------------------------------------
 def test_tree_round_trip_with_typed_keys_and_shape_check(tmp_path):
-    tree = {"key": jax.random.split(jax.random.key(3), 2), "x": np.arange(6.0).reshape(2, 3),
-            "n": np.int32(4)}
+    tree = {"key": jax.random.split(jax.random.key(3), 2), "x": np.arange(6.0).reshape(2, 3), "n": np.int32(4)}
     arrays = ckpt.tree_arrays("s", tree)
     back = ckpt.tree_from_arrays(tree, arrays, "s")
     assert np.array_equal(jax.random.key_data(back["key"]), jax.random.key_data(tree["key"]))
@@ -246,8 +253,12 @@ def test_checkpoint_writes_at_most_every_so_often_and_reads_back(tmp_path):
     (tmp_path / ".checkpoint-abc.npz.tmp").write_bytes(b"half a write")
     meta, back = ckpt.read_checkpoint(tmp_path)
     assert meta["sampler"] == "kalman-mcmc" and meta["identity"] == identity
-    assert back.done == 7 and not back.finished and back.elapsed_s == 1.5 and np.array_equal(back.arrays["a"],
-                                                                                          np.arange(3.0))
+    assert (
+        back.done == 7
+        and not back.finished
+        and back.elapsed_s == 1.5
+        and np.array_equal(back.arrays["a"], np.arange(3.0))
+    )
     resumed = ckpt.Checkpoint(tmp_path, identity, every=0.0, saved=back, sampler="kalman-mcmc")
     assert not list(tmp_path.glob(".checkpoint-*"))  # a killed write's leftovers are cleared
     with pytest.raises(LatentForceError, match="pgas"):
@@ -283,12 +294,18 @@ def test_kalman_samplers_restored_in_process_draw_the_same(tmp_path, method):
     from latentforce.inference.kalman_nuts import run_kalman_nuts
     from latentforce.io.config import config_from_dict
 
-    problem = config_from_dict({
-        "system": {"type": "linear", "m": 1.0, "c": 0.4, "k": 10.0},
-        "force": {"kernel": "matern32", "variance": {"prior": "lognormal", "mu": 0.7, "sigma": 1.0, "init": 1.0},
-                  "lengthscale": 0.5},
-        "sensors": [{"column": "acc", "quantity": "acceleration", "dof": 0, "noise_std": 0.05}],
-        "inference": {"method": method}})
+    problem = config_from_dict(
+        {
+            "system": {"type": "linear", "m": 1.0, "c": 0.4, "k": 10.0},
+            "force": {
+                "kernel": "matern32",
+                "variance": {"prior": "lognormal", "mu": 0.7, "sigma": 1.0, "init": 1.0},
+                "lengthscale": 0.5,
+            },
+            "sensors": [{"column": "acc", "quantity": "acceleration", "dof": 0, "noise_std": 0.05}],
+            "inference": {"method": method},
+        }
+    )
     rng = np.random.default_rng(0)
     y = np.cumsum(rng.standard_normal((150, 1)), axis=0) * 0.05
     mask = np.ones(y.shape, bool)
@@ -296,8 +313,20 @@ def test_kalman_samplers_restored_in_process_draw_the_same(tmp_path, method):
     sampler = run_kalman_mcmc if method == "kalman-mcmc" else run_kalman_nuts
 
     def run(checkpoint=None):
-        return sampler(jax.random.key(5), problem.model, dict(problem.fixed), free, y, mask, 0.05,
-                       iterations=40, burn_in=20, chains=2, chunk=10, checkpoint=checkpoint)
+        return sampler(
+            jax.random.key(5),
+            problem.model,
+            dict(problem.fixed),
+            free,
+            y,
+            mask,
+            0.05,
+            iterations=40,
+            burn_in=20,
+            chains=2,
+            chunk=10,
+            checkpoint=checkpoint,
+        )
 
     reference = run()
     with pytest.raises(_Killed):

@@ -35,10 +35,10 @@ def test_the_windows_are_where_the_benchmark_says():
     """The calibration sits inside the first multisine realisation (input active throughout),
     the arrow windows inside the arrow, with amplitude growing low -> mid -> high."""
     u, _ = sb.load()
-    cal = u[sb.CALIBRATION_START:sb.CALIBRATION_START + sb.CALIBRATION]
+    cal = u[sb.CALIBRATION_START : sb.CALIBRATION_START + sb.CALIBRATION]
     blocks = cal[: len(cal) // 64 * 64].reshape(-1, 64)
     assert np.all(np.std(blocks, axis=1) > 0.005)  # no zero-input gap inside
-    rms = [np.std(u[s:s + sb.WINDOW]) for s in (sb.ARROW["low"], sb.ARROW["mid"], sb.ARROW["high"])]
+    rms = [np.std(u[s : s + sb.WINDOW]) for s in (sb.ARROW["low"], sb.ARROW["mid"], sb.ARROW["high"])]
     assert rms[0] < rms[1] < rms[2]
     assert sb.ARROW["high"] + sb.WINDOW + sb.MARGIN < 40_502  # before the gap that ends the arrow
 

@@ -18,8 +18,9 @@ NOISE = (0.05, 0.3)
 
 def linear_problem(T=50, seed=1, kernel=Matern(0), missing=True, noise=NOISE, init_sd=0.1):
     """Linear SDOF model, data simulated from the *same* discrete model PGAS uses."""
-    model = LatentForceModel(LinearSystem(), kernel,
-                             [Sensor("displacement", 0, noise[0]), Sensor("acceleration", 0, noise[1])])
+    model = LatentForceModel(
+        LinearSystem(), kernel, [Sensor("displacement", 0, noise[0]), Sensor("acceleration", 0, noise[1])]
+    )
     params = dict(m=1.0, c=0.4, k=10.0, force_variance=1.0, force_lengthscale=0.5)
     dt = 0.05
     pm = smc.ParticleModel(model, params, dt, initial=(0.0, init_sd))
@@ -36,8 +37,20 @@ def linear_problem(T=50, seed=1, kernel=Matern(0), missing=True, noise=NOISE, in
     if missing:
         mask[10:15, 1] = False
         y[10:15, 1] = np.nan
-    return dict(model=model, params=params, dt=dt, pm=pm, tr=tr, A_d=A_d, Q_d=Q_d, H=H,
-                m0f=m0f, P0=P0, y=jnp.asarray(y), mask=jnp.asarray(mask))
+    return dict(
+        model=model,
+        params=params,
+        dt=dt,
+        pm=pm,
+        tr=tr,
+        A_d=A_d,
+        Q_d=Q_d,
+        H=H,
+        m0f=m0f,
+        P0=P0,
+        y=jnp.asarray(y),
+        mask=jnp.asarray(mask),
+    )
 
 
 def test_sampler_discretisation_is_the_exact_one_for_linear_systems():
@@ -45,8 +58,9 @@ def test_sampler_discretisation_is_the_exact_one_for_linear_systems():
     discretisation of the continuous model: A up to RK4's error, Q exactly."""
     prob = linear_problem(T=5, kernel=Matern(1))
     pm = prob["pm"]
-    A_ex, Q_ex = prob["model"].discretise({**prob["params"], "force_variance": 1.0, "force_lengthscale": 0.5},
-                                          prob["dt"])
+    A_ex, Q_ex = prob["model"].discretise(
+        {**prob["params"], "force_variance": 1.0, "force_lengthscale": 0.5}, prob["dt"]
+    )
     nm = pm.nm
     # force columns exact; the homogeneous mechanical block carries RK4's O((omega dt)^5) error
     np.testing.assert_allclose(prob["A_d"][:, nm:], A_ex[:, nm:], rtol=1e-10, atol=1e-14)
@@ -79,7 +93,7 @@ def test_box_muller_normals_are_standard_normal():
     assert stats.kstest(flat, "norm").pvalue > 1e-3
     # the two halves (cos and sin of the same radius) are uncorrelated
     half = flat.size // 2
-    assert abs(np.corrcoef(flat[:half], flat[half:2 * half])[0, 1]) < 4.0 / np.sqrt(half)
+    assert abs(np.corrcoef(flat[:half], flat[half : 2 * half])[0, 1]) < 4.0 / np.sqrt(half)
     assert abs(np.mean(flat**2) - 1.0) < 5.0 * np.sqrt(2.0 / flat.size)
 
 
@@ -119,9 +133,11 @@ def test_box_muller_extremes_are_finite_and_bounded(monkeypatch):
 
 
 def test_observation_and_step_match_the_model():
-    model = LatentForceModel(Duffing(), Matern(1),
-                             [Sensor("displacement", 0, 0.1), Sensor("velocity", 0, 0.1),
-                              Sensor("acceleration", 0, 0.1)])
+    model = LatentForceModel(
+        Duffing(),
+        Matern(1),
+        [Sensor("displacement", 0, 0.1), Sensor("velocity", 0, 0.1), Sensor("acceleration", 0, 0.1)],
+    )
     params = dict(m=1.3, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthscale=0.5)
     x = jnp.array([0.1, -0.3, 0.7, 0.2])
     for disc in ("euler", "rk4"):
@@ -140,8 +156,11 @@ def test_particle_filter_log_likelihood_is_unbiased(proposal, particles, noise):
     # a tight initial mechanical prior: mech_1 is a static parameter of the filter
     # (never rejuvenated), which is what makes log Z_hat noisy
     prob = linear_problem(T=30, noise=noise, init_sd=0.02)
-    ll = float(log_likelihood(prob["A_d"], prob["Q_d"], prob["H"], prob["pm"].R, prob["m0f"], prob["P0"],
-                              prob["y"], prob["mask"]))
+    ll = float(
+        log_likelihood(
+            prob["A_d"], prob["Q_d"], prob["H"], prob["pm"].R, prob["m0f"], prob["P0"], prob["y"], prob["mask"]
+        )
+    )
     sc = smc.sweep_constants(prob["pm"], prob["tr"], prob["y"], prob["mask"], proposal)
     sweep = smc.make_sweep(prob["pm"], particles, proposal=proposal, conditional=False)
     runs = 300
@@ -220,18 +239,18 @@ def test_state_form_ancestor_information_is_exact_for_linear_model():
     prob = linear_problem(T=25)
     pm = prob["pm"]
     sc = smc.sweep_constants(pm, prob["tr"], prob["y"], prob["mask"])
-    g = jax.random.normal(jax.random.key(2), (25, pm.nl)).at[:, pm.nfx:].multiply(0.01)
+    g = jax.random.normal(jax.random.key(2), (25, pm.nl)).at[:, pm.nfx :].multiply(0.01)
     ref = pm.path(g)
     Lam, eta = smc.ancestor_information(pm, sc, ref, innovation=False)
     t = 5
     delta = jnp.array([0.03, -0.2])
 
     def future_loglik(mech_t):
-        path = pm.path(g[t:].at[0, pm.nfx:].set(mech_t - pm.mech0_mean))
-        r = sc.y[t:] - jax.vmap(lambda x: pm._observe(x[:pm.nm], x[pm.nm:]))(path) * sc.maskf[t:]
+        path = pm.path(g[t:].at[0, pm.nfx :].set(mech_t - pm.mech0_mean))
+        r = sc.y[t:] - jax.vmap(lambda x: pm._observe(x[: pm.nm], x[pm.nm :]))(path) * sc.maskf[t:]
         return -0.5 * jnp.sum(jnp.einsum("td,tde,te->t", r, sc.Rinv[t:], r))
 
-    brute = future_loglik(ref[t, :pm.nm] + delta) - future_loglik(ref[t, :pm.nm])
+    brute = future_loglik(ref[t, : pm.nm] + delta) - future_loglik(ref[t, : pm.nm])
     approx = -0.5 * delta @ Lam[t] @ delta + delta @ eta[t]
     np.testing.assert_allclose(approx, brute, rtol=1e-8)
 
@@ -245,7 +264,7 @@ def test_ancestor_information_is_exact_for_linear_model(order):
     pm = prob["pm"]
     nm, nfx = pm.nm, pm.nfx
     sc = smc.sweep_constants(pm, prob["tr"], prob["y"], prob["mask"])
-    g = jax.random.normal(jax.random.key(2), (25, pm.nl)).at[:, pm.nfx:].multiply(0.01)
+    g = jax.random.normal(jax.random.key(2), (25, pm.nl)).at[:, pm.nfx :].multiply(0.01)
     ref = pm.path(g)
     Lam, eta = smc.ancestor_information(pm, sc, ref)
     A = prob["tr"].A
@@ -258,7 +277,7 @@ def test_ancestor_information_is_exact_for_linear_model(order):
             nxt = jnp.concatenate([pm.phi(x[:nm], x[nm:]) + m[nfx:] + q_s[nfx:], m[:nfx] + q_s[:nfx]])
             return nxt, nxt
 
-        _, xs = jax.lax.scan(step, x_t, q[t + 1:])
+        _, xs = jax.lax.scan(step, x_t, q[t + 1 :])
         return jnp.concatenate([x_t[None], xs])
 
     def future_loglik(x_t):

@@ -24,8 +24,9 @@ def test_prior_psd_is_one_sided_and_integrates_to_the_variance(p):
     """int_0^inf G(f) df = sigma^2 (one-sided in hertz, as welch's density)."""
     kernel = Matern(p)
     variance, lengthscale = 3.7, 0.35
-    total, err = integrate.quad(lambda f: prior_psd(kernel, variance, lengthscale, np.array([f]))[0],
-                                0.0, np.inf, limit=200)
+    total, err = integrate.quad(
+        lambda f: prior_psd(kernel, variance, lengthscale, np.array([f]))[0], 0.0, np.inf, limit=200
+    )
     assert abs(total - variance) < 1e-6 * variance, (total, err)
 
 
@@ -70,16 +71,17 @@ def test_force_psd_csv_and_figure(tmp_path):
     d = {
         "system": {"type": "linear", "m": 1.0, "c": 0.4, "k": 10.0},
         "force": {"kernel": "matern32", "variance": 1.0, "lengthscale": 0.5},
-        "sensors": [{"column": "acc", "quantity": "acceleration", "noise_std": 0.2},
-                    {"column": "load", "quantity": "force", "noise_std": 0.1}],
+        "sensors": [
+            {"column": "acc", "quantity": "acceleration", "noise_std": 0.2},
+            {"column": "load", "quantity": "force", "noise_std": 0.1},
+        ],
         "inference": {"method": "kalman"},
     }
     problem = config_from_dict(d, source="c.toml")
     T = 300
     rng = np.random.default_rng(1)
     y = rng.normal(size=(T, 2))
-    ds = Dataset(np.arange(T) * 0.05, 0.05, y, np.ones((T, 2), bool), ["acc", "load"],
-                 {"force": rng.normal(size=T)})
+    ds = Dataset(np.arange(T) * 0.05, 0.05, y, np.ones((T, 2), bool), ["acc", "load"], {"force": rng.normal(size=T)})
     result, _ = estimate.run(problem, ds, seed=0)
     write_results(tmp_path / "o", result)
     with open(tmp_path / "o" / "force_psd.csv") as f:

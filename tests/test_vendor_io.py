@@ -47,10 +47,23 @@ def _signals(seed=0):
 
 def _uff_record(name, data, dt, unit, binary, t0=0.0):
     return pyuff.prepare_58(
-        binary=binary, func_type=1, rsp_node=1, rsp_dir=1, ref_node=0, ref_dir=0, id1=name, data=data,
-        x=t0 + dt * np.arange(data.size), abscissa_spacing=1, abscissa_spec_data_type=17,
-        ordinate_spec_data_type=0, orddenom_spec_data_type=0, z_axis_spec_data_type=0,
-        ordinate_axis_units_lab=unit, abscissa_axis_units_lab="s")
+        binary=binary,
+        func_type=1,
+        rsp_node=1,
+        rsp_dir=1,
+        ref_node=0,
+        ref_dir=0,
+        id1=name,
+        data=data,
+        x=t0 + dt * np.arange(data.size),
+        abscissa_spacing=1,
+        abscissa_spec_data_type=17,
+        ordinate_spec_data_type=0,
+        orddenom_spec_data_type=0,
+        z_axis_spec_data_type=0,
+        ordinate_axis_units_lab=unit,
+        abscissa_axis_units_lab="s",
+    )
 
 
 def write_uff(path, records, binary):
@@ -94,8 +107,7 @@ def write_equivalent_csv(tmp_path, acc, disp, names=("acc", "disp")):
     return path
 
 
-def config(data_path, names, units=(None, None), missing="error", method="kalman", extra_data=None,
-           paths=(None, None)):
+def config(data_path, names, units=(None, None), missing="error", method="kalman", extra_data=None, paths=(None, None)):
     sensors = []
     for name, quantity, noise, unit, p in zip(names, ("acceleration", "displacement"), (0.01, 0.05), units, paths):
         s = {"column": name, "quantity": quantity, "dof": 0, "noise_std": noise}
@@ -107,10 +119,13 @@ def config(data_path, names, units=(None, None), missing="error", method="kalman
     data = {"missing": missing, **(extra_data or {})}
     if data_path is not None:
         data["path"] = str(data_path)
-    return {"data": data,
-            "system": {"type": "linear", "m": 1.0, "c": 0.8, "k": 40.0},
-            "force": {"kernel": "matern32", "variance": 4.0, "lengthscale": 0.1},
-            "sensors": sensors, "inference": {"method": method}}
+    return {
+        "data": data,
+        "system": {"type": "linear", "m": 1.0, "c": 0.8, "k": 40.0},
+        "force": {"kernel": "matern32", "variance": 4.0, "lengthscale": 0.1},
+        "sensors": sensors,
+        "inference": {"method": method},
+    }
 
 
 def _same_dataset(a, b):
@@ -125,13 +140,27 @@ def _same_dataset(a, b):
 
 
 # ----- units ------------------------------------------------------------------
-@pytest.mark.parametrize("quantity,unit,scale", [
-    ("acceleration", "g", G), ("acceleration", "mg", 1e-3 * G), ("acceleration", "mm/s^2", 1e-3),
-    ("acceleration", "m/s**2", 1.0), ("displacement", "mm", 1e-3), ("displacement", "um", 1e-6),
-    ("displacement", "µm", 1e-6), ("displacement", "in", 0.0254), ("velocity", "in/s", 0.0254),
-    ("velocity", "mm/s", 1e-3), ("strain", "ustrain", 1e-6), ("strain", "µε", 1e-6), ("strain", "m/m", 1.0),
-    ("force", "N", 1.0), ("force", "kN", 1e3), ("force", "lbf", 4.4482216152605),
-])
+@pytest.mark.parametrize(
+    "quantity,unit,scale",
+    [
+        ("acceleration", "g", G),
+        ("acceleration", "mg", 1e-3 * G),
+        ("acceleration", "mm/s^2", 1e-3),
+        ("acceleration", "m/s**2", 1.0),
+        ("displacement", "mm", 1e-3),
+        ("displacement", "um", 1e-6),
+        ("displacement", "µm", 1e-6),
+        ("displacement", "in", 0.0254),
+        ("velocity", "in/s", 0.0254),
+        ("velocity", "mm/s", 1e-3),
+        ("strain", "ustrain", 1e-6),
+        ("strain", "µε", 1e-6),
+        ("strain", "m/m", 1.0),
+        ("force", "N", 1.0),
+        ("force", "kN", 1e3),
+        ("force", "lbf", 4.4482216152605),
+    ],
+)
 def test_unit_factors_against_hand_values(quantity, unit, scale):
     u = resolve_unit(quantity, unit, None, who="s", where="f")
     assert u.scale == pytest.approx(scale, rel=1e-13)
@@ -154,8 +183,9 @@ def test_vendor_file_equals_equivalent_csv(tmp_path, fmt):
     path, names = write_vendor(tmp_path, fmt, acc, disp)
     csv = write_equivalent_csv(tmp_path, acc, disp)
     ds = load_channels([ChannelSpec(names[0], "acceleration"), ChannelSpec(names[1], "displacement")], path)
-    ref = load_channels([ChannelSpec("acc", "acceleration", "g"), ChannelSpec("disp", "displacement", "mm")],
-                        csv, missing="skip")
+    ref = load_channels(
+        [ChannelSpec("acc", "acceleration", "g"), ChannelSpec("disp", "displacement", "mm")], csv, missing="skip"
+    )
     _same_dataset(ds, ref)
     # and against the hand conversion
     np.testing.assert_array_equal(ds.values[:, 0], acc * G)
@@ -173,8 +203,10 @@ def test_estimate_on_vendor_file_equals_csv(tmp_path, fmt):
     path, names = write_vendor(tmp_path, fmt, acc, disp)
     csv = write_equivalent_csv(tmp_path, acc, disp)
     runs = {}
-    for label, cfg in (("vendor", config(path, names)),
-                       ("csv", config(csv, ("acc", "disp"), units=("g", "mm"), missing="skip"))):
+    for label, cfg in (
+        ("vendor", config(path, names)),
+        ("csv", config(csv, ("acc", "disp"), units=("g", "mm"), missing="skip")),
+    ):
         problem = config_from_dict(cfg, source=f"{label}.toml", base_dir=tmp_path)
         result, _ = estimate.run(problem, load_problem_data(problem))
         write_results(tmp_path / label, result, figures=False)
@@ -210,8 +242,11 @@ def test_cli_estimate_reads_a_uff_file(tmp_path, monkeypatch):
     acc, disp = _signals(2)
     _, names = write_vendor(tmp_path, "uff58", acc, disp)
     cfg = config("uff58.uff", names, extra_data={})
-    lines = ['[data]\npath = "uff58.uff"\n', '[system]\ntype = "linear"\nm = 1.0\nc = 0.8\nk = 40.0\n',
-             '[force]\nkernel = "matern32"\nvariance = 4.0\nlengthscale = 0.1\n']
+    lines = [
+        '[data]\npath = "uff58.uff"\n',
+        '[system]\ntype = "linear"\nm = 1.0\nc = 0.8\nk = 40.0\n',
+        '[force]\nkernel = "matern32"\nvariance = 4.0\nlengthscale = 0.1\n',
+    ]
     for s in cfg["sensors"]:
         lines.append("[[sensors]]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in s.items()))
     lines.append('[inference]\nmethod = "kalman"\n')
@@ -233,8 +268,11 @@ def test_per_sensor_paths_and_grid_step(tmp_path):
     problem = config_from_dict(cfg, source="lf.toml", base_dir=tmp_path)
     assert problem.data.path is None and problem.data.sensor_paths[0] == (tmp_path / "acc.csv").resolve()
     two_files = load_problem_data(problem)
-    one_file = load_problem_data(config_from_dict(config(csv, ("acc", "disp"), units=("g", "mm"), missing="skip"),
-                                                  source="lf.toml", base_dir=tmp_path))
+    one_file = load_problem_data(
+        config_from_dict(
+            config(csv, ("acc", "disp"), units=("g", "mm"), missing="skip"), source="lf.toml", base_dir=tmp_path
+        )
+    )
     _same_dataset(two_files, one_file)
     # a finer [data].dt: every channel observed on its own samples only
     cfg["data"]["dt"] = DT / 2
@@ -268,12 +306,12 @@ def _dense_posterior(model, params, dt, T, rows, m0, P0):
     for t in range(T):
         for s in range(t + 1):  # Cov(x_t, x_s) = A^{t-s} P_s
             C = np.linalg.matrix_power(A, t - s) @ covs[s]
-            Sx[t * n:(t + 1) * n, s * n:(s + 1) * n] = C
-            Sx[s * n:(s + 1) * n, t * n:(t + 1) * n] = C.T
+            Sx[t * n : (t + 1) * n, s * n : (s + 1) * n] = C
+            Sx[s * n : (s + 1) * n, t * n : (t + 1) * n] = C.T
     mx = np.concatenate(means)
     Hb = np.zeros((len(rows), T * n))
     for r, (t, h, _, _) in enumerate(rows):
-        Hb[r, t * n:(t + 1) * n] = h
+        Hb[r, t * n : (t + 1) * n] = h
     y = np.array([r[2] for r in rows])
     Sy = Hb @ Sx @ Hb.T + np.diag([r[3] for r in rows])
     K = np.linalg.solve(Sy, Hb @ Sx).T
@@ -313,8 +351,11 @@ def test_two_rates_and_a_gap_match_the_dense_gaussian(tmp_path):
     assert dataset.values.shape == (T, 2)
     mean, var, ll = _dense_posterior(model, params, DT, T, rows, m0, P0)
     assert result.log_likelihood == pytest.approx(ll, rel=1e-9)
-    for name, idx in (("displacement", model.displacement_index()), ("velocity", model.velocity_index()),
-                      ("force", model.force_index())):
+    for name, idx in (
+        ("displacement", model.displacement_index()),
+        ("velocity", model.velocity_index()),
+        ("force", model.force_index()),
+    ):
         sd = np.sqrt(var[:, idx])
         # in posterior sds (a misplaced sample moves the mean by O(1) sd); the dense solve with
         # noise variances 1e-2 and 2.5e-9 apart loses digits the smoother keeps
@@ -326,8 +367,10 @@ def test_two_rates_and_a_gap_match_the_dense_gaussian(tmp_path):
 def test_sep005_records_equal_the_tdms_file(tmp_path):
     acc, disp = _signals(5)
     path, names = write_vendor(tmp_path, "tdms", acc, disp)
-    records = [{"name": "acc", "data": acc, "unit_str": "g", "fs": 1 / DT},
-               {"name": "disp", "data": disp, "unit_str": "mm", "time": 2 * DT * np.arange(T_SLOW)}]
+    records = [
+        {"name": "acc", "data": acc, "unit_str": "g", "fs": 1 / DT},
+        {"name": "disp", "data": disp, "unit_str": "mm", "time": 2 * DT * np.arange(T_SLOW)},
+    ]
     from_records = dataset_from_sep005(records, ["acc", "disp"], quantities=["acceleration", "displacement"])
     from_file = load_channels([ChannelSpec(names[0], "acceleration"), ChannelSpec(names[1], "displacement")], path)
     _same_dataset(from_records, from_file)
@@ -335,8 +378,10 @@ def test_sep005_records_equal_the_tdms_file(tmp_path):
     ds = dataset_from_sep005(records, problem=problem)
     np.testing.assert_array_equal(ds.values[::2, 1], disp * 1e-6)  # the sensor's unit wins
     # start_timestamp aligns records: disp starts 0.01 s after acc
-    late = [dict(records[0], start_timestamp="2024-05-01T12:00:00+00:00"),
-            dict(records[1], start_timestamp="2024-05-01T12:00:00.010000+00:00")]
+    late = [
+        dict(records[0], start_timestamp="2024-05-01T12:00:00+00:00"),
+        dict(records[1], start_timestamp="2024-05-01T12:00:00.010000+00:00"),
+    ]
     ds = dataset_from_sep005(late, ["acc", "disp"])
     assert ds.mask[1::2, 1].all() and not ds.mask[::2, 1].any()
 
@@ -354,15 +399,30 @@ def _raises(fn, *fragments):
 
 def test_unknown_and_mismatched_units(tmp_path):
     csv = write_equivalent_csv(tmp_path, *_signals())
-    _raises(lambda: config_from_dict(config(csv, ("acc", "disp"), units=("blorps", None)), source="lf.toml"),
-            "lf.toml", "[[sensors]][0].unit", "'blorps'", "pint")
-    _raises(lambda: config_from_dict(config(csv, ("acc", "disp"), units=(None, "m/s")), source="lf.toml"),
-            "[[sensors]][1].unit", "'m/s'", "'displacement'", "'m'")
+    _raises(
+        lambda: config_from_dict(config(csv, ("acc", "disp"), units=("blorps", None)), source="lf.toml"),
+        "lf.toml",
+        "[[sensors]][0].unit",
+        "'blorps'",
+        "pint",
+    )
+    _raises(
+        lambda: config_from_dict(config(csv, ("acc", "disp"), units=(None, "m/s")), source="lf.toml"),
+        "[[sensors]][1].unit",
+        "'m/s'",
+        "'displacement'",
+        "'m'",
+    )
     # a file's unit label that does not fit the sensor: the sensor and the file named
     path = tmp_path / "bad_unit.tdms"
     write_tdms(path, [("g", "acc", np.zeros(4), DT, "mm", 0.0)])
-    _raises(lambda: load_channels([ChannelSpec("g/acc", "acceleration", label="[[sensors]][0]")], path),
-            "sensor [[sensors]][0] (column 'g/acc')", "'mm'", "bad_unit.tdms", "does not fit quantity")
+    _raises(
+        lambda: load_channels([ChannelSpec("g/acc", "acceleration", label="[[sensors]][0]")], path),
+        "sensor [[sensors]][0] (column 'g/acc')",
+        "'mm'",
+        "bad_unit.tdms",
+        "does not fit quantity",
+    )
     write_tdms(path, [("g", "acc", np.zeros(4), DT, "m/s2", 0.0)])
     _raises(lambda: load_channels([ChannelSpec("g/acc", "acceleration")], path), "'m/s2'", "unit key")
 
@@ -380,8 +440,14 @@ def test_missing_channels_list_the_available_names(tmp_path):
 def test_spans_that_do_not_overlap(tmp_path):
     path = tmp_path / "apart.tdms"
     write_tdms(path, [("g", "a", np.zeros(10), DT, None, 0.0), ("g", "b", np.zeros(10), DT, None, 1.0)])
-    _raises(lambda: load_channels([ChannelSpec("g/a"), ChannelSpec("g/b")], path),
-            "'g/a'", "'g/b'", "do not overlap", "0.09 s", "1 s")
+    _raises(
+        lambda: load_channels([ChannelSpec("g/a"), ChannelSpec("g/b")], path),
+        "'g/a'",
+        "'g/b'",
+        "do not overlap",
+        "0.09 s",
+        "1 s",
+    )
 
 
 def test_rates_that_cannot_share_a_grid(tmp_path):
@@ -441,25 +507,30 @@ def test_simulate_writes_a_channel_in_its_unit(tmp_path, monkeypatch):
         '[data]\npath = "sim.csv"\n[system]\ntype = "linear"\nm = 1.0\nc = 0.8\nk = 40.0\n'
         '[force]\nkernel = "matern32"\nvariance = 4.0\nlengthscale = 0.1\n'
         '[[sensors]]\ncolumn = "disp"\nquantity = "displacement"\nnoise_std = 0.01\nunit = "mm"\n'
-        '[inference]\nmethod = "kalman"\n')
-    result = CliRunner().invoke(app, ["simulate", "lf.toml", "--out", "sim.csv", "--duration", "2",
-                                      "--sample-rate", "50"])
+        '[inference]\nmethod = "kalman"\n'
+    )
+    result = CliRunner().invoke(
+        app, ["simulate", "lf.toml", "--out", "sim.csv", "--duration", "2", "--sample-rate", "50"]
+    )
     assert result.exit_code == 0, result.output
     raw = load_data(tmp_path / "sim.csv", ["disp"])
     # the column in mm: truth (m) x 1000 plus noise of sd 0.01 mm
     z = (raw.values[:, 0] - 1e3 * raw.truth["displacement"]) / 0.01
     assert abs(z.mean()) < 5 / math.sqrt(z.size) and 0.7 < z.std() < 1.3
-    problem = config_from_dict(json.loads(json.dumps({"data": {"path": "sim.csv"}, **_sim_cfg()})),
-                               source="lf.toml", base_dir=tmp_path)
+    problem = config_from_dict(
+        json.loads(json.dumps({"data": {"path": "sim.csv"}, **_sim_cfg()})), source="lf.toml", base_dir=tmp_path
+    )
     ds = load_problem_data(problem)
     np.testing.assert_array_equal(ds.values[:, 0], raw.values[:, 0] * 1e-3)
 
 
 def _sim_cfg():
-    return {"system": {"type": "linear", "m": 1.0, "c": 0.8, "k": 40.0},
-            "force": {"kernel": "matern32", "variance": 4.0, "lengthscale": 0.1},
-            "sensors": [{"column": "disp", "quantity": "displacement", "noise_std": 0.01, "unit": "mm"}],
-            "inference": {"method": "kalman"}}
+    return {
+        "system": {"type": "linear", "m": 1.0, "c": 0.8, "k": 40.0},
+        "force": {"kernel": "matern32", "variance": 4.0, "lengthscale": 0.1},
+        "sensors": [{"column": "disp", "quantity": "displacement", "noise_std": 0.01, "unit": "mm"}],
+        "inference": {"method": "kalman"},
+    }
 
 
 # ----- the libraries' behaviour our checks stand in for (STYLE.md 7b) ----------------------
@@ -469,7 +540,7 @@ def test_pyuff_still_drops_an_unclosed_last_record(tmp_path):
     acc, disp = _signals()
     path, _ = write_vendor(tmp_path, "uff58", acc, disp)
     whole = path.read_bytes()
-    path.write_bytes(whole[:len(whole) - 40])
+    path.write_bytes(whole[: len(whole) - 40])
     assert pyuff.UFF(str(path)).get_n_sets() == 1
 
 
@@ -490,8 +561,15 @@ def test_plain_csv_config_gives_load_datas_dataset(tmp_path):
     """Backward compatible: without units or paths, the CLI's loader returns load_data's numbers."""
     acc, disp = _signals(6)
     csv = tmp_path / "plain.csv"
-    write_csv(csv, {"time": 0.5 + DT * np.arange(T_FAST), "acc": acc, "disp": np.resize(disp, T_FAST),
-                    "displacement": np.arange(T_FAST) * 1.0})
+    write_csv(
+        csv,
+        {
+            "time": 0.5 + DT * np.arange(T_FAST),
+            "acc": acc,
+            "disp": np.resize(disp, T_FAST),
+            "displacement": np.arange(T_FAST) * 1.0,
+        },
+    )
     new = load_problem_data(config_from_dict(config(csv, ("acc", "disp")), source="lf.toml"))
     old = load_data(csv, ["acc", "disp"])
     for field in ("time", "values", "mask"):
@@ -499,4 +577,6 @@ def test_plain_csv_config_gives_load_datas_dataset(tmp_path):
     assert new.dt == old.dt and new.columns == old.columns
     np.testing.assert_array_equal(new.truth["displacement"], old.truth["displacement"])
     assert {c: (u.unit, u.scale, u.source) for c, u in new.units.items()} == {
-        "acc": ("m/s^2", 1.0, "assumed"), "disp": ("m", 1.0, "assumed")}
+        "acc": ("m/s^2", 1.0, "assumed"),
+        "disp": ("m", 1.0, "assumed"),
+    }

@@ -54,8 +54,19 @@ import numpy as np
 
 from latentforce.errors import LatentForceError
 
-__all__ = ["Record", "expand_inputs", "name_timestamp", "folder_names", "plan_records", "record_key",
-           "folder_state", "run_record", "run_batch", "RECORD_FILE", "EXIT_SOME_FAILED"]
+__all__ = [
+    "Record",
+    "expand_inputs",
+    "name_timestamp",
+    "folder_names",
+    "plan_records",
+    "record_key",
+    "folder_state",
+    "run_record",
+    "run_batch",
+    "RECORD_FILE",
+    "EXIT_SOME_FAILED",
+]
 
 #: the file in each record's folder that says which config and data it holds and whether it finished
 RECORD_FILE = "batch_record.json"
@@ -77,6 +88,7 @@ class Record:
 
 
 # ----- which files, in which order, under which names ----------------------------------------
+
 
 def expand_inputs(patterns: list[str]) -> list[tuple[Path, str]]:
     """``(absolute path, shown path)`` of every data file the arguments name, in file order.
@@ -104,15 +116,15 @@ def expand_inputs(patterns: list[str]) -> list[tuple[Path, str]]:
         if p.is_dir():
             files = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in SUPPORTED_EXTENSIONS)
             if not files:
-                raise LatentForceError(f"The folder {pattern!r} holds no data file "
-                                       f"({', '.join(SUPPORTED_EXTENSIONS)}); nothing was run.")
+                raise LatentForceError(
+                    f"The folder {pattern!r} holds no data file ({', '.join(SUPPORTED_EXTENSIONS)}); nothing was run."
+                )
             for q in files:
                 add(str(q))
         elif p.exists():
             add(pattern)
         elif glob.has_magic(pattern):
-            matches = sorted(m for m in glob.glob(os.path.expanduser(pattern), recursive=True)
-                             if os.path.isfile(m))
+            matches = sorted(m for m in glob.glob(os.path.expanduser(pattern), recursive=True) if os.path.isfile(m))
             if not matches:
                 raise LatentForceError(f"No file matches {pattern!r}; nothing was run.")
             for m in matches:
@@ -168,16 +180,17 @@ def folder_names(paths: list[Path]) -> list[str]:
         for i in clashing:
             levels[i] += 1
     # distinct paths whose joined parts still agree (names with "--" in them): add a hash
-    return [n if counts[n.casefold()] == 1 else f"{n}-{hashlib.sha256(str(p).encode()).hexdigest()[:8]}"
-            for n, p in zip(names, paths)]
+    return [
+        n if counts[n.casefold()] == 1 else f"{n}-{hashlib.sha256(str(p).encode()).hexdigest()[:8]}"
+        for n, p in zip(names, paths)
+    ]
 
 
 def plan_records(patterns: list[str]) -> tuple[list[Record], str]:
     """The campaign's records in order, and the rule used (``"time"`` or ``"file"``; module doc)."""
     found = expand_inputs(patterns)
     names = folder_names([p for p, _ in found])
-    records = [Record(path=p, shown=s, folder=n, timestamp=name_timestamp(p.name))
-               for (p, s), n in zip(found, names)]
+    records = [Record(path=p, shown=s, folder=n, timestamp=name_timestamp(p.name)) for (p, s), n in zip(found, names)]
     if all(r.timestamp is not None for r in records):
         order = sorted(range(len(records)), key=lambda i: (records[i].timestamp, i))
         return [records[i] for i in order], "time"
@@ -185,6 +198,7 @@ def plan_records(patterns: list[str]) -> tuple[list[Record], str]:
 
 
 # ----- what a folder holds -------------------------------------------------------------------
+
 
 def _file_sha256(path: Path) -> str:
     digest = hashlib.sha256()
@@ -242,6 +256,7 @@ def _write_json(path: Path, payload: dict) -> None:
 
 # ----- one record (a Dask task) --------------------------------------------------------------
 
+
 def _record_row(out: Path, result) -> dict:
     """The record's row of ``batch.csv``, from the summary.json just written and the posterior
     mean force: ``converged``, ``NAME_mean`` and ``NAME_sd`` per parameter, ``force_rms``
@@ -295,8 +310,17 @@ def run_record(config_path: str, data_path: str, folder: str, key: dict, shown: 
 
     finished = datetime.now(timezone.utc).isoformat(timespec="seconds")
     try:
-        _write_json(out / RECORD_FILE, {**marker, "status": row["status"], "error": row["error"],
-                                        "finished": finished, "version": __version__, "row": row})
+        _write_json(
+            out / RECORD_FILE,
+            {
+                **marker,
+                "status": row["status"],
+                "error": row["error"],
+                "finished": finished,
+                "version": __version__,
+                "row": row,
+            },
+        )
     except (OSError, ValueError) as err:
         if row["status"] == "done":  # without its record the folder is not finished: say so
             row.update(status="failed", error=f"the result was written but {out / RECORD_FILE} could not be: {err}")
@@ -304,6 +328,7 @@ def run_record(config_path: str, data_path: str, folder: str, key: dict, shown: 
 
 
 # ----- the campaign --------------------------------------------------------------------------
+
 
 @dataclass
 class BatchOutcome:
@@ -327,7 +352,8 @@ def _refusal(out: Path, clashes: dict[str, list[str]]) -> LatentForceError:
     return LatentForceError(
         f"Result folders under {str(out)!r} hold results this batch would replace: {'; '.join(parts)}. "
         "Nothing was run. Pass --force to replace their results (other files in them are kept), or "
-        "choose another --out.")
+        "choose another --out."
+    )
 
 
 @contextlib.contextmanager
@@ -340,22 +366,35 @@ def dask_client(scheduler: str | None, workers: int):
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
         except (OSError, TimeoutError, ValueError) as err:
-            raise LatentForceError(f"Cannot reach the Dask scheduler at {scheduler!r} ({err}); nothing was "
-                                   "run. Start one with `dask scheduler` and workers with "
-                                   "`dask worker ADDRESS`, or leave out --scheduler to run here.") from None
+            raise LatentForceError(
+                f"Cannot reach the Dask scheduler at {scheduler!r} ({err}); nothing was "
+                "run. Start one with `dask scheduler` and workers with "
+                "`dask worker ADDRESS`, or leave out --scheduler to run here."
+            ) from None
         with client:
             yield client
         return
     # ":0": the scheduler's web server (and dashboard, with bokeh) on a free port, so that two
     # campaigns, or a campaign beside a user's own cluster on 8787, start without a warning
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    with (
+        LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         yield client
 
 
-def run_batch(config: Path, patterns: list[str], out: Path, *, scheduler: str | None = None,
-              workers: int | None = None, force: bool = False,
-              echo: Callable[[str], None] = print) -> BatchOutcome:
+def run_batch(
+    config: Path,
+    patterns: list[str],
+    out: Path,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    force: bool = False,
+    echo: Callable[[str], None] = print,
+) -> BatchOutcome:
     """Run a campaign (module doc); write ``out/batch.csv`` and ``out/trend.png``.
 
     ``echo`` gets one line per failed record (``error: FILE: message``) as it fails.
@@ -384,18 +423,31 @@ def run_batch(config: Path, patterns: list[str], out: Path, *, scheduler: str | 
         try:
             key = record_key(config_sha256, rec.path)
         except OSError as err:
-            rows[rec.folder] = {"file": rec.shown, "folder": rec.folder, "status": "failed",
-                                "error": f"the data file {rec.shown!r} cannot be read ({err}).", "wall_time_s": 0.0}
+            rows[rec.folder] = {
+                "file": rec.shown,
+                "folder": rec.folder,
+                "status": "failed",
+                "error": f"the data file {rec.shown!r} cannot be read ({err}).",
+                "wall_time_s": 0.0,
+            }
             continue
         state = folder_state(out / rec.folder, key["key"])
         if state == "finished":
             info = read_record_file(out / rec.folder) or {}
-            rows[rec.folder] = {**info.get("row", {}), "file": rec.shown, "folder": rec.folder,
-                                "status": "skipped", "error": ""}
+            rows[rec.folder] = {
+                **info.get("row", {}),
+                "file": rec.shown,
+                "folder": rec.folder,
+                "status": "skipped",
+                "error": "",
+            }
             continue
         if state in ("other", "foreign") and not force:
-            why = ("finished results of another config or data file" if state == "other"
-                   else f"files not written by batch: no {RECORD_FILE}")
+            why = (
+                "finished results of another config or data file"
+                if state == "other"
+                else f"files not written by batch: no {RECORD_FILE}"
+            )
             clashes.setdefault(why, []).append(rec.folder)
         to_run.append((rec, key))
     if clashes:
@@ -414,23 +466,37 @@ def run_batch(config: Path, patterns: list[str], out: Path, *, scheduler: str | 
     return BatchOutcome(rows=ordered, order=order, table=table, trend=trend)
 
 
-def _run_on_dask(config: Path, out: Path, to_run: list[tuple[Record, dict]], scheduler: str | None,
-                 workers: int, echo: Callable[[str], None]) -> dict[str, dict]:
+def _run_on_dask(
+    config: Path,
+    out: Path,
+    to_run: list[tuple[Record, dict]],
+    scheduler: str | None,
+    workers: int,
+    echo: Callable[[str], None],
+) -> dict[str, dict]:
     """Submit one task per record, in record order; their rows by folder name, as they finish."""
     from dask.distributed import as_completed
     from tqdm import tqdm
 
     rows: dict[str, dict] = {}
-    bar = tqdm(total=len(to_run), desc="batch", unit="record", file=sys.stderr, leave=False,
-               disable=not sys.stderr.isatty())
+    bar = tqdm(
+        total=len(to_run), desc="batch", unit="record", file=sys.stderr, leave=False, disable=not sys.stderr.isatty()
+    )
     say = bar.write if not bar.disable else echo
     with dask_client(scheduler, workers) as client:
         if importlib.util.find_spec("bokeh") is not None:
             say(f"batch: {len(to_run)} record(s) to run; Dask dashboard at {client.dashboard_link}")
         futures = {}
         for rec, key in to_run:
-            future = client.submit(run_record, str(config.resolve()), str(rec.path),
-                                   str((out / rec.folder).resolve()), key, rec.shown, pure=False)
+            future = client.submit(
+                run_record,
+                str(config.resolve()),
+                str(rec.path),
+                str((out / rec.folder).resolve()),
+                key,
+                rec.shown,
+                pure=False,
+            )
             futures[future] = rec
         try:
             for future in as_completed(futures):
@@ -438,8 +504,13 @@ def _run_on_dask(config: Path, out: Path, to_run: list[tuple[Record, dict]], sch
                 try:
                     row = future.result()
                 except Exception as err:  # noqa: BLE001 - the task itself was lost (a worker died ...)
-                    row = {"file": rec.shown, "folder": rec.folder, "status": "failed", "wall_time_s": None,
-                           "error": f"the Dask task did not finish ({type(err).__name__}: {err})"}
+                    row = {
+                        "file": rec.shown,
+                        "folder": rec.folder,
+                        "status": "failed",
+                        "wall_time_s": None,
+                        "error": f"the Dask task did not finish ({type(err).__name__}: {err})",
+                    }
                 rows[rec.folder] = row
                 if row["status"] == "failed":
                     say(f"error: {rec.shown}: {row['error']}")

@@ -41,8 +41,9 @@ def table_columns(rows: list[dict]) -> list[str]:
         for name in row:
             if name in _LEADING or name in params or name in forces:
                 continue
-            (forces if name.startswith("force_") and name.endswith("_rms") or name == "force_rms"
-             else params).append(name)
+            (forces if name.startswith("force_") and name.endswith("_rms") or name == "force_rms" else params).append(
+                name
+            )
     return list(_LEADING) + params + forces
 
 
@@ -103,16 +104,30 @@ def write_trend(out: Path, rows: list[dict], *, order: str, title: str = "") -> 
     FigureCanvasAgg(fig)
     axes = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
     if not panels:
-        axes[0].text(0.5, 0.5, "no finished record" if not ok.any() else "no parameter inferred",
-                     ha="center", va="center", transform=axes[0].transAxes)
+        axes[0].text(
+            0.5,
+            0.5,
+            "no finished record" if not ok.any() else "no parameter inferred",
+            ha="center",
+            va="center",
+            transform=axes[0].transAxes,
+        )
     for ax, (label, mean_col, sd_col) in zip(axes, panels):
         mean = np.array([_number(r.get(mean_col)) for r in rows])
         sd = np.array([_number(r.get(sd_col)) for r in rows]) if sd_col else None
         keep = ok & np.isfinite(mean)
         xs = [xi for xi, k in zip(x, keep) if k]
         if sd is not None:
-            ax.errorbar(xs, mean[keep], yerr=2.0 * np.nan_to_num(sd[keep]), fmt="o-", ms=4, capsize=3,
-                        color="C0", label="posterior mean ± 2 sd")
+            ax.errorbar(
+                xs,
+                mean[keep],
+                yerr=2.0 * np.nan_to_num(sd[keep]),
+                fmt="o-",
+                ms=4,
+                capsize=3,
+                color="C0",
+                label="posterior mean ± 2 sd",
+            )
         else:
             ax.plot(xs, mean[keep], "o-", ms=4, color="C1")
         for xi in failed:

@@ -118,7 +118,8 @@ def tree_from_arrays(template, arrays: dict[str, np.ndarray], prefix: str):
             raise LatentForceError(
                 f"The checkpoint does not fit this run: its array {name!r} is {found}, this run needs "
                 f"{np.asarray(want).dtype}{list(np.shape(want))}. Was it written by another version of "
-                "latentforce? Start the run again with --force.")
+                "latentforce? Start the run again with --force."
+            )
         arr = jax.numpy.asarray(got)
         new.append(jax.random.wrap_key_data(arr, impl=jax.random.key_impl(leaf)) if _is_key(leaf) else arr)
     return jax.tree_util.tree_unflatten(treedef, new)
@@ -160,11 +161,18 @@ def run_identity(config_path: Path, data_path: Path, seed: int, method: str) -> 
 
     from latentforce import __version__
 
-    return {"config": str(Path(config_path).resolve()), "config_sha256": config_digest(config_path),
-            "config_content": config_content(config_path),
-            "data": str(Path(data_path).resolve()), "data_sha256": file_digest(data_path),
-            "seed": int(seed), "method": method, "version": __version__,
-            "jax": jax.__version__, "jaxlib": jaxlib.__version__}
+    return {
+        "config": str(Path(config_path).resolve()),
+        "config_sha256": config_digest(config_path),
+        "config_content": config_content(config_path),
+        "data": str(Path(data_path).resolve()),
+        "data_sha256": file_digest(data_path),
+        "seed": int(seed),
+        "method": method,
+        "version": __version__,
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+    }
 
 
 # ---------------------------------------------------------------------------
@@ -179,8 +187,9 @@ class Checkpoint:
     run.
     """
 
-    def __init__(self, out_dir: Path, identity: dict, every: float, saved: LoopState | None = None,
-                 sampler: str | None = None):
+    def __init__(
+        self, out_dir: Path, identity: dict, every: float, saved: LoopState | None = None, sampler: str | None = None
+    ):
         self.out_dir = Path(out_dir)
         self.path = self.out_dir / CHECKPOINT_NAME
         self.identity = dict(identity)
@@ -199,10 +208,15 @@ class Checkpoint:
         if saved is None:
             return None
         if self._sampler is not None and self._sampler != sampler:
-            raise LatentForceError(f"The checkpoint in {str(self.out_dir)!r} was written by the {self._sampler} "
-                                   f"sampler, not {sampler}; start the run again with --force.")
-        self.resumed_from = {"done": int(saved.done), "finished": bool(saved.finished),
-                             "sampler_time_before_s": float(saved.elapsed_s)}
+            raise LatentForceError(
+                f"The checkpoint in {str(self.out_dir)!r} was written by the {self._sampler} "
+                f"sampler, not {sampler}; start the run again with --force."
+            )
+        self.resumed_from = {
+            "done": int(saved.done),
+            "finished": bool(saved.finished),
+            "sampler_time_before_s": float(saved.elapsed_s),
+        }
         return saved
 
     def due(self) -> bool:
@@ -214,9 +228,16 @@ class Checkpoint:
         if not (force or self.due()):
             return False
         state = build()
-        meta = {"format": FORMAT, "sampler": sampler, "identity": self.identity, "done": int(state.done),
-                "finished": bool(state.finished), "elapsed_s": float(state.elapsed_s), "extra": state.extra,
-                "written": _time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        meta = {
+            "format": FORMAT,
+            "sampler": sampler,
+            "identity": self.identity,
+            "done": int(state.done),
+            "finished": bool(state.finished),
+            "elapsed_s": float(state.elapsed_s),
+            "extra": state.extra,
+            "written": _time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        }
         if _META in state.arrays:
             raise ValueError(f"{_META} is reserved")
         arrays = dict(state.arrays)
@@ -236,8 +257,10 @@ class Checkpoint:
                     os.unlink(tmp)
             _fsync_dir(self.out_dir)
         except OSError as exc:
-            raise LatentForceError(f"The checkpoint {str(self.path)!r} could not be written ({exc}); the run "
-                                   "stopped. Free some space or set [inference].checkpoint_every.") from None
+            raise LatentForceError(
+                f"The checkpoint {str(self.path)!r} could not be written ({exc}); the run "
+                "stopped. Free some space or set [inference].checkpoint_every."
+            ) from None
         self._test_stop("renamed")
         self._last = _time.monotonic()
         return True
@@ -285,13 +308,17 @@ def read_checkpoint(out_dir: Path) -> tuple[dict, LoopState]:
             arrays = {name: npz[name] for name in npz.files}
         meta = json.loads(arrays.pop(_META).tobytes().decode())
     except (OSError, ValueError, KeyError) as exc:
-        raise LatentForceError(f"The checkpoint {str(path)!r} cannot be read ({exc}); start the run again "
-                               "with --force.") from None
+        raise LatentForceError(
+            f"The checkpoint {str(path)!r} cannot be read ({exc}); start the run again with --force."
+        ) from None
     if meta.get("format") != FORMAT:
-        raise LatentForceError(f"The checkpoint {str(path)!r} has layout {meta.get('format')!r}; this version "
-                               f"of latentforce reads layout {FORMAT}. Start the run again with --force.")
-    state = LoopState(int(meta["done"]), bool(meta["finished"]), arrays, float(meta["elapsed_s"]),
-                      dict(meta.get("extra") or {}))
+        raise LatentForceError(
+            f"The checkpoint {str(path)!r} has layout {meta.get('format')!r}; this version "
+            f"of latentforce reads layout {FORMAT}. Start the run again with --force."
+        )
+    state = LoopState(
+        int(meta["done"]), bool(meta["finished"]), arrays, float(meta["elapsed_s"]), dict(meta.get("extra") or {})
+    )
     return meta, state
 
 
@@ -324,12 +351,14 @@ def open_resume(out_dir: Path) -> tuple[dict, LoopState]:
             raise LatentForceError(
                 f"--resume {str(out_dir)!r}: this run is finished (its results, summary.json and "
                 "posterior.nc, are written and it holds no checkpoint); nothing to resume. To run it "
-                "again, pass --out with --force instead.")
+                "again, pass --out with --force instead."
+            )
         raise LatentForceError(
             f"--resume {str(out_dir)!r}: the folder holds no checkpoint ({CHECKPOINT_NAME}), so there is "
             "nothing to resume: the run was stopped before its first checkpoint (one is written every "
             "[inference].checkpoint_every seconds), or the folder is not a result folder of "
-            "`latentforce estimate`. Start the run again with --out and --force.")
+            "`latentforce estimate`. Start the run again with --out and --force."
+        )
     return read_checkpoint(out_dir)
 
 
@@ -361,22 +390,28 @@ def check_same_run(meta: dict, identity: dict, out_dir: Path) -> None:
     problems = []
     if saved["config_sha256"] != identity["config_sha256"]:
         changes = _config_changes(saved.get("config_content", {}), identity.get("config_content", {}))
-        problems.append(f"the configuration {identity['config']!r} differs from the one the run was started "
-                        f"with ({saved['config']!r})" + (f": {changes}" if changes else ""))
+        problems.append(
+            f"the configuration {identity['config']!r} differs from the one the run was started "
+            f"with ({saved['config']!r})" + (f": {changes}" if changes else "")
+        )
     if saved["data_sha256"] != identity["data_sha256"]:
-        problems.append(f"the data file {identity['data']!r} differs from the one the run was started with "
-                        f"({saved['data']!r}; SHA-256 {saved['data_sha256'][:12]}... then, "
-                        f"{identity['data_sha256'][:12]}... now)")
+        problems.append(
+            f"the data file {identity['data']!r} differs from the one the run was started with "
+            f"({saved['data']!r}; SHA-256 {saved['data_sha256'][:12]}... then, "
+            f"{identity['data_sha256'][:12]}... now)"
+        )
     if saved["seed"] != identity["seed"]:
-        problems.append(f"the seed is {identity['seed']}, the run was started with seed {saved['seed']} "
-                        "(leave --seed out to keep it)")
+        problems.append(
+            f"the seed is {identity['seed']}, the run was started with seed {saved['seed']} "
+            "(leave --seed out to keep it)"
+        )
     if saved["version"] != identity["version"]:
-        problems.append(f"the checkpoint was written by latentforce {saved['version']}, this is "
-                        f"{identity['version']}")
+        problems.append(f"the checkpoint was written by latentforce {saved['version']}, this is {identity['version']}")
     if problems:
         raise LatentForceError(
             f"{where} cannot be resumed: " + "; ".join(problems) + ". A resumed run must be the same run; "
-            "nothing was changed. Resume with the original inputs, or start a new run with --force.")
+            "nothing was changed. Resume with the original inputs, or start a new run with --force."
+        )
 
 
 def version_warning(meta: dict, identity: dict) -> str | None:
@@ -386,5 +421,7 @@ def version_warning(meta: dict, identity: dict) -> str | None:
     changed = [f"{k} {saved.get(k)} -> {identity[k]}" for k in ("jax", "jaxlib") if saved.get(k) != identity[k]]
     if not changed:
         return None
-    return (f"resumed with {', '.join(changed)}: the draws are valid but need not be bit-identical to an "
-            "uninterrupted run's.")
+    return (
+        f"resumed with {', '.join(changed)}: the draws are valid but need not be bit-identical to an "
+        "uninterrupted run's."
+    )

@@ -23,7 +23,7 @@ app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     help="Bayesian estimation of unmeasured forces and states of structures from measured response, "
-         "with Gaussian-process latent force models.",
+    "with Gaussian-process latent force models.",
 )
 
 
@@ -37,8 +37,9 @@ def _compilation_cache():
     ``LATENTFORCE_CACHE_DIR`` moves the cache; ``LATENTFORCE_CACHE_DIR=""``
     turns it off; an unwritable directory runs uncached.
     """
-    cache = os.environ.get("LATENTFORCE_CACHE_DIR",
-                           os.path.join(os.path.expanduser("~"), ".cache", "latentforce", "xla"))
+    cache = os.environ.get(
+        "LATENTFORCE_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "latentforce", "xla")
+    )
     if cache:
         try:
             os.makedirs(cache, exist_ok=True)
@@ -73,15 +74,21 @@ def handle_errors(fn):
         except LatentForceError as err:
             _fail(str(err))
         except KeyboardInterrupt:
-            _fail("interrupted; nothing more was written (a sampling run that wrote a checkpoint "
-                  "continues with `latentforce estimate CONFIG --resume DIR`).", 130)
+            _fail(
+                "interrupted; nothing more was written (a sampling run that wrote a checkpoint "
+                "continues with `latentforce estimate CONFIG --resume DIR`).",
+                130,
+            )
         except typer.Exit:
             raise
         except Exception as err:  # an internal error: say so briefly, no traceback
             if os.environ.get("LATENTFORCE_DEBUG"):
                 raise
-            _fail(f"internal error ({type(err).__name__}: {err}). This is a bug in latentforce; "
-                  "rerun with LATENTFORCE_DEBUG=1 for the traceback and report it.", 2)
+            _fail(
+                f"internal error ({type(err).__name__}: {err}). This is a bug in latentforce; "
+                "rerun with LATENTFORCE_DEBUG=1 for the traceback and report it.",
+                2,
+            )
 
     return wrapper
 
@@ -112,8 +119,15 @@ class Progress:
             self.bar = None
 
 
-def estimate_into(problem, out: Path, *, seed: Optional[int] = None, force: bool = False,
-                  progress: Optional[Progress] = None, resume=None):
+def estimate_into(
+    problem,
+    out: Path,
+    *,
+    seed: Optional[int] = None,
+    force: bool = False,
+    progress: Optional[Progress] = None,
+    resume=None,
+):
     """Read the problem's data, run its inference and write the result folder ``out``; returns the
     :class:`~latentforce.results.RunResult`. The path of ``estimate``, and of each record of ``batch``.
 
@@ -136,16 +150,18 @@ def estimate_into(problem, out: Path, *, seed: Optional[int] = None, force: bool
     checkpoint = None
     sampling = method in ("kalman-mcmc", "kalman-nuts", "pgas") or (method in ("ekf", "ukf") and problem.free)
     if sampling or resume is not None:
-        identity = ckpt.run_identity(problem.config_path, source,
-                                     problem.inference.seed if seed is None else seed, method)
+        identity = ckpt.run_identity(
+            problem.config_path, source, problem.inference.seed if seed is None else seed, method
+        )
         if resume is not None:
             meta, saved = resume
             ckpt.check_same_run(meta, identity, out)
             message = ckpt.version_warning(meta, identity)
             if message:
                 typer.echo(f"warning: {message}", err=True)
-            checkpoint = ckpt.Checkpoint(out, identity, problem.inference.checkpoint_every, saved,
-                                         sampler=meta["sampler"])
+            checkpoint = ckpt.Checkpoint(
+                out, identity, problem.inference.checkpoint_every, saved, sampler=meta["sampler"]
+            )
         else:
             checkpoint = ckpt.open_new(out, identity, problem.inference.checkpoint_every)
     try:
@@ -172,13 +188,17 @@ def estimate(
     out: Optional[Path] = typer.Option(None, "--out", help="Result folder (default: CONFIG-NAME-results)."),
     seed: Optional[int] = typer.Option(None, "--seed", help="Random seed; overrides [inference].seed."),
     force: bool = typer.Option(False, "--force", help="Replace the results in an existing result folder."),
-    strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the run did not converge "
-                                                         "(the results are written all the same)."),
+    strict: bool = typer.Option(
+        False, "--strict", help="Exit with code 3 when the run did not converge (the results are written all the same)."
+    ),
     resume: Optional[Path] = typer.Option(
-        None, "--resume", metavar="DIR",
+        None,
+        "--resume",
+        metavar="DIR",
         help="Continue the interrupted run whose result folder is DIR from its checkpoint "
-             "(DIR/checkpoint.npz, written every [inference].checkpoint_every seconds); the final draws are "
-             "those of an uninterrupted run. CONFIG (and --data, --seed if given) must be the run's own."),
+        "(DIR/checkpoint.npz, written every [inference].checkpoint_every seconds); the final draws are "
+        "those of an uninterrupted run. CONFIG (and --data, --seed if given) must be the run's own.",
+    ),
 ):
     """Estimate the force, states and parameters from measured data (the main job).
 
@@ -191,8 +211,10 @@ def estimate(
     meta = saved = None
     if resume is not None:
         if out is not None and out.resolve() != resume.resolve():
-            raise LatentForceError(f"--resume {str(resume)!r} continues the run in that folder; --out "
-                                   f"{str(out)!r} names another. Give only --resume.")
+            raise LatentForceError(
+                f"--resume {str(resume)!r} continues the run in that folder; --out "
+                f"{str(out)!r} names another. Give only --resume."
+            )
         if force:
             raise LatentForceError("--resume continues a run and --force starts one afresh; give one of them.")
         meta, saved = ckpt.open_resume(resume)
@@ -204,15 +226,23 @@ def estimate(
     problem = load_config(config, data_override=str(data) if data is not None else None)
     out = out if out is not None else Path(f"{config.stem}-results")
     method = problem.inference.method
-    result = estimate_into(problem, out, seed=seed, force=force, progress=Progress(method),
-                           resume=None if resume is None else (meta, saved))
+    result = estimate_into(
+        problem,
+        out,
+        seed=seed,
+        force=force,
+        progress=Progress(method),
+        resume=None if resume is None else (meta, saved),
+    )
     for warning in result.diagnostics.get("warnings", []):
         typer.echo(f"warning: {warning}", err=True)
     converged = result.method == "kalman" or bool((result.convergence or {}).get("converged", False))
     resumed = "" if resume is None else " (resumed)"
-    typer.echo(f"{method}: results written to {out}/{resumed} "
-               f"(summary.csv, summary.json, posterior.nc, figures/) in {result.wall_time_s:.1f} s"
-               + ("" if converged else "; NOT CONVERGED (see the warning above)"))
+    typer.echo(
+        f"{method}: results written to {out}/{resumed} "
+        f"(summary.csv, summary.json, posterior.nc, figures/) in {result.wall_time_s:.1f} s"
+        + ("" if converged else "; NOT CONVERGED (see the warning above)")
+    )
     if strict and not converged:
         raise typer.Exit(EXIT_NOT_CONVERGED)
 
@@ -225,7 +255,8 @@ def simulate(
     seed: int = typer.Option(0, "--seed", help="Random seed."),
     duration: float = typer.Option(10.0, "--duration", help="Length of the record in seconds."),
     sample_rate: Optional[float] = typer.Option(
-        None, "--sample-rate", help="Samples per second (default: [data].sample_rate, else 100)."),
+        None, "--sample-rate", help="Samples per second (default: [data].sample_rate, else 100)."
+    ),
     force: bool = typer.Option(False, "--force", help="Replace an existing file."),
 ):
     """Simulate measurements (with truth columns) from a configuration's model.
@@ -243,8 +274,10 @@ def simulate(
 
     problem = load_config(config)
     if out.exists() and not force:
-        raise LatentForceError(f"The file {str(out)!r} already exists; nothing was written. "
-                               "Pass --force to replace it or choose another --out.")
+        raise LatentForceError(
+            f"The file {str(out)!r} already exists; nothing was written. "
+            "Pass --force to replace it or choose another --out."
+        )
     rate = sample_rate or problem.data.sample_rate or 100.0
     if not (rate > 0 and duration > 0):
         raise LatentForceError("--duration and --sample-rate must be positive.")
@@ -260,8 +293,10 @@ def simulate(
     columns.update({c: y[:, i] / scales[i] for i, c in enumerate(problem.columns)})
     columns.update({k: v for k, v in truth_columns(sim).items() if k not in columns})
     write_data(out, columns)
-    typer.echo(f"wrote {n} samples at {rate:g} Hz to {out} "
-               f"(channels: {', '.join(problem.columns)}; truth: displacement, velocity, force)")
+    typer.echo(
+        f"wrote {n} samples at {rate:g} Hz to {out} "
+        f"(channels: {', '.join(problem.columns)}; truth: displacement, velocity, force)"
+    )
 
 
 @app.command()
@@ -272,9 +307,12 @@ def demo(
     quick: bool = typer.Option(False, "--quick", help="A short run (under a minute)."),
     seed: int = typer.Option(0, "--seed", help="Random seed."),
     force: bool = typer.Option(False, "--force", help="Replace results in an existing folder."),
-    paper_settings: bool = typer.Option(False, "--paper-settings",
-                                        help="duffing, sine: the paper's fixed counts (1e5 iterations after 1e4 "
-                                             "burn-in) instead of running until converged."),
+    paper_settings: bool = typer.Option(
+        False,
+        "--paper-settings",
+        help="duffing, sine: the paper's fixed counts (1e5 iterations after 1e4 "
+        "burn-in) instead of running until converged.",
+    ),
 ):
     """Run a built-in case end to end: simulate, estimate, write results, print NMSE."""
     from latentforce.demos import DEMOS
@@ -292,25 +330,41 @@ def demo(
 @handle_errors
 def batch(
     config: Path = typer.Argument(..., help="TOML configuration file, the same for every record."),
-    data: list[str] = typer.Argument(..., help="Data files, folders or glob patterns (quote them: "
-                                               "latentforce expands them itself)."),
-    out: Path = typer.Option(..., "--out", help="Campaign folder: one result folder per record, batch.csv, "
-                                                "trend.png."),
-    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler "
-                                            "(e.g. tcp://host:8786); default: a local cluster."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes of the local cluster "
-                                          "(default: the CPU cores, at most one per record)."),
-    force: bool = typer.Option(False, "--force", help="Replace result folders holding another config's or "
-                                                      "data's result."),
+    data: list[str] = typer.Argument(
+        ..., help="Data files, folders or glob patterns (quote them: latentforce expands them itself)."
+    ),
+    out: Path = typer.Option(..., "--out", help="Campaign folder: one result folder per record, batch.csv, trend.png."),
+    scheduler: Optional[str] = typer.Option(
+        None,
+        "--scheduler",
+        help="Address of a running Dask scheduler (e.g. tcp://host:8786); default: a local cluster.",
+    ),
+    workers: Optional[int] = typer.Option(
+        None,
+        "--workers",
+        help="Worker processes of the local cluster (default: the CPU cores, at most one per record).",
+    ),
+    force: bool = typer.Option(
+        False, "--force", help="Replace result folders holding another config's or data's result."
+    ),
 ):
     """Estimate many records with one configuration on Dask (a campaign); reruns skip finished records."""
     from latentforce.batch import EXIT_SOME_FAILED, run_batch
 
-    outcome = run_batch(config, data, out, scheduler=scheduler, workers=workers, force=force,
-                        echo=lambda line: typer.echo(line, err=True))
+    outcome = run_batch(
+        config,
+        data,
+        out,
+        scheduler=scheduler,
+        workers=workers,
+        force=force,
+        echo=lambda line: typer.echo(line, err=True),
+    )
     done, skipped, failed = (outcome.count(s) for s in ("done", "skipped", "failed"))
-    typer.echo(f"batch: {done} done, {skipped} skipped (finished before), {failed} failed; records in "
-               f"{outcome.order} order; table {outcome.table}, trend figure {outcome.trend}")
+    typer.echo(
+        f"batch: {done} done, {skipped} skipped (finished before), {failed} failed; records in "
+        f"{outcome.order} order; table {outcome.table}, trend figure {outcome.trend}"
+    )
     if failed:
         raise typer.Exit(EXIT_SOME_FAILED)
 

@@ -86,8 +86,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1,
-               "xla_cpu_multi_thread_eigen": False, "xla_cpu_experimental_ynn_fusion_type": ""}
+CPU_OPTIONS = {
+    "xla_cpu_use_fusion_emitters": False,
+    "xla_backend_optimization_level": 1,
+    "xla_cpu_multi_thread_eigen": False,
+    "xla_cpu_experimental_ynn_fusion_type": "",
+}
 
 
 SMALL_LOOP_BYTES = 1_000_000
@@ -102,7 +106,8 @@ def require_x64(what: str) -> None:
         raise LatentForceError(
             f"{what} needs JAX's float64 mode, which is off: the Kalman recursions and lightly damped "
             "structural models lose too much precision in float32. Call latentforce.enable_x64() once at "
-            "the start of your program (the latentforce command does), before any JAX computation.")
+            "the start of your program (the latentforce command does), before any JAX computation."
+        )
 
 
 def raise_small_loop_threshold(environ=os.environ) -> bool:
@@ -181,6 +186,9 @@ class _Jit:
     def lower(self, *args, **kwargs):
         return self._get().lower(*args, **kwargs)
 
+    def trace(self, *args, **kwargs):
+        return self._get().trace(*args, **kwargs)
+
 
 @jax.tree_util.register_pytree_node_class
 class Bound:
@@ -256,8 +264,12 @@ def persistent_cache(path: str | Path | None = None):
     """
     from jax.experimental.compilation_cache import compilation_cache
 
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
-             "jax_persistent_cache_min_entry_size_bytes", "jax_enable_compilation_cache")
+    names = (
+        "jax_compilation_cache_dir",
+        "jax_persistent_cache_min_compile_time_secs",
+        "jax_persistent_cache_min_entry_size_bytes",
+        "jax_enable_compilation_cache",
+    )
     old = {n: getattr(jax.config, n) for n in names}
     with contextlib.ExitStack() as stack:
         if path is None:

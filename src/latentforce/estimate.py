@@ -8,41 +8,26 @@ folder; progress goes through an optional callback.
 
 from __future__ import annotations
 
-import functools
 import time as _time
 from typing import Callable
 
 import jax
 import numpy as np
 
-from latentforce.compile import jit, numbers, require_x64
+from latentforce.compile import numbers, require_x64
 from latentforce.errors import LatentForceError
+from latentforce.estimate_particles import PGAS_AUTO_ITERATIONS, _mechanical_initial, _run_pgas  # noqa: F401
 from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_compiled, state_moments
 from latentforce.io.channels import channel_units, noise_in_si
 from latentforce.io.config import Problem
 from latentforce.io.data import Dataset
-from latentforce.outputs import gaussian_moments, output_matrix, path_outputs, sample_moments
+from latentforce.outputs import gaussian_moments, output_matrix
 from latentforce.outputs import split as split_outputs
 from latentforce.outputs import units as output_units
 from latentforce.results import RunResult, summarise_parameters
 from latentforce.spectrum import force_spectrum
 
 STATES = ("displacement", "velocity", "force")
-#: iterations of a pgas run whose config says "auto" (the default), for now
-#: the most iterations an "auto" pgas run makes (it stops earlier when converged or at max_time)
-PGAS_AUTO_ITERATIONS = 50_000
-
-
-def _label_times(record: dict, time: np.ndarray) -> dict:
-    """A convergence record with ``name[t=index]`` relabelled ``name[t=time]``."""
-    import re
-
-    def relabel(name):
-        return re.sub(r"\[t=(\d+)\]", lambda m: f"[t={time[int(m.group(1))]:.6g}]", name)
-
-    out = dict(record)
-    out["worst"] = [dict(w, name=relabel(w["name"])) for w in record.get("worst", [])]
-    return out
 
 
 def _truth(model, dataset: Dataset) -> dict[str, np.ndarray]:
@@ -65,8 +50,7 @@ def _check_stable(problem: Problem, params: dict) -> None:
     mech = model.layout.mech
     eig = np.linalg.eigvals(np.asarray(F)[mech, mech])
     if np.max(eig.real) >= 0:
-        what = ("linear system" if model.system.is_linear
-                else "system, linearised about rest,")
+        what = "linear system" if model.system.is_linear else "system, linearised about rest,"
         raise LatentForceError(
             f"The {what} in {problem.config_path} is not asymptotically stable (an eigenvalue "
             f"of its state matrix has real part {np.max(eig.real):.3g} >= 0: is the damping zero or the "
@@ -76,8 +60,15 @@ def _check_stable(problem: Problem, params: dict) -> None:
         )
 
 
-def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
-        progress: Callable | None = None, channels=None, checkpoint=None) -> tuple[RunResult, dict]:
+def run(
+    problem: Problem,
+    dataset: Dataset,
+    *,
+    seed: int | None = None,
+    progress: Callable | None = None,
+    channels=None,
+    checkpoint=None,
+) -> tuple[RunResult, dict]:
     """Run the configured inference; returns the result and method-specific extras.
 
     ``channels`` (``pgas`` only): ``(quantity, dof)`` pairs through which the
@@ -103,12 +94,14 @@ def run(problem: Problem, dataset: Dataset, *, seed: int | None = None,
                 result.diagnostics.setdefault("warnings", []).append(
                     f"the prior of {key} is carried from {c['from']}, whose run did not converge: its "
                     "posterior, and so this prior, may be wrong or too narrow. Rerun that calibration to "
-                    "convergence first.")
+                    "convergence first."
+                )
     return result, extras
 
 
-def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callable | None,
-         channels, checkpoint) -> tuple[RunResult, dict]:
+def _run(
+    problem: Problem, dataset: Dataset, seed: int | None, progress: Callable | None, channels, checkpoint
+) -> tuple[RunResult, dict]:
     t0 = _time.perf_counter()
     # The data are in SI (io/channels.py); each sensor's noise_std, in its channel's unit, follows.
     problem = noise_in_si(problem, dataset)
@@ -126,11 +119,20 @@ def _run(problem: Problem, dataset: Dataset, seed: int | None, progress: Callabl
     observed = {c: np.where(mask[:, i], y[:, i], np.nan) for i, c in enumerate(dataset.columns)}
     truth = _truth(model, dataset)
     fixed_record = {k: (float(v) if np.ndim(v) == 0 else np.asarray(v).tolist()) for k, v in problem.fixed.items()}
-    common = dict(time=np.asarray(dataset.time), ndof=model.ndof, nforce=model.nforce, observed=observed,
-                  truth=truth, seed=seed, fixed=fixed_record, units=channel_units(dataset),
-                  outputs=output_units(problem.outputs))
-    result, extras = _dispatch(key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels,
-                               checkpoint)
+    common = dict(
+        time=np.asarray(dataset.time),
+        ndof=model.ndof,
+        nforce=model.nforce,
+        observed=observed,
+        truth=truth,
+        seed=seed,
+        fixed=fixed_record,
+        units=channel_units(dataset),
+        outputs=output_units(problem.outputs),
+    )
+    result, extras = _dispatch(
+        key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels, checkpoint
+    )
     _mass_warning(problem, result)
     _weak_identification_warning(problem, result)
     # the force spectrum's draws (kalman) from their own key, apart from the method's
@@ -155,14 +157,15 @@ def _mass_warning(problem: Problem, result: RunResult) -> None:
     carried = set()
     for key in problem.carried or {}:  # "[system].m", "[system].masses[2]"
         tail = key.rsplit(".", 1)[-1]
-        carried.add("m_" + tail[len("masses["):-1] if tail.startswith("masses[") else tail)
+        carried.add("m_" + tail[len("masses[") : -1] if tail.startswith("masses[") else tail)
     masses = [n for n in problem.free if (n == "m" or (n.startswith("m_") and n[2:].isdigit())) and n not in carried]
     if masses and not any(s.quantity == "force" for s in problem.model.sensors):
         result.diagnostics.setdefault("warnings", []).append(
             f"the mass ({', '.join(masses)}) is inferred but no sensor measures the force "
-            "(quantity = \"force\"): with only motion measured, force and mass trade off (a force "
+            '(quantity = "force"): with only motion measured, force and mass trade off (a force '
             "twice as large on a mass twice as large gives much the same response), so the mass and "
-            "the force's scale are set by their priors. Add a load cell channel to identify the mass.")
+            "the force's scale are set by their priors. Add a load cell channel to identify the mass."
+        )
 
 
 #: A posterior whose sd (in the samplers' softplus space) is at least this share of its
@@ -190,11 +193,24 @@ def _weak_identification_warning(problem: Problem, result: RunResult) -> None:
             f"weakly identified: {', '.join(weak)}, in the samplers' space (softplus^-1 of the value). "
             "The data say little about them: their posteriors are mostly their priors, and so is what "
             "depends on them. Fix them at known values, narrow their priors from other evidence, or add a "
-            "sensor that sees them.")
+            "sensor that sees them."
+        )
 
 
-def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, initial, common: dict,
-              progress, t0: float, channels, checkpoint=None) -> tuple[RunResult, dict]:
+def _dispatch(
+    key,
+    problem: Problem,
+    dataset: Dataset,
+    params0: dict,
+    y,
+    mask,
+    initial,
+    common: dict,
+    progress,
+    t0: float,
+    channels,
+    checkpoint=None,
+) -> tuple[RunResult, dict]:
     """The configured method's result (:func:`run` adds what every method shares)."""
     model = problem.model
     settings = problem.inference
@@ -203,18 +219,27 @@ def _dispatch(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, i
     if settings.method == "kalman":
         sm = smooth_compiled(model, params0, y, mask, dataset.dt, initial, kalman=settings.kalman)
         if not np.isfinite(float(sm.log_likelihood)):
-            raise LatentForceError("The Kalman filter's log-likelihood is not finite for the configured "
-                                   f"model in {problem.config_path}: check the parameter values and units.")
+            raise LatentForceError(
+                "The Kalman filter's log-likelihood is not finite for the configured "
+                f"model in {problem.config_path}: check the parameter values and units."
+            )
         state_mean, state_sd = _smoothed_moments(problem, params0, sm.means, sm.covs)
         result = RunResult(
-            method="kalman", state_mean=state_mean, state_sd=state_sd, param_draws={}, path_draws={},
-            sample_stats={}, acceptance=[], log_likelihood=float(sm.log_likelihood),
-            wall_time_s=_time.perf_counter() - t0, **common)
+            method="kalman",
+            state_mean=state_mean,
+            state_sd=state_sd,
+            param_draws={},
+            path_draws={},
+            sample_stats={},
+            acceptance=[],
+            log_likelihood=float(sm.log_likelihood),
+            wall_time_s=_time.perf_counter() - t0,
+            **common,
+        )
         return result, extras
 
     if settings.method in ("kalman-mcmc", "kalman-nuts"):
-        result = _run_kalman_sampler(key, problem, dataset, y, mask, initial, common, progress, t0, extras,
-                                     checkpoint)
+        result = _run_kalman_sampler(key, problem, dataset, y, mask, initial, common, progress, t0, extras, checkpoint)
         return _resumed(result, checkpoint), extras
 
     if settings.method in ("ekf", "ukf"):
@@ -243,54 +268,58 @@ def _smoothed_moments(problem: Problem, params: dict, means, covs) -> tuple[dict
     return state_mean, state_sd
 
 
-@functools.partial(jit, static_argnames=("model",))
-def _default_initial(params, *, model):
-    # one compiled program: op by op its small solves compiled some dozens of programs
-    return model.default_initial(params)
-
-
-def _mechanical_initial(problem: Problem, params0: dict):
-    """The mechanical states' ``(mean, cov)`` start of the particle sampler's model (``pgas``,
-    ``ekf``, ``ukf``): the user's ``[initial]``; else None for a linear system (the joint
-    stationary start at each parameter value), the model's near-rest default for a nonlinear one."""
-    model = problem.model
-    mech = model.layout.mech
-    if problem.initial is not None:
-        mean, cov = problem.initial
-        return np.asarray(mean)[mech], np.asarray(cov)[mech, mech]
-    if model.system.is_linear:
-        return None
-    # one compiled program: op by op its small solves compiled some dozens of programs
-    m0, P0 = _default_initial(numbers(params0), model=model)
-    return np.asarray(m0)[mech], np.asarray(P0)[mech, mech]
-
-
-def _run_gaussian(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict, progress,
-                  t0: float, extras: dict, checkpoint=None) -> RunResult:
+def _run_gaussian(
+    key,
+    problem: Problem,
+    dataset: Dataset,
+    params0: dict,
+    y,
+    mask,
+    common: dict,
+    progress,
+    t0: float,
+    extras: dict,
+    checkpoint=None,
+) -> RunResult:
     """``ekf`` / ``ukf``: the Gaussian smoother at fixed parameters, or random-walk Metropolis over the
     inferred ones on its approximate likelihood with the states mixed over the draws."""
     from latentforce.inference.gaussian import for_parameters, smooth_at
 
     model, settings = problem.model, problem.inference
-    loglik, smoother = for_parameters(settings.method, model, dataset.dt, settings.discretisation,
-                                      _mechanical_initial(problem, params0))
+    loglik, smoother = for_parameters(
+        settings.method, model, dataset.dt, settings.discretisation, _mechanical_initial(problem, params0)
+    )
     if problem.free:
-        return _run_kalman_sampler(key, problem, dataset, y, mask, None, common, progress, t0, extras,
-                                   checkpoint, gaussian=(loglik, smoother))
+        return _run_kalman_sampler(
+            key, problem, dataset, y, mask, None, common, progress, t0, extras, checkpoint, gaussian=(loglik, smoother)
+        )
     y0 = np.where(mask, y, 0.0)
     sm = smooth_at(smoother, numbers(params0), y0, mask)
     if not np.isfinite(float(sm.log_likelihood)):
-        raise LatentForceError(f"The {settings.method.upper()} log-likelihood is not finite for the configured "
-                               f"model in {problem.config_path}: check the parameter values and units.")
+        raise LatentForceError(
+            f"The {settings.method.upper()} log-likelihood is not finite for the configured "
+            f"model in {problem.config_path}: check the parameter values and units."
+        )
     state_mean, state_sd = _smoothed_moments(problem, params0, sm.means, sm.covs)
     return RunResult(
-        method=settings.method, state_mean=state_mean, state_sd=state_sd, param_draws={}, path_draws={},
-        sample_stats={}, acceptance=[], log_likelihood=float(sm.log_likelihood),
-        convergence={"converged": True, "exact": False,
-                     "note": f"{settings.method}: a deterministic Gaussian approximation (no sampling error); "
-                             "for a nonlinear system its bands may be too narrow"},
+        method=settings.method,
+        state_mean=state_mean,
+        state_sd=state_sd,
+        param_draws={},
+        path_draws={},
+        sample_stats={},
+        acceptance=[],
+        log_likelihood=float(sm.log_likelihood),
+        convergence={
+            "converged": True,
+            "exact": False,
+            "note": f"{settings.method}: a deterministic Gaussian approximation (no sampling error); "
+            "for a nonlinear system its bands may be too narrow",
+        },
         diagnostics={"discretisation": settings.discretisation},
-        wall_time_s=_time.perf_counter() - t0, **common)
+        wall_time_s=_time.perf_counter() - t0,
+        **common,
+    )
 
 
 def _laplace_evidence(problem: Problem, modes: list[dict]) -> dict:
@@ -303,8 +332,11 @@ def _laplace_evidence(problem: Problem, modes: list[dict]) -> dict:
 
     flat = [n for n, spec in problem.free.items() if isinstance(spec.prior, Flat)]
     if flat:
-        return {"laplace": None, "reason": f"flat (improper) prior on {', '.join(flat)}: the evidence is "
-                                           "defined only up to an arbitrary constant"}
+        return {
+            "laplace": None,
+            "reason": f"flat (improper) prior on {', '.join(flat)}: the evidence is "
+            "defined only up to an arbitrary constant",
+        }
     masses = [m["log_mass"] for m in modes if m.get("laplace_ok") and np.isfinite(m.get("log_mass", np.nan))]
     if not masses:
         return {"laplace": None, "reason": "no mode with a positive definite Laplace fit"}
@@ -319,8 +351,20 @@ def _resumed(result: RunResult, checkpoint) -> RunResult:
     return result
 
 
-def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initial, common: dict, progress,
-                        t0: float, extras: dict, checkpoint=None, gaussian=None) -> RunResult:
+def _run_kalman_sampler(
+    key,
+    problem: Problem,
+    dataset: Dataset,
+    y,
+    mask,
+    initial,
+    common: dict,
+    progress,
+    t0: float,
+    extras: dict,
+    checkpoint=None,
+    gaussian=None,
+) -> RunResult:
     """``kalman-mcmc`` or ``kalman-nuts``: parameter draws, then the states mixed over them
     (``gaussian = (loglik, smoother)``: ``ekf``/``ukf`` with random-walk Metropolis)."""
     from latentforce.inference import convergence
@@ -333,34 +377,67 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
     runner = run_kalman_nuts if settings.method == "kalman-nuts" else run_kalman_mcmc
     loglik, smoother = gaussian if gaussian is not None else (None, None)
-    out = runner(key_mcmc, model, _fixed(problem), free, y, mask, dataset.dt,
-                 iterations=settings.iterations, burn_in=settings.burn_in, chains=settings.chains,
-                 initial=initial, progress=progress, target_ess=settings.target_ess, max_time=settings.max_time,
-                 checkpoint=checkpoint, kalman=settings.kalman,
-                 **({"loglik": loglik} if loglik is not None else {}))
+    out = runner(
+        key_mcmc,
+        model,
+        _fixed(problem),
+        free,
+        y,
+        mask,
+        dataset.dt,
+        iterations=settings.iterations,
+        burn_in=settings.burn_in,
+        chains=settings.chains,
+        initial=initial,
+        progress=progress,
+        target_ess=settings.target_ess,
+        max_time=settings.max_time,
+        checkpoint=checkpoint,
+        kalman=settings.kalman,
+        **({"loglik": loglik} if loglik is not None else {}),
+    )
     pooled = {n: d.reshape(-1) for n, d in out.draws.items()}
     point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
     point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
     # The paper's estimate: the smoother at the CDF median of each parameter.
     median = {n: float(np.median(v)) for n, v in pooled.items()}
-    mix = mixture_posterior(key_mix, model, _fixed(problem), out.draws, y, mask, dataset.dt,
-                            thin_draws=settings.thin_draws, initial=initial, point=median,
-                            outputs=problem.outputs, smoother=smoother, kalman=settings.kalman)
+    mix = mixture_posterior(
+        key_mix,
+        model,
+        _fixed(problem),
+        out.draws,
+        y,
+        mask,
+        dataset.dt,
+        thin_draws=settings.thin_draws,
+        initial=initial,
+        point=median,
+        outputs=problem.outputs,
+        smoother=smoother,
+        kalman=settings.kalman,
+    )
     mom_median, ll_median = mix.point
     extras["median_smoother"] = mom_median
     n_draws = next(iter(out.draws.values())).shape[1]
-    diagnostics = {"proposal_scale": out.proposal_scale.tolist(), "sampler_wall_time_s": out.wall_time_s,
-                   "iterations": "auto" if settings.iterations is None else settings.iterations,
-                   "draws_per_chain": int(n_draws), "burn_in": settings.burn_in, "warmup": out.warmup,
-                   "chains": settings.chains, "mixture_draws": mix.n_mix, "start": out.start,
-                   **out.sampler_info}
+    diagnostics = {
+        "proposal_scale": out.proposal_scale.tolist(),
+        "sampler_wall_time_s": out.wall_time_s,
+        "iterations": "auto" if settings.iterations is None else settings.iterations,
+        "draws_per_chain": int(n_draws),
+        "burn_in": settings.burn_in,
+        "warmup": out.warmup,
+        "chains": settings.chains,
+        "mixture_draws": mix.n_mix,
+        "start": out.start,
+        **out.sampler_info,
+    }
     modes = out.start.get("modes", [])
     diagnostics["log_evidence"] = _laplace_evidence(problem, modes)
     record = dict(out.convergence)
     # The states are exact given the parameters: their stored paths' R-hat is information only.
-    states = convergence.state_quantities({k: mix.paths[k] for k in STATES},
-                                          convergence.monitored_times(len(dataset.time)),
-                                          np.asarray(dataset.time))
+    states = convergence.state_quantities(
+        {k: mix.paths[k] for k in STATES}, convergence.monitored_times(len(dataset.time)), np.asarray(dataset.time)
+    )
     if mix.paths["force"].shape[1] >= 4 and settings.chains >= 2:
         record["states"] = convergence.diagnose({}, states, states_decide=False)["states"]
     warnings_ = []
@@ -369,7 +446,8 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
         warnings_.append(
             f"the posterior has {len(strong)} modes of comparable mass (found by the optimiser from "
             "dispersed starts; see diagnostics.start.modes): the chains were started in each, and the "
-            "parameter and force estimates are a mixture over them (as in §6 of the ISMA 2018 paper).")
+            "parameter and force estimates are a mixture over them (as in §6 of the ISMA 2018 paper)."
+        )
     message = convergence.warning_message(record, settings.method)
     if message:
         warnings_.append(message)
@@ -378,9 +456,11 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
     truth = common["truth"]
     if truth:
         from latentforce.results import coverage, nmse
+
         diagnostics["nmse_median_smoother"] = {k: nmse(truth[k][:, 0], mom_median[k][0][:, 0]) for k in truth}
         diagnostics["coverage_3sd"] = {
-            k: coverage(truth[k][:, 0], mix.moments[k][0][:, 0], mix.moments[k][1][:, 0]) for k in truth}
+            k: coverage(truth[k][:, 0], mix.moments[k][0][:, 0], mix.moments[k][1][:, 0]) for k in truth
+        }
     # Parameters at the same iterations as the trajectories, so both share (chain, draw).
     return RunResult(
         method=settings.method,
@@ -389,105 +469,12 @@ def _run_kalman_sampler(key, problem: Problem, dataset: Dataset, y, mask, initia
         param_draws={n: d[:, mix.path_index] for n, d in out.draws.items()},
         path_draws=mix.paths,
         sample_stats={"accepted": out.accepted.astype(float), "log_likelihood": out.log_likelihood},
-        acceptance=out.acceptance.tolist(), log_likelihood=ll_median,
-        point_estimate=point, diagnostics=diagnostics, param_summary=summarise_parameters(out.draws),
-        convergence=record, wall_time_s=_time.perf_counter() - t0, **common)
-
-
-def _run_pgas(key, problem: Problem, dataset: Dataset, params0: dict, y, mask, common: dict,
-              progress, t0: float, channels=None, checkpoint=None) -> RunResult:
-    """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
-    from latentforce.inference import convergence
-    from latentforce.inference.pgas import run_pgas
-
-    model = problem.model
-    settings = problem.inference
-    free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
-    # The initial state: the user's [initial] for the mechanical states (the force states
-    # start from their stationary GP distribution); else for a linear system the joint
-    # stationary distribution at the current hyperparameters (particle_model.ParticleModel), for a
-    # nonlinear one the model's near-rest default at the initial hyperparameters.
-    initial = _mechanical_initial(problem, params0)
-    # An inferred noise level gets an exact Gibbs step whose conditional is proper only with
-    # more than two observed samples of its channel (inference/noise_gibbs.py).
-    observed_n = np.sum(mask & np.isfinite(y), axis=0)
-    for i, s in enumerate(model.sensors):
-        if s.noise_param in problem.free and observed_n[i] <= 2:
-            raise LatentForceError(
-                f"{problem.config_path}: [[sensors]][{i}].noise_std (column {s.name!r}) is inferred, but the "
-                f"column has {int(observed_n[i])} observed samples; method \"pgas\" needs more than two to "
-                "infer a noise level. Give noise_std as a number.")
-    # PGAS needs a conditional resampling scheme; multinomial is the valid one we have.
-    out = run_pgas(key, model, params0, free, np.where(mask, y, np.nan), mask, dataset.dt,
-                   particles=settings.particles, iterations=settings.iterations, burn_in=settings.burn_in,
-                   state_every=settings.state_every, chains=settings.chains, mh_steps=settings.mh_steps,
-                   discretisation=settings.discretisation, proposal=settings.proposal,
-                   resampling="multinomial", thin_draws=settings.thin_draws, initial=initial,
-                   progress=progress, channels=channels, target_ess=settings.target_ess,
-                   max_time=settings.max_time, max_iterations=PGAS_AUTO_ITERATIONS, checkpoint=checkpoint)
-    paths = model.layout.quantities(out.trajectories)
-    state_mean = {n: np.asarray(v) for n, v in out.state_mean.items()}
-    state_sd = {n: np.asarray(v) for n, v in out.state_sd.items()}
-    if problem.outputs:  # from the stored paths, the acceleration from the equation of motion
-        sampled = path_outputs(model, problem.outputs, params0, paths["displacement"], paths["velocity"],
-                               paths["force"])
-        out_mean, out_sd, out_paths = split_outputs(problem.outputs, *sample_moments(sampled), sampled)
-        state_mean.update(out_mean)
-        state_sd.update(out_sd)
-        paths.update(out_paths)
-    # Each stored trajectory came from the sweep of one Gibbs block; pair it with the
-    # hyperparameters drawn at the end of that block (conditional on that trajectory).
-    k = settings.state_every
-    burn_blocks = -(-settings.burn_in // k)
-    iterations = int(out.diagnostics.pop("iterations_run"))
-    thin = int(out.diagnostics.pop("thin"))
-    slots = np.arange(out.trajectories.shape[1])
-    idx = np.clip((burn_blocks + slots * thin) * k + k - 1 - settings.burn_in, 0, max(iterations - 1, 0))
-    param_draws = {n: v[:, idx] for n, v in out.theta.items()}
-    pooled = {n: v.reshape(-1) for n, v in out.theta.items()}
-    point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
-    point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
-    ll = out.log_likelihood
-    diagnostics = dict(out.diagnostics)
-    record = diagnostics.pop("convergence")
-    diagnostics.update({"particles": settings.particles, "iterations": iterations,
-                        "iterations_setting": "auto" if settings.iterations is None else settings.iterations,
-                        "burn_in": settings.burn_in, "state_every": k, "chains": settings.chains,
-                        "discretisation": settings.discretisation, "proposal": settings.proposal,
-                        "resampling": "multinomial", "log_likelihood_note":
-                            "particle-filter estimate of log p(y | theta), mean over the last sweeps"})
-    from latentforce.inference.hyper_moves import HYPERPARAMETERS
-    from latentforce.priors import Flat
-
-    flat = [n for n, (prior, _) in free.items() if isinstance(prior, Flat) and n in HYPERPARAMETERS]
-    if flat:
-        record_s = len(dataset.time) * dataset.dt
-        diagnostics.setdefault("warnings", []).append(
-            f"flat prior on {', '.join(flat)}: on a record of {record_s:.3g} s a Matérn force's variance "
-            "and lengthscale are pinned mainly in one combination (variance/lengthscale^(2p+1) for "
-            "Matérn-(p+1/2)), so with a flat "
-            "prior the posterior can be improper along that ridge and the slow part of the force "
-            "wanders. Use proper priors (e.g. lognormal) on the force hyperparameters; see docs/config.md.")
-    # The run's verdict: the hyperparameters (every iteration) and the displacement, velocity
-    # and force at 24 spread times (every sweep); its time indices become the record's times.
-    record = _label_times(record, np.asarray(dataset.time))
-    message = convergence.warning_message(record, "pgas")
-    if message:
-        diagnostics.setdefault("warnings", []).append(message)
-    truth = common["truth"]
-    if truth:
-        from latentforce.results import coverage
-
-        diagnostics["coverage_3sd"] = {
-            name: coverage(truth[name][:, 0], out.state_mean[name][:, 0], out.state_sd[name][:, 0])
-            for name in truth}
-    return RunResult(
-        method="pgas", state_mean=state_mean, state_sd=state_sd,
-        param_draws=param_draws, path_draws=paths,
-        sample_stats={"log_likelihood": ll, "switch_rate": out.switch_rate, "ess_per_particle": out.ess},
-        acceptance=[float(a) for a in out.acceptance],
-        log_likelihood=float(np.mean(ll[:, -max(1, ll.shape[1] // 10):])) if ll.size else float("nan"),
-        point_estimate=point, diagnostics=diagnostics,  # made JSON-safe by the writer
-        param_summary=summarise_parameters(out.theta) if out.theta else None, convergence=record,
-        wall_time_s=_time.perf_counter() - t0, **common)
-
+        acceptance=out.acceptance.tolist(),
+        log_likelihood=ll_median,
+        point_estimate=point,
+        diagnostics=diagnostics,
+        param_summary=summarise_parameters(out.draws),
+        convergence=record,
+        wall_time_s=_time.perf_counter() - t0,
+        **common,
+    )

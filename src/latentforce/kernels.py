@@ -173,7 +173,7 @@ class Matern(Kernel):
         d = self.dim
         lam = self.lam(params.lengthscale)
         powers = jnp.arange(d, 0, -1)  # lambda^(p+1-j) for j = 0..p
-        coeffs = jnp.asarray(self._binom) * lam ** powers
+        coeffs = jnp.asarray(self._binom) * lam**powers
         F = jnp.diag(jnp.ones(d - 1), k=1) if d > 1 else jnp.zeros((1, 1))
         F = F.at[-1, :].set(-coeffs)
         L = jnp.zeros((d, 1)).at[-1, 0].set(1.0)
@@ -221,8 +221,9 @@ class Sum(Kernel):
         blk = lambda X, Y: jnp.block(
             [[X, jnp.zeros((X.shape[0], Y.shape[1]))], [jnp.zeros((Y.shape[0], X.shape[1])), Y]]
         )
-        return StateSpace(blk(a.F, b.F), blk(a.L, b.L), blk(a.Qc, b.Qc),
-                          jnp.concatenate([a.H, b.H], axis=1), blk(a.Pinf, b.Pinf))
+        return StateSpace(
+            blk(a.F, b.F), blk(a.L, b.L), blk(a.Qc, b.Qc), jnp.concatenate([a.H, b.H], axis=1), blk(a.Pinf, b.Pinf)
+        )
 
     def covariance(self, tau, params):
         return self.k1.covariance(tau, params[0]) + self.k2.covariance(tau, params[1])

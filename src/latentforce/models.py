@@ -36,7 +36,6 @@ from __future__ import annotations
 import re
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -179,8 +178,10 @@ class LatentForceModel:
             if s.quantity == "strain" and (s.coefficients is None or len(s.coefficients) != system.ndof):
                 raise ValueError(f"strain sensor {s.name!r} needs coefficients, one per DOF ({system.ndof})")
             if s.quantity == "force" and s.dof not in system.force_dofs:
-                raise ValueError(f"force sensor {s.name!r} at DOF {s.dof}: no latent force acts there "
-                                 f"(force_dofs = {list(system.force_dofs)})")
+                raise ValueError(
+                    f"force sensor {s.name!r} at DOF {s.dof}: no latent force acts there "
+                    f"(force_dofs = {list(system.force_dofs)})"
+                )
         self.layout = StateLayout(system.ndof, system.nforce, kernel.dim)
         self.latent_layout = LatentLayout(self.layout.n_force_states, self.layout.n_mech)
         self.ndof = system.ndof
@@ -234,8 +235,9 @@ class LatentForceModel:
 
     # ----- the force GP ----------------------------------------------------
     def kernel_params(self, params) -> KernelParams:
-        return KernelParams(jnp.asarray(params["force_variance"], dtype=float),
-                            jnp.asarray(params["force_lengthscale"], dtype=float))
+        return KernelParams(
+            jnp.asarray(params["force_variance"], dtype=float), jnp.asarray(params["force_lengthscale"], dtype=float)
+        )
 
     def force_state_space(self, params):
         """Block-diagonal ``(F_f, W_f, H_f, Pinf_f)`` for all latent forces."""
@@ -297,14 +299,14 @@ class LatentForceModel:
         ``params[sensor.noise_param]`` (times the sensor's ``noise_scale``) where ``params``
         holds one."""
         params = {} if params is None else params
-        missing = [s.noise_param for s in self.sensors if s.noise_param not in params]
-        if missing and any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(params)):
-            # inside a compiled program: a noise level read from here would be a constant of a
-            # program that models of this structure with other noise levels share
-            raise TypeError(f"noise_covariance: {missing} must be in the params of a compiled program "
-                            "(model.complete(params) adds the configured ones)")
-        sd = [jnp.asarray(params[s.noise_param], dtype=float) * s.noise_scale if s.noise_param in params
-              else jnp.asarray(s.noise_std, dtype=float) for s in self.sensors]
+        # (a program shared by models of one structure must get every level in params:
+        # model.complete; read from the sensors here it would be a constant of the program)
+        sd = [
+            jnp.asarray(params[s.noise_param], dtype=float) * s.noise_scale
+            if s.noise_param in params
+            else jnp.asarray(s.noise_std, dtype=float)
+            for s in self.sensors
+        ]
         return jnp.diag(jnp.stack(sd) ** 2)
 
     def stationary_initial(self, params, linear_part: bool = False):

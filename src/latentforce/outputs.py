@@ -82,17 +82,23 @@ def output_matrix(model: LatentForceModel, outputs: Sequence[OutputSpec], params
     return jnp.stack(rows)
 
 
-def gaussian_moments(G: Float[Array, "k n"], means: Float[Array, "T n"],
-                     covs: Float[Array, "T n n"]) -> tuple[np.ndarray, np.ndarray]:
+def gaussian_moments(
+    G: Float[Array, "k n"], means: Float[Array, "T n"], covs: Float[Array, "T n n"]
+) -> tuple[np.ndarray, np.ndarray]:
     r"""Mean :math:`G m_t` and sd :math:`\sqrt{\operatorname{diag}(G P_t G^T)}`, ``(T, k)`` each."""
     mean = jnp.asarray(means) @ G.T
     var = jnp.einsum("ki,tij,kj->tk", G, jnp.asarray(covs), G)
     return np.asarray(mean), np.sqrt(np.clip(np.asarray(var), 0.0, None))
 
 
-def path_outputs(model: LatentForceModel, outputs: Sequence[OutputSpec], params: dict,
-                 z: Float[Array, "... T nd"], v: Float[Array, "... T nd"],
-                 u: Float[Array, "... T nf"]) -> np.ndarray:
+def path_outputs(
+    model: LatentForceModel,
+    outputs: Sequence[OutputSpec],
+    params: dict,
+    z: Float[Array, "... T nd"],
+    v: Float[Array, "... T nd"],
+    u: Float[Array, "... T nf"],
+) -> np.ndarray:
     """The outputs ``(..., T, k)`` of sampled paths of displacement, velocity and force,
     the acceleration from the system's equation of motion (any system)."""
     z, v, u = (jnp.asarray(a, dtype=float) for a in (z, v, u))
@@ -104,8 +110,9 @@ def path_outputs(model: LatentForceModel, outputs: Sequence[OutputSpec], params:
     out = z @ cz.T + v @ cv.T + u @ cu.T
     if np.any(np.asarray(ca)):
         lead = z.shape[:-1]
-        a = _accelerations(numbers(params), z.reshape(-1, nd), v.reshape(-1, nd), u.reshape(-1, nf),
-                           system=model.system).reshape(*lead, nd)
+        a = _accelerations(
+            numbers(params), z.reshape(-1, nd), v.reshape(-1, nd), u.reshape(-1, nf), system=model.system
+        ).reshape(*lead, nd)
         out = out + a @ ca.T
     return np.asarray(out)
 
@@ -122,12 +129,13 @@ def sample_moments(paths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return flat.mean(axis=0), sd
 
 
-def split(outputs: Sequence[OutputSpec], mean: np.ndarray, sd: np.ndarray,
-          paths: np.ndarray | None = None) -> tuple[dict, dict, dict]:
+def split(
+    outputs: Sequence[OutputSpec], mean: np.ndarray, sd: np.ndarray, paths: np.ndarray | None = None
+) -> tuple[dict, dict, dict]:
     """Per-output ``(T, 1)`` means and sds and ``(chains, draws, T, 1)`` paths from ``(..., k)`` arrays."""
-    means = {s.name: np.asarray(mean)[:, i:i + 1] for i, s in enumerate(outputs)}
-    sds = {s.name: np.asarray(sd)[:, i:i + 1] for i, s in enumerate(outputs)}
-    sampled = {} if paths is None else {s.name: np.asarray(paths)[..., i:i + 1] for i, s in enumerate(outputs)}
+    means = {s.name: np.asarray(mean)[:, i : i + 1] for i, s in enumerate(outputs)}
+    sds = {s.name: np.asarray(sd)[:, i : i + 1] for i, s in enumerate(outputs)}
+    sampled = {} if paths is None else {s.name: np.asarray(paths)[..., i : i + 1] for i, s in enumerate(outputs)}
     return means, sds, sampled
 
 

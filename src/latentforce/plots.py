@@ -122,18 +122,30 @@ def not_converged(result: RunResult) -> bool:
 
 
 def stamp_unconverged(fig: Figure, result: RunResult) -> None:
-    """"NOT CONVERGED" across the face of ``fig`` when the run did not converge, with the
+    """ "NOT CONVERGED" across the face of ``fig`` when the run did not converge, with the
     worst R-hat and ESS: a figure of an unconverged run must say so wherever it is shown."""
     if not not_converged(result):
         return
     record = result.convergence or {}
-    fig.text(0.5, 0.5, "NOT CONVERGED", color="red", alpha=0.35, fontsize=40, fontweight="bold",
-             ha="center", va="center", rotation=20, zorder=1000)
-    detail = (f"max R-hat {record['max_r_hat']:.3f}, min bulk ESS {record['min_ess_bulk']:.0f}"
-              if record.get("max_r_hat") is not None and record.get("min_ess_bulk") is not None
-              else record.get("reason", "no convergence record"))
-    fig.text(0.5, 0.01, f"NOT CONVERGED: {detail}", color="red", fontsize=9, ha="center", va="bottom",
-             zorder=1000)
+    fig.text(
+        0.5,
+        0.5,
+        "NOT CONVERGED",
+        color="red",
+        alpha=0.35,
+        fontsize=40,
+        fontweight="bold",
+        ha="center",
+        va="center",
+        rotation=20,
+        zorder=1000,
+    )
+    detail = (
+        f"max R-hat {record['max_r_hat']:.3f}, min bulk ESS {record['min_ess_bulk']:.0f}"
+        if record.get("max_r_hat") is not None and record.get("min_ess_bulk") is not None
+        else record.get("reason", "no convergence record")
+    )
+    fig.text(0.5, 0.01, f"NOT CONVERGED: {detail}", color="red", fontsize=9, ha="center", va="bottom", zorder=1000)
 
 
 def _columns(array: np.ndarray) -> np.ndarray:
@@ -349,19 +361,33 @@ def plot_force_psd(result: RunResult, path: Path) -> Path:
     table = result.force_psd
     freq = np.asarray(table["frequency"], dtype=float)
     keep = freq > 0  # log axes
-    suffixes = [k[len("psd_mean"):] for k in table if k.startswith("psd_mean")]
+    suffixes = [k[len("psd_mean") :] for k in table if k.startswith("psd_mean")]
     fig = Figure(figsize=(8, 3.4 * len(suffixes) + 0.6))
     axes = fig.subplots(len(suffixes), 1, sharex=True, squeeze=False)[:, 0]
     for ax, sfx in zip(axes, suffixes):
-        ax.fill_between(freq[keep], table[f"psd_q05{sfx}"][keep], table[f"psd_q95{sfx}"][keep],
-                        color=_MEAN_COLOUR, alpha=0.25, lw=0, label="posterior 5-95 %")
+        ax.fill_between(
+            freq[keep],
+            table[f"psd_q05{sfx}"][keep],
+            table[f"psd_q95{sfx}"][keep],
+            color=_MEAN_COLOUR,
+            alpha=0.25,
+            lw=0,
+            label="posterior 5-95 %",
+        )
         ax.loglog(freq[keep], table[f"psd_mean{sfx}"][keep], color=_MEAN_COLOUR, lw=1.0, label="posterior mean")
         if np.all(np.isfinite(table["prior_psd"])):
-            ax.loglog(freq[keep], table["prior_psd"][keep], color="k", lw=1.0, ls="--",
-                      label="GP prior at posterior hyperparameters")
+            ax.loglog(
+                freq[keep],
+                table["prior_psd"][keep],
+                color="k",
+                lw=1.0,
+                ls="--",
+                label="GP prior at posterior hyperparameters",
+            )
         if f"truth_psd{sfx}" in table:
-            ax.loglog(freq[keep], table[f"truth_psd{sfx}"][keep], color=_TRUTH_COLOUR, lw=0.9, ls=":",
-                      label="truth (Welch)")
+            ax.loglog(
+                freq[keep], table[f"truth_psd{sfx}"][keep], color=_TRUTH_COLOUR, lw=0.9, ls=":", label="truth (Welch)"
+            )
         ax.set_ylabel("PSD [N$^2$/Hz]")
         which = "" if not sfx else f", force {sfx[1:]}"
         ax.set_title(f"Force spectrum{which}: one-sided Welch density ({result.method})")

@@ -94,9 +94,7 @@ from latentforce.results import (
 FIGURE_LOCK = threading.Lock()
 
 
-def write_results(
-    out_dir: Path, result: RunResult, *, overwrite: bool = False, figures: bool = True
-) -> None:
+def write_results(out_dir: Path, result: RunResult, *, overwrite: bool = False, figures: bool = True) -> None:
     """Write ``result`` as the result folder ``out_dir`` (see module docstring).
 
     An existing, non-empty folder is refused unless ``overwrite``; then only
@@ -120,15 +118,15 @@ def check_out_dir(out_dir: Path, overwrite: bool) -> None:
     """Refuse an existing non-empty result folder unless ``overwrite`` (run before any work)."""
     if out_dir.exists() and not out_dir.is_dir():
         raise LatentForceError(
-            f"The result folder {str(out_dir)!r} is an existing file, not a folder; "
-            "choose another --out."
+            f"The result folder {str(out_dir)!r} is an existing file, not a folder; choose another --out."
         )
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
         if (out_dir / "checkpoint.npz").is_file():  # latentforce.checkpoint.CHECKPOINT_NAME
             raise LatentForceError(
                 f"The result folder {str(out_dir)!r} holds the checkpoint of an interrupted run; nothing "
                 f"was written. Pass --resume {str(out_dir)!r} (with the same config) to continue it, "
-                "--force to start a new run there, or choose another --out.")
+                "--force to start a new run there, or choose another --out."
+            )
         raise LatentForceError(
             f"The result folder {str(out_dir)!r} already exists and is not empty; "
             "nothing was written. Pass --force to replace its results (other files "
@@ -216,8 +214,11 @@ def _to_datatree(result: RunResult) -> xr.DataTree:
         for name in result.outputs:
             for kind, source in (("mean", result.state_mean), ("sd", result.state_sd)):
                 if name in source:
-                    posterior[f"{name}_{kind}"] = ("time", _as_time_width(source[name], T, 1, name)[:, 0],
-                                                   {"units": _unit(result, name)})
+                    posterior[f"{name}_{kind}"] = (
+                        "time",
+                        _as_time_width(source[name], T, 1, name)[:, 0],
+                        {"units": _unit(result, name)},
+                    )
     groups["posterior"] = posterior
 
     if result.observed:
@@ -227,8 +228,16 @@ def _to_datatree(result: RunResult) -> xr.DataTree:
             if v.size != T:
                 raise ValueError(f"observed[{column!r}] has {v.size} samples, time has {T}")
             unit = result.units.get(column)
-            attrs = {} if not unit else {"units": unit["unit"], "original_units": unit["original"],
-                                         "scale_to_si": unit["scale"], "units_source": unit["source"]}
+            attrs = (
+                {}
+                if not unit
+                else {
+                    "units": unit["unit"],
+                    "original_units": unit["original"],
+                    "scale_to_si": unit["scale"],
+                    "units_source": unit["source"],
+                }
+            )
             # "/" separates groups in a DataTree: a TDMS "group/channel" or HDF5 path is stored as
             # "group|channel" with its column name in the attrs.
             if "/" in column:
@@ -335,8 +344,9 @@ def _summary_json(result: RunResult) -> dict:
     summary: dict[str, Any] = {
         "method": result.method,
         "log_likelihood": result.log_likelihood,
-        "parameters": (result.param_summary if result.param_summary is not None
-                       else summarise_parameters(result.param_draws)),
+        "parameters": (
+            result.param_summary if result.param_summary is not None else summarise_parameters(result.param_draws)
+        ),
         "acceptance": [float(a) for a in result.acceptance],
         # kalman is exact (no sampling error); a sampler is converged only by its record
         "converged": result.method == "kalman" or bool((result.convergence or {}).get("converged", False)),
@@ -430,15 +440,16 @@ def read_results(out_dir: Path) -> RunResult:
 
     sample_stats = {name: np.asarray(v.values) for name, v in _group(tree, "sample_stats").data_vars.items()}
     observed_ds = _group(tree, "observed_data")
-    observed = {str(v.attrs.get("column", name)): np.asarray(v.values, dtype=float)
-                for name, v in observed_ds.data_vars.items()}
+    observed = {
+        str(v.attrs.get("column", name)): np.asarray(v.values, dtype=float) for name, v in observed_ds.data_vars.items()
+    }
     if time.size == 0 and "time" in observed_ds.coords:
         time = np.asarray(observed_ds["time"].values, dtype=float)
     truth = {}
     for name, v in _group(tree, "constant_data").data_vars.items():
         if name.startswith("true_"):
             a = np.asarray(v.values, dtype=float)
-            truth[name[len("true_"):]] = a if a.ndim == 2 else a[:, None]
+            truth[name[len("true_") :]] = a if a.ndim == 2 else a[:, None]
 
     state_mean, state_sd = {}, {}
     outputs = {str(k): str((v or {}).get("unit", "")) for k, v in (summary.get("outputs") or {}).items()}
@@ -487,8 +498,10 @@ def read_results(out_dir: Path) -> RunResult:
         seed=int(summary.get("seed", attrs.get("seed", 0)) or 0),
         wall_time_s=_float(summary.get("wall_time_s", 0.0)),
         # MDOF matrices (M, C, K) are lists
-        fixed={k: (np.asarray(v, dtype=float) if isinstance(v, list) else _float(v))
-               for k, v in (summary.get("fixed") or {}).items()},
+        fixed={
+            k: (np.asarray(v, dtype=float) if isinstance(v, list) else _float(v))
+            for k, v in (summary.get("fixed") or {}).items()
+        },
         convergence=None if method == "kalman" else dict(summary.get("convergence") or {}),
         units=dict((summary.get("units") or {}).get("channels") or {}),
         outputs=outputs,

@@ -88,13 +88,25 @@ def integrate(model: LatentForceModel, params: dict, force_fine, dt_fine: float,
 
 # one compiled program each per model structure and length, the numbers as arguments
 _gp_force = functools.partial(jit, static_argnames=("model", "n", "dt"))(
-    lambda key, params, *, model, n, dt: gp_force(key, model, params, n, dt))
+    lambda key, params, *, model, n, dt: gp_force(key, model, params, n, dt)
+)
 _integrate = functools.partial(jit, static_argnames=("model", "dt"))(
-    lambda params, u, start, *, model, dt: integrate(model, params, u, dt, *(start or (None, None))))
+    lambda params, u, start, *, model, dt: integrate(model, params, u, dt, *(start or (None, None)))
+)
 
 
-def simulate(key, model: LatentForceModel, params: dict, n_samples: int, dt: float, *,
-             force: Callable | None = None, substeps: int = 8, z0=None, v0=None) -> Simulation:
+def simulate(
+    key,
+    model: LatentForceModel,
+    params: dict,
+    n_samples: int,
+    dt: float,
+    *,
+    force: Callable | None = None,
+    substeps: int = 8,
+    z0=None,
+    v0=None,
+) -> Simulation:
     """Simulate ``n_samples`` samples at spacing ``dt`` from rest (or ``z0, v0``).
 
     ``force(t) -> (T_fine, nforce)`` overrides the GP force (e.g. a sine).
@@ -112,8 +124,9 @@ def simulate(key, model: LatentForceModel, params: dict, n_samples: int, dt: flo
     start = None if z0 is None and v0 is None else (z0, v0)
     z, v, a = _integrate(numbers(params), u_fine, start, model=model, dt=float(dt_fine))
     pick = lambda x: np.asarray(x[::substeps])
-    return Simulation(np.arange(n_samples) * dt, pick(z), pick(v), pick(a), pick(u_fine),
-                      tuple(model.system.force_dofs))
+    return Simulation(
+        np.arange(n_samples) * dt, pick(z), pick(v), pick(a), pick(u_fine), tuple(model.system.force_dofs)
+    )
 
 
 def clean_signal(sim: Simulation, sensor: Sensor) -> np.ndarray:

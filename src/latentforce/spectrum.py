@@ -58,8 +58,15 @@ def welch_psd(paths: np.ndarray, dt: float, nperseg: int | None = None) -> tuple
     return welch(paths, fs=1.0 / dt, nperseg=nperseg, axis=-1)
 
 
-def force_psd_table(force_paths: np.ndarray, dt: float, kernel, variance: float, lengthscale: float,
-                    truth: np.ndarray | None = None, nperseg: int | None = None) -> dict[str, np.ndarray]:
+def force_psd_table(
+    force_paths: np.ndarray,
+    dt: float,
+    kernel,
+    variance: float,
+    lengthscale: float,
+    truth: np.ndarray | None = None,
+    nperseg: int | None = None,
+) -> dict[str, np.ndarray]:
     """The ``force_psd.csv`` table from force sample paths ``(n_paths, T, nforce)``.
 
     Columns ``frequency``, ``psd_mean``, ``psd_q05``, ``psd_q95``, ``prior_psd``
@@ -76,8 +83,11 @@ def force_psd_table(force_paths: np.ndarray, dt: float, kernel, variance: float,
         table[f"psd_q05{sfx}"] = np.quantile(psd[:, j], 0.05, axis=0)
         table[f"psd_q95{sfx}"] = np.quantile(psd[:, j], 0.95, axis=0)
     # composite kernels have no closed-form density here
-    table["prior_psd"] = (prior_psd(kernel, variance, lengthscale, freq) if hasattr(kernel, "spectral_density")
-                          else np.full(freq.shape, np.nan))
+    table["prior_psd"] = (
+        prior_psd(kernel, variance, lengthscale, freq)
+        if hasattr(kernel, "spectral_density")
+        else np.full(freq.shape, np.nan)
+    )
     if truth is not None:
         truth = np.asarray(truth, dtype=float).reshape(len(truth), -1)
         _, psd_true = welch_psd(truth.T, dt, nperseg)
@@ -86,14 +96,24 @@ def force_psd_table(force_paths: np.ndarray, dt: float, kernel, variance: float,
     return table
 
 
-def kalman_force_samples(key, model, params: dict, y, mask, dt: float, initial=None,
-                         n: int = PSD_SAMPLES) -> np.ndarray:
+def kalman_force_samples(
+    key, model, params: dict, y, mask, dt: float, initial=None, n: int = PSD_SAMPLES
+) -> np.ndarray:
     """``n`` force paths ``(n, T, nforce)`` from the exact smoothing distribution (FFBS)."""
     from latentforce.compile import numbers
 
     y = jnp.asarray(np.where(mask, y, 0.0))
-    return np.asarray(_force_draws(numbers(model.complete(params)), initial, jax.random.split(key, n), y,
-                                   jnp.asarray(mask), model=model, dt=float(dt)))
+    return np.asarray(
+        _force_draws(
+            numbers(model.complete(params)),
+            initial,
+            jax.random.split(key, n),
+            y,
+            jnp.asarray(mask),
+            model=model,
+            dt=float(dt),
+        )
+    )
 
 
 @functools.partial(jit, static_argnames=("model", "dt"))

@@ -97,8 +97,11 @@ class LinearSystem(System):
         if self.ndof == 1:
             as_mat = lambda x: jnp.reshape(jnp.asarray(x, dtype=float), (1, 1))
             return as_mat(params["m"]), as_mat(params["c"]), as_mat(params["k"])
-        return (jnp.asarray(params["M"], dtype=float), jnp.asarray(params["C"], dtype=float),
-                jnp.asarray(params["K"], dtype=float))
+        return (
+            jnp.asarray(params["M"], dtype=float),
+            jnp.asarray(params["C"], dtype=float),
+            jnp.asarray(params["K"], dtype=float),
+        )
 
     def mass(self, params):
         return self.matrices(params)[0]

@@ -35,8 +35,18 @@ def to_toml(config: dict) -> str:
     return "\n".join(lines)
 
 
-def write_case(folder: Path, config: dict, columns: dict, *, overwrite: bool, progress=None, seed=0,
-               diagnostics: dict | None = None, channels=None, figure_pool=None):
+def write_case(
+    folder: Path,
+    config: dict,
+    columns: dict,
+    *,
+    overwrite: bool,
+    progress=None,
+    seed=0,
+    diagnostics: dict | None = None,
+    channels=None,
+    figure_pool=None,
+):
     """Write ``data.csv`` and ``config.toml``, run the estimate on them, write the results.
 
     ``diagnostics`` are added to the result's (e.g. the true hyperparameters, which
@@ -57,8 +67,13 @@ def write_case(folder: Path, config: dict, columns: dict, *, overwrite: bool, pr
     (folder / "config.toml").write_text(to_toml(config), encoding="utf-8")
     problem = config_from_dict(config, source=str(folder / "config.toml"), base_dir=folder)
     settings = problem.data
-    dataset = load_data(data_file, problem.columns, time_column=settings.time_column,
-                        sample_rate=settings.sample_rate, missing=settings.missing)
+    dataset = load_data(
+        data_file,
+        problem.columns,
+        time_column=settings.time_column,
+        sample_rate=settings.sample_rate,
+        missing=settings.missing,
+    )
     result, extras = estimate.run(problem, dataset, seed=seed, progress=progress, channels=channels)
     result.diagnostics.update(diagnostics or {})
     # data.csv and config.toml are ours: the folder check above already passed.
@@ -124,8 +139,9 @@ def figure_process():
 
     pool = None
     try:
-        pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_import_figure_modules)
+        pool = ProcessPoolExecutor(
+            max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_import_figure_modules
+        )
         pool.submit(int)  # start the process (and its imports) now
     except (OSError, RuntimeError):
         if pool is not None:

@@ -60,17 +60,25 @@ def _simulate(seed: int, force: str):
 
     n = int(round(DURATION * FS))
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 1.0)])
-    params = dict({k: v for k, v in SYSTEM.items() if k != "type"},
-                  force_variance=TRUE_VARIANCE, force_lengthscale=TRUE_LENGTHSCALE)
+    params = dict(
+        {k: v for k, v in SYSTEM.items() if k != "type"},
+        force_variance=TRUE_VARIANCE,
+        force_lengthscale=TRUE_LENGTHSCALE,
+    )
     fn = (lambda t: 10.0 * np.sin(100.0 * t)) if force == "sine" else None
     sim = simulate(jax.random.key(seed), model, params, n, 1.0 / FS, force=fn, substeps=8)
     rng = np.random.default_rng(seed + 1)
     acc, disp = sim.acceleration[:, 0], sim.displacement[:, 0]
     acc_sd = 0.01 * np.sqrt(np.mean(acc**2))
     disp_sd = 0.01 * np.sqrt(np.mean(disp**2))
-    columns = {"time": sim.time, "acc": acc + acc_sd * rng.normal(size=n),
-               "disp": disp + disp_sd * rng.normal(size=n),
-               "displacement": disp, "velocity": sim.velocity[:, 0], "force": sim.force[:, 0]}
+    columns = {
+        "time": sim.time,
+        "acc": acc + acc_sd * rng.normal(size=n),
+        "disp": disp + disp_sd * rng.normal(size=n),
+        "displacement": disp,
+        "velocity": sim.velocity[:, 0],
+        "force": sim.force[:, 0],
+    }
     return columns, acc_sd, disp_sd, sim
 
 
@@ -95,17 +103,26 @@ def _config(acc_sd: float, disp_sd: float | None, quick: bool, seed: int, paper:
         # improper here: 0.5 s of data spans ~5 lengthscales, which pins only
         # q = 2 variance / lengthscale, and a flat variance prior then sends the
         # posterior along that ridge to lengthscales of seconds.
-        "force": {"kernel": "matern12",
-                  "variance": {"prior": "lognormal", "mu": 2.3, "sigma": 1.5, "init": 5.0},
-                  "lengthscale": {"prior": "lognormal", "mu": -1.6, "sigma": 1.5, "init": 0.3}},
+        "force": {
+            "kernel": "matern12",
+            "variance": {"prior": "lognormal", "mu": 2.3, "sigma": 1.5, "init": 5.0},
+            "lengthscale": {"prior": "lognormal", "mu": -1.6, "sigma": 1.5, "init": 0.3},
+        },
         "sensors": sensors,
-        "inference": {"method": "pgas", "particles": 50, "state_every": 5, "seed": seed, "mh_steps": 5,
-                      **_counts(quick, paper)},
+        "inference": {
+            "method": "pgas",
+            "particles": 50,
+            "state_every": 5,
+            "seed": seed,
+            "mh_steps": 5,
+            **_counts(quick, paper),
+        },
     }
 
 
-def _run(name: str, force: str, out: Path, quick: bool, seed: int, overwrite: bool, echo, progress,
-         paper: bool = False):
+def _run(
+    name: str, force: str, out: Path, quick: bool, seed: int, overwrite: bool, echo, progress, paper: bool = False
+):
     out = Path(out)
     check_out_dir(out, overwrite)
     t0 = time.perf_counter()
@@ -118,21 +135,38 @@ def _run(name: str, force: str, out: Path, quick: bool, seed: int, overwrite: bo
 def _run_cases(name: str, force: str, out: Path, quick: bool, seed: int, echo, pool, paper: bool = False) -> None:
     columns, acc_sd, disp_sd, sim = _simulate(seed, force)
     what = "Matérn-1/2 GP force (variance 20, lengthscale 0.1 s)" if force == "gp" else "force 10 sin(100 t)"
-    echo(f"{name} demo (Vibration 2020): Duffing m=1, c=20, k=1e4, k3=1e9; {what}; "
-         f"{len(columns['time'])} samples at {FS:g} Hz; acceleration noise sd {acc_sd:.3g} (1 % RMS)")
-    cases = [("acceleration only (the paper's case)", out, None),
-             ("acceleration + displacement", out / "with-displacement", disp_sd)]
+    echo(
+        f"{name} demo (Vibration 2020): Duffing m=1, c=20, k=1e4, k3=1e9; {what}; "
+        f"{len(columns['time'])} samples at {FS:g} Hz; acceleration noise sd {acc_sd:.3g} (1 % RMS)"
+    )
+    cases = [
+        ("acceleration only (the paper's case)", out, None),
+        ("acceleration + displacement", out / "with-displacement", disp_sd),
+    ]
     out.mkdir(parents=True, exist_ok=True)  # before its with-displacement/ subfolder
-    truth = ({"true_params": {"force_variance": TRUE_VARIANCE, "force_lengthscale": TRUE_LENGTHSCALE}}
-             if force == "gp" else {})  # marked on the histograms
+    truth = (
+        {"true_params": {"force_variance": TRUE_VARIANCE, "force_lengthscale": TRUE_LENGTHSCALE}}
+        if force == "gp"
+        else {}
+    )  # marked on the histograms
     # both cases observe through the same channels (the first never sees displacement), so
     # that their compiled programs are the same and are compiled once
     channels = [("acceleration", 0), ("displacement", 0)]
     # the cases finish together: the second draws its figures in another process
-    jobs = [functools.partial(write_case, folder, _config(acc_sd, dsd, quick, seed, paper), columns,
-                              overwrite=True, seed=seed, diagnostics=truth, channels=channels,
-                              figure_pool=pool if i else None)
-            for i, (_, folder, dsd) in enumerate(cases)]
+    jobs = [
+        functools.partial(
+            write_case,
+            folder,
+            _config(acc_sd, dsd, quick, seed, paper),
+            columns,
+            overwrite=True,
+            seed=seed,
+            diagnostics=truth,
+            channels=channels,
+            figure_pool=pool if i else None,
+        )
+        for i, (_, folder, dsd) in enumerate(cases)
+    ]
     echo("running both cases ...")
 
     def eom_figures():  # the ground truth's: drawn while the cases compile
@@ -149,27 +183,49 @@ def _report(title: str, folder: Path, result, force: str, echo) -> None:
     for state in ("displacement", "velocity", "force"):
         x = result.truth[state][:, 0]
         m, s = result.state_mean[state][:, 0], result.state_sd[state][:, 0]
-        rows.append([state, f"{nmse(x, m):.3f}", f"{100 * coverage(x, m, s, 3.0):.1f}%",
-                     f"{100 * coverage(x, m, s, 1.0):.1f}%", fmt(float(np.mean(s)))])
+        rows.append(
+            [
+                state,
+                f"{nmse(x, m):.3f}",
+                f"{100 * coverage(x, m, s, 3.0):.1f}%",
+                f"{100 * coverage(x, m, s, 1.0):.1f}%",
+                fmt(float(np.mean(s))),
+            ]
+        )
     echo(table(rows, ["state", "NMSE %", "truth within 3 sd", "within 1 sd", "mean posterior sd"]))
     summary = result.param_summary or {}
     true = {"force_variance": TRUE_VARIANCE, "force_lengthscale": TRUE_LENGTHSCALE} if force == "gp" else {}
     prow = []
     for n, s in summary.items():
-        prow.append([n, fmt(true[n]) if n in true else "-", fmt(s["mean"]), fmt(s["median"]),
-                     f"[{fmt(s['q05'])}, {fmt(s['q95'])}]",
-                     f"{s['r_hat']:.3f}" if s.get("r_hat") is not None else "-", f"{s['ess_bulk']:.0f}"])
+        prow.append(
+            [
+                n,
+                fmt(true[n]) if n in true else "-",
+                fmt(s["mean"]),
+                fmt(s["median"]),
+                f"[{fmt(s['q05'])}, {fmt(s['q95'])}]",
+                f"{s['r_hat']:.3f}" if s.get("r_hat") is not None else "-",
+                f"{s['ess_bulk']:.0f}",
+            ]
+        )
     echo(table(prow, ["hyperparameter", "true", "mean", "median", "90% interval", "R-hat", "ESS"]))
     d = result.diagnostics
     conv = result.convergence or {}
     if conv.get("converged") is not None:
-        echo(f"{'converged' if conv['converged'] else 'NOT CONVERGED'}: "
-             f"max R-hat {conv.get('max_r_hat', float('nan')):.3f}, "
-             f"min bulk ESS {conv.get('min_ess_bulk', float('nan')):.0f} after {d.get('iterations', '?')} iterations "
-             f"per chain")
-    echo("per chain: MH acceptance " + ", ".join(f"{a:.2f}" for a in result.acceptance)
-         + "; ancestor switch rate " + ", ".join(f"{a:.2f}" for a in d.get("switch_rate", []))
-         + "; filter ESS/N " + ", ".join(f"{a:.2f}" for a in d.get("ess_per_particle", [])))
+        echo(
+            f"{'converged' if conv['converged'] else 'NOT CONVERGED'}: "
+            f"max R-hat {conv.get('max_r_hat', float('nan')):.3f}, "
+            f"min bulk ESS {conv.get('min_ess_bulk', float('nan')):.0f} after {d.get('iterations', '?')} iterations "
+            f"per chain"
+        )
+    echo(
+        "per chain: MH acceptance "
+        + ", ".join(f"{a:.2f}" for a in result.acceptance)
+        + "; ancestor switch rate "
+        + ", ".join(f"{a:.2f}" for a in d.get("switch_rate", []))
+        + "; filter ESS/N "
+        + ", ".join(f"{a:.2f}" for a in d.get("ess_per_particle", []))
+    )
 
 
 def _eom_figure(sim, path: Path) -> None:
@@ -178,9 +234,13 @@ def _eom_figure(sim, path: Path) -> None:
 
     z, v, a, u = (sim.displacement[:, 0], sim.velocity[:, 0], sim.acceleration[:, 0], sim.force[:, 0])
     s = SYSTEM
-    terms = [("inertia $m\\ddot z$", s["m"] * a), ("damping $c\\dot z$", s["c"] * v),
-             ("linear stiffness $kz$", s["k"] * z), ("cubic stiffness $k_3 z^3$", s["k3"] * z**3),
-             ("force $u$", u)]
+    terms = [
+        ("inertia $m\\ddot z$", s["m"] * a),
+        ("damping $c\\dot z$", s["c"] * v),
+        ("linear stiffness $kz$", s["k"] * z),
+        ("cubic stiffness $k_3 z^3$", s["k3"] * z**3),
+        ("force $u$", u),
+    ]
     fig = Figure(figsize=(9, 7))
     axes = fig.subplots(len(terms), 1, sharex=True)
     for ax, (label, values) in zip(axes, terms):
@@ -195,11 +255,25 @@ def _eom_figure(sim, path: Path) -> None:
         fig.savefig(path, dpi=110)
 
 
-def run_duffing(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = False, echo=print,
-                progress=None, paper_settings: bool = False) -> None:
+def run_duffing(
+    out: Path,
+    quick: bool = False,
+    seed: int = 0,
+    overwrite: bool = False,
+    echo=print,
+    progress=None,
+    paper_settings: bool = False,
+) -> None:
     _run("Duffing", "gp", out, quick, seed, overwrite, echo, progress, paper_settings)
 
 
-def run_sine(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = False, echo=print,
-             progress=None, paper_settings: bool = False) -> None:
+def run_sine(
+    out: Path,
+    quick: bool = False,
+    seed: int = 0,
+    overwrite: bool = False,
+    echo=print,
+    progress=None,
+    paper_settings: bool = False,
+) -> None:
     _run("Sine", "sine", out, quick, seed, overwrite, echo, progress, paper_settings)

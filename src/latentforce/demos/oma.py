@@ -96,20 +96,25 @@ def config(noise_sd: float, infer_system: bool, quick: bool) -> dict:
     return {
         "data": {"time_column": "time", "missing": "error"},
         "system": system,
-        "force": {"kernel": "matern32",
-                  "variance": {"prior": "flat", "init": 1000.0},
-                  "lengthscale": {"prior": "lognormal", "mu": 0.0, "sigma": 2.0, "init": 1.0}},
+        "force": {
+            "kernel": "matern32",
+            "variance": {"prior": "flat", "init": 1000.0},
+            "lengthscale": {"prior": "lognormal", "mu": 0.0, "sigma": 2.0, "init": 1.0},
+        },
         "sensors": [{"column": "disp", "quantity": "displacement", "dof": 0, "noise_std": noise_sd}],
-        "inference": {"method": "kalman-mcmc", "chains": 4, "seed": 0,
-                      # quick: the known-system case (2 parameters) converges in fewer iterations
-                      "iterations": (1000 if infer_system else 600) if quick else 25000,
-                      "burn_in": (1000 if infer_system else 600) if quick else 5000,
-                      "thin_draws": 10 if quick else 100},
+        "inference": {
+            "method": "kalman-mcmc",
+            "chains": 4,
+            "seed": 0,
+            # quick: the known-system case (2 parameters) converges in fewer iterations
+            "iterations": (1000 if infer_system else 600) if quick else 25000,
+            "burn_in": (1000 if infer_system else 600) if quick else 5000,
+            "thin_draws": 10 if quick else 100,
+        },
     }
 
 
-def run_oma(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = False, echo=print,
-            progress=None) -> None:
+def run_oma(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = False, echo=print, progress=None) -> None:
     from latentforce.results import check_out_dir
 
     out = Path(out)
@@ -118,18 +123,26 @@ def run_oma(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = Fal
     n_samples = 4096
     wn = np.sqrt(K / M)
     zeta = C / (2 * np.sqrt(K * M))
-    echo(f"OMA demo (ISMA 2018): m = {M:g} kg, k = {K:g} N/m, c = {C:g} N s/m -> "
-         f"omega_n = {wn:.4f} rad/s ({wn / (2 * np.pi):.4f} Hz), zeta = {zeta:.4f} "
-         "(the paper's 0.2 Hz / 0.0079 do not follow from these values)")
+    echo(
+        f"OMA demo (ISMA 2018): m = {M:g} kg, k = {K:g} N/m, c = {C:g} N s/m -> "
+        f"omega_n = {wn:.4f} rad/s ({wn / (2 * np.pi):.4f} Hz), zeta = {zeta:.4f} "
+        "(the paper's 0.2 Hz / 0.0079 do not follow from these values)"
+    )
     columns, noise_sd = simulate_case(seed, n_samples)
-    echo(f"JONSWAP wave force, 100 N RMS, peak {OMEGA_P} rad/s; {n_samples} samples at {DT} s; "
-         f"displacement noise sd {noise_sd:.3g} m (1 % RMS)")
-    cases = [("6.1 system known (Eq. 28)", out / "known-system", False),
-             ("6.2 OMA: m known, k and c inferred (Eq. 30)", out, True)]
+    echo(
+        f"JONSWAP wave force, 100 N RMS, peak {OMEGA_P} rad/s; {n_samples} samples at {DT} s; "
+        f"displacement noise sd {noise_sd:.3g} m (1 % RMS)"
+    )
+    cases = [
+        ("6.1 system known (Eq. 28)", out / "known-system", False),
+        ("6.2 OMA: m known, k and c inferred (Eq. 30)", out, True),
+    ]
     # The main folder (§6.2) must be created before its known-system/ subfolder exists.
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [functools.partial(write_case, folder, config(noise_sd, infer, quick), columns,
-                              overwrite=True, seed=seed) for _, folder, infer in cases]
+    jobs = [
+        functools.partial(write_case, folder, config(noise_sd, infer, quick), columns, overwrite=True, seed=seed)
+        for _, folder, infer in cases
+    ]
     echo("running both experiments ...")
     for (title, folder, infer), (_, _, result, extras) in zip(cases, run_cases_concurrently(jobs)):
         _report(title, folder, result, extras, infer, echo)
@@ -139,8 +152,12 @@ def run_oma(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = Fal
 def _report(title: str, folder: Path, result, extras, infer: bool, echo) -> None:
     summary = result.param_summary or {}
     rows = []
-    priors = {"force_variance": ("-", "flat"), "force_lengthscale": ("-", "lognormal(0, 2)"),
-              "k": (K, 105.9), "c": (C, 4.8)}
+    priors = {
+        "force_variance": ("-", "flat"),
+        "force_lengthscale": ("-", "lognormal(0, 2)"),
+        "k": (K, 105.9),
+        "c": (C, 4.8),
+    }
     names = ["force_variance", "force_lengthscale"] + (["k", "c"] if infer else [])
     for n in names:
         true, prior_mean = priors[n]
@@ -148,8 +165,10 @@ def _report(title: str, folder: Path, result, extras, infer: bool, echo) -> None
         row = [n, fmt(true) if true != "-" else "-", fmt(prior_mean) if not isinstance(prior_mean, str) else prior_mean]
         if true != "-":
             row[2] += f" ({pct_error(prior_mean, true)})"
-            row += [f"{fmt(s['mean'])} ({pct_error(s['mean'], true)})",
-                    f"{fmt(s['median'])} ({pct_error(s['median'], true)})"]
+            row += [
+                f"{fmt(s['mean'])} ({pct_error(s['mean'], true)})",
+                f"{fmt(s['median'])} ({pct_error(s['median'], true)})",
+            ]
         else:
             row += [fmt(s["mean"]), fmt(s["median"])]
         row += [f"{s['r_hat']:.3f}" if s.get("r_hat") is not None else "-", f"{s['ess_bulk']:.0f}"]
@@ -163,8 +182,11 @@ def _report(title: str, folder: Path, result, extras, infer: bool, echo) -> None
         x = truth[state][:, 0]
         m_mix, s_mix = result.state_mean[state][:, 0], result.state_sd[state][:, 0]
         cover = np.mean(np.abs(x - m_mix) <= 3 * s_mix)
-        nm_rows.append([state, f"{nmse(x, med[state][0][:, 0]):.3f}", f"{nmse(x, m_mix):.3f}",
-                        f"{100 * cover:.1f}%"])
-    echo(table(nm_rows, ["state", "NMSE % (smoother at CDF estimate, Eq. 29)", "NMSE % (posterior mixture)",
-                         "truth within 3 sd"]))
+        nm_rows.append([state, f"{nmse(x, med[state][0][:, 0]):.3f}", f"{nmse(x, m_mix):.3f}", f"{100 * cover:.1f}%"])
+    echo(
+        table(
+            nm_rows,
+            ["state", "NMSE % (smoother at CDF estimate, Eq. 29)", "NMSE % (posterior mixture)", "truth within 3 sd"],
+        )
+    )
     echo(f"acceptance per chain: {', '.join(f'{a:.2f}' for a in result.acceptance)}")

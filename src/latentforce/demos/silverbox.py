@@ -56,14 +56,18 @@ MARGIN = 256  # samples of the record on either side of a window for the inversi
 #: Weakly informative priors, from the circuit's order of magnitude (a static
 #: gain of about 1 V/V and a resonance near 70 Hz: k ~ 1, m = k / (2 pi 70)^2 ~ 5e-6,
 #: a damping ratio of a few per cent); each a factor e either way at 1 sd.
-SYSTEM_PRIORS = {"m": {"prior": "lognormal", "mu": -12.2, "sigma": 1.0},
-                 "c": {"prior": "lognormal", "mu": -8.5, "sigma": 1.0},
-                 "k": {"prior": "lognormal", "mu": 0.0, "sigma": 1.0},
-                 "k3": {"prior": "lognormal", "mu": 1.0, "sigma": 1.5}}
+SYSTEM_PRIORS = {
+    "m": {"prior": "lognormal", "mu": -12.2, "sigma": 1.0},
+    "c": {"prior": "lognormal", "mu": -8.5, "sigma": 1.0},
+    "k": {"prior": "lognormal", "mu": 0.0, "sigma": 1.0},
+    "k3": {"prior": "lognormal", "mu": 1.0, "sigma": 1.5},
+}
 NOISE_PRIOR = {"prior": "lognormal", "mu": -7.0, "sigma": 2.0}  # V: ~1 mV, a factor 7 either way
-FORCE = {"kernel": "matern32",
-         "variance": {"prior": "lognormal", "mu": -7.0, "sigma": 2.0},
-         "lengthscale": {"prior": "lognormal", "mu": -6.0, "sigma": 2.0}}
+FORCE = {
+    "kernel": "matern32",
+    "variance": {"prior": "lognormal", "mu": -7.0, "sigma": 2.0},
+    "lengthscale": {"prior": "lognormal", "mu": -6.0, "sigma": 2.0},
+}
 
 
 def load() -> tuple[np.ndarray, np.ndarray]:
@@ -96,22 +100,26 @@ def _inference(method: str, seed: int, quick: bool = False) -> dict:
 def calibration_config(linear: bool, seed: int, quick: bool = False) -> dict:
     """Input as a load cell, output as displacement; every parameter inferred."""
     system = {k: v for k, v in SYSTEM_PRIORS.items() if not (linear and k == "k3")}
-    return {"data": {"time_column": "time"},
-            "system": {"type": "linear" if linear else "duffing", **system},
-            "force": FORCE,
-            "sensors": [_sensor("u", "force", NOISE_PRIOR), _sensor("y", "displacement", NOISE_PRIOR)],
-            "inference": _inference("kalman-mcmc" if linear else "ukf", seed, quick)}
+    return {
+        "data": {"time_column": "time"},
+        "system": {"type": "linear" if linear else "duffing", **system},
+        "force": FORCE,
+        "sensors": [_sensor("u", "force", NOISE_PRIOR), _sensor("y", "displacement", NOISE_PRIOR)],
+        "inference": _inference("kalman-mcmc" if linear else "ukf", seed, quick),
+    }
 
 
 def monitoring_config(calibration: str, linear: bool, seed: int, quick: bool = False) -> dict:
     """Output alone; the structure's parameters and the output's noise carried from ``calibration``."""
     carried = {"prior": "posterior", "from": calibration}
     names = ("m", "c", "k") if linear else ("m", "c", "k", "k3")
-    return {"data": {"time_column": "time"},
-            "system": {"type": "linear" if linear else "duffing", **{n: dict(carried) for n in names}},
-            "force": FORCE,
-            "sensors": [_sensor("y", "displacement", dict(carried, param="noise_std_y"))],
-            "inference": _inference("kalman-mcmc" if linear else "ukf", seed, quick)}
+    return {
+        "data": {"time_column": "time"},
+        "system": {"type": "linear" if linear else "duffing", **{n: dict(carried) for n in names}},
+        "force": FORCE,
+        "sensors": [_sensor("y", "displacement", dict(carried, param="noise_std_y"))],
+        "inference": _inference("kalman-mcmc" if linear else "ukf", seed, quick),
+    }
 
 
 def inversion(y: np.ndarray, params: dict, spectral: bool) -> np.ndarray:
@@ -142,8 +150,15 @@ def _result_row(label: str, method: str, u: np.ndarray, result, seconds: float) 
     conv = result.convergence or {}
     r_hat = conv.get("max_r_hat")
     flag = "" if conv.get("converged", True) else " (NOT CONVERGED)"
-    return [label, method, f"{s['nmse']:.2f}", f"{100 * s['cov1']:.1f}", f"{100 * s['cov3']:.1f}",
-            (f"{r_hat:.3f}" if r_hat is not None else "-") + flag, f"{seconds:.0f}"]
+    return [
+        label,
+        method,
+        f"{s['nmse']:.2f}",
+        f"{100 * s['cov1']:.1f}",
+        f"{100 * s['cov3']:.1f}",
+        (f"{r_hat:.3f}" if r_hat is not None else "-") + flag,
+        f"{seconds:.0f}",
+    ]
 
 
 def _baseline_rows(label: str, y_all: np.ndarray, window: slice, u: np.ndarray, params: dict) -> list[list[str]]:
@@ -151,7 +166,7 @@ def _baseline_rows(label: str, y_all: np.ndarray, window: slice, u: np.ndarray, 
     (cut off before scoring): the FFT's periodic extension and the one-sided end differences
     then do not touch the scored samples, as when an engineer inverts a whole record."""
     lo = max(0, window.start - MARGIN)
-    y = y_all[lo:window.stop + MARGIN]
+    y = y_all[lo : window.stop + MARGIN]
     cut = slice(window.start - lo, window.start - lo + (window.stop - window.start))
     rows = []
     for name, spectral in (("inversion, central differences", False), ("inversion, FFT derivatives", True)):
@@ -166,8 +181,15 @@ def _medians(result) -> dict:
     return {n: float(np.median(d)) for n, d in result.param_draws.items()}
 
 
-def run_silverbox(out: Path, quick: bool = False, seed: int = 0, overwrite: bool = False, echo=print,
-                  progress=None, paper_settings: bool = False) -> None:
+def run_silverbox(
+    out: Path,
+    quick: bool = False,
+    seed: int = 0,
+    overwrite: bool = False,
+    echo=print,
+    progress=None,
+    paper_settings: bool = False,
+) -> None:
     del progress, paper_settings  # several runs side by side: no single progress bar
     out = Path(out)
     check_out_dir(out, overwrite)
@@ -178,17 +200,28 @@ def run_silverbox(out: Path, quick: bool = False, seed: int = 0, overwrite: bool
     n_cal = QUICK_CALIBRATION if quick else CALIBRATION
     n_win = QUICK_WINDOW if quick else WINDOW
     windows = {"high": ARROW["high"]} if quick else dict(ARROW)
-    echo(f"Silverbox (Wigren & Schoukens 2013): a circuit realising m y'' + c y' + k y + k3 y^3 = u, "
-         f"input and output measured at {FS:.2f} Hz")
+    echo(
+        f"Silverbox (Wigren & Schoukens 2013): a circuit realising m y'' + c y' + k y + k3 y^3 = u, "
+        f"input and output measured at {FS:.2f} Hz"
+    )
     cal = slice(CALIBRATION_START, CALIBRATION_START + n_cal)
     cal_cols = _columns(y_all[cal], u_all[cal], measured_input=True)
-    echo(f"1. calibration on {n_cal} samples of a multisine realisation (input measured): "
-         "Duffing (ukf) and linear (kalman-mcmc) ...")
+    echo(
+        f"1. calibration on {n_cal} samples of a multisine realisation (input measured): "
+        "Duffing (ukf) and linear (kalman-mcmc) ..."
+    )
     cal_jobs = [
-        lambda: _timed(write_case, out / "calibration", calibration_config(False, seed, quick), cal_cols,
-                       overwrite=True, seed=seed),
-        lambda: _timed(write_case, out / "calibration-linear", calibration_config(True, seed, quick), cal_cols,
-                       overwrite=True, seed=seed),
+        lambda: _timed(
+            write_case, out / "calibration", calibration_config(False, seed, quick), cal_cols, overwrite=True, seed=seed
+        ),
+        lambda: _timed(
+            write_case,
+            out / "calibration-linear",
+            calibration_config(True, seed, quick),
+            cal_cols,
+            overwrite=True,
+            seed=seed,
+        ),
     ]
     (cal_nl, s_nl), (cal_lin, s_lin) = run_cases_concurrently(cal_jobs)
     params = _medians(cal_nl[2])
@@ -199,15 +232,28 @@ def run_silverbox(out: Path, quick: bool = False, seed: int = 0, overwrite: bool
         sl = slice(start, start + n_win)
         y, u = y_all[sl], u_all[sl]
         cols = _columns(y, u, measured_input=False)
-        echo(f"2. arrow window '{name}' (samples {start}-{start + n_win - 1}, input rms {u.std():.4f} V): "
-             "the input from the output alone ...")
+        echo(
+            f"2. arrow window '{name}' (samples {start}-{start + n_win - 1}, input rms {u.std():.4f} V): "
+            "the input from the output alone ..."
+        )
         folder = out / f"arrow-{name}"
         jobs = [
-            lambda: _timed(write_case, folder, monitoring_config("../calibration/", False, seed, quick), cols,
-                           overwrite=True, seed=seed),
-            lambda: _timed(write_case, folder / "linear", monitoring_config("../../calibration-linear/", True,
-                                                                            seed, quick), cols,
-                           overwrite=True, seed=seed),
+            lambda: _timed(
+                write_case,
+                folder,
+                monitoring_config("../calibration/", False, seed, quick),
+                cols,
+                overwrite=True,
+                seed=seed,
+            ),
+            lambda: _timed(
+                write_case,
+                folder / "linear",
+                monitoring_config("../../calibration-linear/", True, seed, quick),
+                cols,
+                overwrite=True,
+                seed=seed,
+            ),
         ]
         (res_nl, sec_nl), (res_lin, sec_lin) = run_cases_concurrently(jobs)
         rows.append(_result_row(name, "Duffing, ukf", u, res_nl[2], sec_nl))
@@ -238,18 +284,31 @@ def _echo_calibration(echo, nl, lin, s_nl: float, s_lin: float) -> None:
         summary = result.param_summary or {}
         conv = result.convergence or {}
         for n, s in summary.items():
-            rows.append([label, n, f"{s['median']:.4g}", f"[{s['q05']:.4g}, {s['q95']:.4g}]",
-                         f"{s['r_hat']:.3f}" if s.get("r_hat") is not None else "-"])
+            rows.append(
+                [
+                    label,
+                    n,
+                    f"{s['median']:.4g}",
+                    f"[{s['q05']:.4g}, {s['q95']:.4g}]",
+                    f"{s['r_hat']:.3f}" if s.get("r_hat") is not None else "-",
+                ]
+            )
         echo(f"   {label}: {'converged' if conv.get('converged') else 'NOT CONVERGED'} in {seconds:.0f} s")
     echo(table(rows, ["model", "parameter", "median", "90% interval", "R-hat"]))
 
 
 def _write_table(path: Path, rows, header, quick: bool, n_cal: int, n_win: int, params: dict) -> None:
-    lines = ["# Silverbox: the input recovered from the output" + (" (--quick)" if quick else ""), "",
-             f"Calibration: {n_cal} samples of the first multisine realisation, input measured. "
-             f"Windows of the arrow: {n_win} samples, output only, parameters carried from the calibration. "
-             "Scores against the measured input. Inversion baselines with the calibration's medians: "
-             + ", ".join(f"{k} = {v:.4g}" for k, v in params.items() if k in ("m", "c", "k", "k3")) + ".", "",
-             "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines = [
+        "# Silverbox: the input recovered from the output" + (" (--quick)" if quick else ""),
+        "",
+        f"Calibration: {n_cal} samples of the first multisine realisation, input measured. "
+        f"Windows of the arrow: {n_win} samples, output only, parameters carried from the calibration. "
+        "Scores against the measured input. Inversion baselines with the calibration's medians: "
+        + ", ".join(f"{k} = {v:.4g}" for k, v in params.items() if k in ("m", "c", "k", "k3"))
+        + ".",
+        "",
+        "| " + " | ".join(header) + " |",
+        "|" + "---|" * len(header),
+    ]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")

@@ -30,8 +30,9 @@ def input_figure(path: Path, result, u: np.ndarray, name: str) -> None:
     err.legend(fontsize=8, loc="upper left", ncols=2)
     for ax, span in zip(axes[::2], (None, (mid - ZOOM_S / 2, mid + ZOOM_S / 2))):
         sel = slice(None) if span is None else (t >= span[0]) & (t <= span[1])
-        ax.fill_between(t[sel], (m - 3 * s)[sel], (m + 3 * s)[sel], color="tab:blue", alpha=0.3, lw=0,
-                        label="posterior ±3 sd")
+        ax.fill_between(
+            t[sel], (m - 3 * s)[sel], (m + 3 * s)[sel], color="tab:blue", alpha=0.3, lw=0, label="posterior ±3 sd"
+        )
         ax.plot(t[sel], u[sel], color="k", lw=0.9 if span else 0.5, label="measured input")
         ax.plot(t[sel], m[sel], color="tab:blue", lw=0.9 if span else 0.5, ls="--", label="posterior mean")
         ax.set_ylabel("input u [V]")

@@ -48,8 +48,9 @@ def _stats(draws: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         warnings.simplefilter("ignore")  # constant columns give NaN with a RuntimeWarning
         rhat = np.asarray(array_stats.rhat(a, chain_axis=-2, draw_axis=-1, method="rank"), dtype=float)
         bulk = np.asarray(array_stats.ess(a, chain_axis=-2, draw_axis=-1, method="bulk"), dtype=float)
-        tail = np.asarray(array_stats.ess(a, chain_axis=-2, draw_axis=-1, method="tail", prob=(0.05, 0.95)),
-                          dtype=float)
+        tail = np.asarray(
+            array_stats.ess(a, chain_axis=-2, draw_axis=-1, method="tail", prob=(0.05, 0.95)), dtype=float
+        )
     return rhat.reshape(-1), bulk.reshape(-1), tail.reshape(-1)
 
 
@@ -65,12 +66,15 @@ def quantity_stats(quantities: Mapping[str, np.ndarray]) -> dict[str, dict[str, 
     names = list(quantities)
     stacked = np.stack([np.asarray(quantities[n], dtype=float) for n in names], axis=-1)
     rhat, bulk, tail = _stats(stacked)
-    return {n: {"r_hat": float(rhat[i]), "ess_bulk": float(bulk[i]), "ess_tail": float(tail[i])}
-            for i, n in enumerate(names)}
+    return {
+        n: {"r_hat": float(rhat[i]), "ess_bulk": float(bulk[i]), "ess_tail": float(tail[i])}
+        for i, n in enumerate(names)
+    }
 
 
-def state_quantities(paths: Mapping[str, np.ndarray], times: np.ndarray,
-                     time_values: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def state_quantities(
+    paths: Mapping[str, np.ndarray], times: np.ndarray, time_values: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
     """Monitored scalars from sampled paths ``(chains, draws, T, width)``.
 
     Named ``force[t=1.25]`` (``force_1[t=1.25]`` for a second component), the
@@ -88,9 +92,15 @@ def state_quantities(paths: Mapping[str, np.ndarray], times: np.ndarray,
     return out
 
 
-def diagnose(params: Mapping[str, np.ndarray], states: Mapping[str, np.ndarray] | None = None, *,
-             target_ess: float = TARGET_ESS, rhat_max: float = RHAT_MAX, states_decide: bool = True,
-             worst: int = 5) -> dict:
+def diagnose(
+    params: Mapping[str, np.ndarray],
+    states: Mapping[str, np.ndarray] | None = None,
+    *,
+    target_ess: float = TARGET_ESS,
+    rhat_max: float = RHAT_MAX,
+    states_decide: bool = True,
+    worst: int = 5,
+) -> dict:
     """The convergence record of a run (JSON-able), see the module docstring.
 
     ``params`` and ``states`` map a name to draws shaped ``(chains, draws)``
@@ -132,8 +142,12 @@ def diagnose(params: Mapping[str, np.ndarray], states: Mapping[str, np.ndarray] 
     finite = [v for v in deciding.values() if np.isfinite(v["r_hat"])]
     if not finite and not reasons:
         reasons.append("no quantity varies")
-    ok = not reasons and record["max_r_hat"] <= rhat_max and record["min_ess_bulk"] >= target_ess \
+    ok = (
+        not reasons
+        and record["max_r_hat"] <= rhat_max
+        and record["min_ess_bulk"] >= target_ess
         and record["min_ess_tail"] >= target_ess / 4
+    )
     record["converged"] = bool(ok)
 
     def badness(item):
@@ -163,17 +177,20 @@ def warning_message(record: dict, method: str) -> str | None:
     if record.get("converged", False):
         return None
     worst = ", ".join(
-        f"{w['name']} (R-hat {w['r_hat']:.3f}, bulk ESS {w['ess_bulk']:.0f})" for w in record.get("worst", [])[:3])
+        f"{w['name']} (R-hat {w['r_hat']:.3f}, bulk ESS {w['ess_bulk']:.0f})" for w in record.get("worst", [])[:3]
+    )
     why = f" ({record['reason']})" if "reason" in record else ""
     advice = {
-        "pgas": "run longer (iterations = \"auto\" with a larger max_time), use more particles, or check "
-                "that the force kernel suits the data",
-        "kalman-mcmc": "run longer (iterations = \"auto\" with a larger max_time), or try "
-                       "method = \"kalman-nuts\"; check diagnostics.start.modes for a posterior with "
-                       "several modes",
-        "kalman-nuts": "run longer (iterations = \"auto\" with a larger max_time); check "
-                       "diagnostics.start.modes for a posterior with several modes",
+        "pgas": 'run longer (iterations = "auto" with a larger max_time), use more particles, or check '
+        "that the force kernel suits the data",
+        "kalman-mcmc": 'run longer (iterations = "auto" with a larger max_time), or try '
+        'method = "kalman-nuts"; check diagnostics.start.modes for a posterior with '
+        "several modes",
+        "kalman-nuts": 'run longer (iterations = "auto" with a larger max_time); check '
+        "diagnostics.start.modes for a posterior with several modes",
     }.get(method, "run longer")
-    return (f"NOT CONVERGED{why}: worst max R-hat {record['max_r_hat']:.3f} (need <= {record['r_hat_max']}), "
-            f"min bulk ESS {record['min_ess_bulk']:.0f} (need >= {record['target_ess']:.0f}); worst "
-            f"quantities: {worst}. The posterior summaries and bands may be wrong: {advice}.")
+    return (
+        f"NOT CONVERGED{why}: worst max R-hat {record['max_r_hat']:.3f} (need <= {record['r_hat_max']}), "
+        f"min bulk ESS {record['min_ess_bulk']:.0f} (need >= {record['target_ess']:.0f}); worst "
+        f"quantities: {worst}. The posterior summaries and bands may be wrong: {advice}."
+    )

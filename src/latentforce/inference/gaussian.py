@@ -156,8 +156,9 @@ def _filter_pass(kind, f, h, Q, R, m1, P1, y, mask):
     return out
 
 
-def gaussian_log_likelihood(kind: str, pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask,
-                            R=None) -> Float[Array, ""]:
+def gaussian_log_likelihood(
+    kind: str, pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None
+) -> Float[Array, ""]:
     r"""The filter's approximate :math:`\log p(y)` alone (no smoothing pass)."""
     f, h, Q, m1, P1 = model_functions(pm, tr)
     R = pm.R if R is None else R
@@ -211,8 +212,9 @@ def smooth_at(smoother: Bound, params: dict, y, mask) -> GaussianSmoother:
     return smoother(params, y, mask)
 
 
-def gaussian_smoother(kind: str, pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None,
-                      key=None) -> GaussianSmoother:
+def gaussian_smoother(
+    kind: str, pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None, key=None
+) -> GaussianSmoother:
     """The ``kind`` (``"ekf"`` or ``"ukf"``) filter and RTS-type smoother of the module doc.
 
     ``y`` ``(T, d)`` (anything where ``mask`` is False), ``mask`` ``(T, d)``;

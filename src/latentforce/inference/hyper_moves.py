@@ -26,8 +26,9 @@ _RESHAPE_AT = (0.05, 0.1, 0.2, 0.4, 0.7)
 HYPERPARAMETERS = ("force_variance", "force_lengthscale")
 
 
-def gp_path_log_density(pm: particle_model.ParticleModel, variance, lengthscale,
-                        g: Float[Array, "T nl"]) -> Float[Array, ""]:
+def gp_path_log_density(
+    pm: particle_model.ParticleModel, variance, lengthscale, g: Float[Array, "T nl"]
+) -> Float[Array, ""]:
     r""":math:`\log p(g_{1:T} \mid \theta)` of the latent path (force states and within-step
     mechanical noise, :mod:`particle_model`), vectorised over time (no scan)."""
     return latent_log_density(pm.transition(variance, lengthscale), g)
@@ -93,20 +94,23 @@ class Hyper:
         """Centred MH target in log space: prior + log-Jacobian + latent path density (module doc)."""
         return self.log_target_and_transition(pm, x, g)[0]
 
-    def log_target_and_transition(self, pm, x: Float[Array, " p"], g: Float[Array, "T nl"]
-                                  ) -> tuple[Float[Array, ""], particle_model.Transition]:
+    def log_target_and_transition(
+        self, pm, x: Float[Array, " p"], g: Float[Array, "T nl"]
+    ) -> tuple[Float[Array, ""], particle_model.Transition]:
         """:meth:`log_target` and the latent's transition at ``x`` (which the sampler carries)."""
         tr = pm.transition(*self.values(x))
         return self.log_target_given(tr, x, g), tr
 
-    def log_target_given(self, tr: particle_model.Transition, x: Float[Array, " p"], g: Float[Array, "T nl"]
-                         ) -> Float[Array, ""]:
+    def log_target_given(
+        self, tr: particle_model.Transition, x: Float[Array, " p"], g: Float[Array, "T nl"]
+    ) -> Float[Array, ""]:
         """:meth:`log_target` when ``tr``, the transition at ``x``, is already known."""
         return self.log_prior(x) + latent_log_density(tr, g)
 
 
-def init_proposal(hyper: Hyper, log_target: Callable, x: Float[Array, " p"],
-                  proposal_sd: float = 0.05) -> mcmc.RWMState:
+def init_proposal(
+    hyper: Hyper, log_target: Callable, x: Float[Array, " p"], proposal_sd: float = 0.05
+) -> mcmc.RWMState:
     """Start the hyperparameter random walk at ``x`` with a diagonal proposal (log space)."""
     return mcmc.init(x, log_target, jnp.full(x.shape, proposal_sd))
 
@@ -117,8 +121,9 @@ def adaptation_schedule(burn_in_steps: int) -> tuple[int, ...]:
     return tuple(s for s in out if s >= 9)  # at least ten steps in the first window
 
 
-def mh_step(key: Array, state: mcmc.RWMState, log_target: Callable, *, adapt: Array,
-            reshape: Array, target: float, aux=None):
+def mh_step(
+    key: Array, state: mcmc.RWMState, log_target: Callable, *, adapt: Array, reshape: Array, target: float, aux=None
+):
     """One random-walk MH step on the hyperparameters (``mcmc.step``), adaptive only where ``adapt``.
 
     ``state.logdensity`` must be ``log_target(state.x)`` (refresh it when the
@@ -129,8 +134,7 @@ def mh_step(key: Array, state: mcmc.RWMState, log_target: Callable, *, adapt: Ar
     """
     out = mcmc.step(key, state, log_target, adapt, reshape & adapt, target, aux)
     restart = reshape & adapt
-    state = out[0]._replace(mean=jnp.where(restart, out[0].x, out[0].mean),
-                            count=jnp.where(restart, 0.0, out[0].count))
+    state = out[0]._replace(mean=jnp.where(restart, out[0].x, out[0].mean), count=jnp.where(restart, 0.0, out[0].count))
     return (state,) + tuple(out[1:])
 
 
@@ -139,11 +143,13 @@ def proposal_covariance(state: mcmc.RWMState) -> Float[Array, "p p"]:
     return jnp.exp(2.0 * state.log_scale) * state.chol @ state.chol.T
 
 
-def noncentred_log_target(hyper: Hyper, pm: particle_model.ParticleModel, od: ObservationDensity,
-                          x: Float[Array, " p"], eps: Float[Array, "T nl"]
-                          ) -> tuple[Float[Array, ""],
-                                     tuple[Float[Array, "T nl"], Float[Array, "T n"], particle_model.Transition]
-                                     ]:
+def noncentred_log_target(
+    hyper: Hyper,
+    pm: particle_model.ParticleModel,
+    od: ObservationDensity,
+    x: Float[Array, " p"],
+    eps: Float[Array, "T nl"],
+) -> tuple[Float[Array, ""], tuple[Float[Array, "T nl"], Float[Array, "T n"], particle_model.Transition]]:
     r"""Target of :math:`x = \log\theta` given the latent's innovations; the rebuilt latent, path and transition.
 
     :math:`\log p(\theta) + \sum_i x_i + \log p(y \mid x_{1:T}(\theta, \varepsilon))`:
@@ -155,4 +161,3 @@ def noncentred_log_target(hyper: Hyper, pm: particle_model.ParticleModel, od: Ob
     g = colour(tr, eps)
     path = pm.path(g)
     return hyper.log_prior(x) + observation_log_likelihood(pm, od, path), (g, path, tr)
-

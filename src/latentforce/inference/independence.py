@@ -56,25 +56,29 @@ class IndependenceProposal(NamedTuple):
     """A mixture of multivariate t densities (arrays only: an argument of compiled programs)."""
 
     means: Float[Array, "K p"]
-    chols: Float[Array, "K p p"]        # lower Cholesky factors of the components' scale matrices
-    inv_chols: Float[Array, "K p p"]    # their inverses (no triangular solve inside the programs)
-    log_weights: Float[Array, " K"]     # normalised
-    log_dets: Float[Array, " K"]        # log |chol|
+    chols: Float[Array, "K p p"]  # lower Cholesky factors of the components' scale matrices
+    inv_chols: Float[Array, "K p p"]  # their inverses (no triangular solve inside the programs)
+    log_weights: Float[Array, " K"]  # normalised
+    log_dets: Float[Array, " K"]  # log |chol|
     df: Float[Array, ""]
 
 
-def from_modes(modes, *, scale: float = SCALE, df: float = DF,
-               max_log_mass_gap: float = MAX_LOG_MASS_GAP) -> IndependenceProposal:
+def from_modes(
+    modes, *, scale: float = SCALE, df: float = DF, max_log_mass_gap: float = MAX_LOG_MASS_GAP
+) -> IndependenceProposal:
     """The proposal built from :class:`latentforce.inference.laplace.Mode` s (best first)."""
     kept = [m for m in modes if m.log_mass >= modes[0].log_mass - max_log_mass_gap]
     chols = np.stack([scale * np.linalg.cholesky(0.5 * (m.cov + m.cov.T)) for m in kept])
     log_w = np.array([m.log_mass for m in kept])
     log_w = log_w - (log_w.max() + np.log(np.sum(np.exp(log_w - log_w.max()))))
     return IndependenceProposal(
-        jnp.asarray(np.stack([m.x for m in kept])), jnp.asarray(chols),
-        jnp.asarray(np.linalg.inv(chols)), jnp.asarray(log_w),
+        jnp.asarray(np.stack([m.x for m in kept])),
+        jnp.asarray(chols),
+        jnp.asarray(np.linalg.inv(chols)),
+        jnp.asarray(log_w),
         jnp.asarray(np.sum(np.log(np.abs(np.diagonal(chols, axis1=1, axis2=2))), axis=1)),
-        jnp.asarray(float(df)))
+        jnp.asarray(float(df)),
+    )
 
 
 def log_density(prop: IndependenceProposal, x: Float[Array, " p"]) -> Float[Array, ""]:
@@ -83,8 +87,13 @@ def log_density(prop: IndependenceProposal, x: Float[Array, " p"]) -> Float[Arra
     nu = prop.df
     delta = jnp.einsum("kij,kj->ki", prop.inv_chols, x[None, :] - prop.means)
     maha = jnp.sum(delta * delta, axis=-1)
-    log_t = (gammaln(0.5 * (nu + p)) - gammaln(0.5 * nu) - 0.5 * p * jnp.log(nu * jnp.pi) - prop.log_dets
-             - 0.5 * (nu + p) * jnp.log1p(maha / nu))
+    log_t = (
+        gammaln(0.5 * (nu + p))
+        - gammaln(0.5 * nu)
+        - 0.5 * p * jnp.log(nu * jnp.pi)
+        - prop.log_dets
+        - 0.5 * (nu + p) * jnp.log1p(maha / nu)
+    )
     return logsumexp(prop.log_weights + log_t)
 
 

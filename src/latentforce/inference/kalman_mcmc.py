@@ -71,8 +71,9 @@ def linear_gaussian(model: LatentForceModel, params: dict, dt: float, initial: I
     return A, Q, H, R, m0, P0
 
 
-def smooth(model: LatentForceModel, params: dict, y, mask, dt: float, initial: Initial | None = None,
-           kalman: str = "auto"):
+def smooth(
+    model: LatentForceModel, params: dict, y, mask, dt: float, initial: Initial | None = None, kalman: str = "auto"
+):
     """Exact smoothed moments and log-likelihood at fixed ``params`` (method ``kalman``).
 
     ``kalman``: which recursion (:mod:`latentforce.inference.kalman_choice`)."""
@@ -82,12 +83,20 @@ def smooth(model: LatentForceModel, params: dict, y, mask, dt: float, initial: I
     return rts_smoother_for(kalman, T)(A, filt)
 
 
-def smooth_compiled(model: LatentForceModel, params: dict, y, mask, dt: float, initial: Initial | None = None,
-                    kalman: str = "auto"):
+def smooth_compiled(
+    model: LatentForceModel, params: dict, y, mask, dt: float, initial: Initial | None = None, kalman: str = "auto"
+):
     """:func:`smooth` as one compiled program per model structure and record shape (the numbers
     are its arguments); ``y`` where ``mask`` is False: anything finite or not."""
-    return _smooth(numbers(model.complete(params)), jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask),
-                   initial, model=model, dt=float(dt), kalman=kalman)
+    return _smooth(
+        numbers(model.complete(params)),
+        jnp.asarray(np.where(mask, y, 0.0)),
+        jnp.asarray(mask),
+        initial,
+        model=model,
+        dt=float(dt),
+        kalman=kalman,
+    )
 
 
 @functools.partial(jit, static_argnames=("model", "dt", "kalman"))
@@ -116,21 +125,29 @@ class MCMCOutput(NamedTuple):
     """Raw output of :func:`run_kalman_mcmc` and :func:`~latentforce.inference.kalman_nuts.run_kalman_nuts`."""
 
     names: tuple[str, ...]
-    draws: dict                   # name -> (chains, iterations) physical values
-    accepted: np.ndarray          # (chains, iterations); NUTS: mean acceptance statistic
-    log_likelihood: np.ndarray    # (chains, iterations)
-    acceptance: np.ndarray        # (chains,) post-warm-up acceptance rate
-    proposal_scale: np.ndarray    # (chains,) adapted global scale (NUTS: step size)
+    draws: dict  # name -> (chains, iterations) physical values
+    accepted: np.ndarray  # (chains, iterations); NUTS: mean acceptance statistic
+    log_likelihood: np.ndarray  # (chains, iterations)
+    acceptance: np.ndarray  # (chains,) post-warm-up acceptance rate
+    proposal_scale: np.ndarray  # (chains,) adapted global scale (NUTS: step size)
     wall_time_s: float
-    convergence: dict = {}        # latentforce.inference.convergence.diagnose record
-    start: dict = {}              # how the chains were started: modes, optimiser record, seconds
-    warmup: int = 0               # warm-up iterations per chain
-    sampler_info: dict = {}       # method-specific extras (e.g. NUTS tree depth)
+    convergence: dict = {}  # latentforce.inference.convergence.diagnose record
+    start: dict = {}  # how the chains were started: modes, optimiser record, seconds
+    warmup: int = 0  # warm-up iterations per chain
+    sampler_info: dict = {}  # method-specific extras (e.g. NUTS tree depth)
 
 
-def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
-                     dt: float, initial: Initial | None = None, complete: bool = True,
-                     loglik: Callable | None = None, kalman: str = "auto") -> Bound:
+def log_posterior_fn(
+    model: LatentForceModel,
+    fixed: dict,
+    names: tuple[str, ...],
+    priors: tuple[Prior, ...],
+    dt: float,
+    initial: Initial | None = None,
+    complete: bool = True,
+    loglik: Callable | None = None,
+    kalman: str = "auto",
+) -> Bound:
     """``logpost(x, y, mask)`` of the unconstrained parameter vector ``x`` (data as arguments).
 
     ``loglik(params, y, mask)``, when given, replaces the exact Kalman
@@ -147,8 +164,11 @@ def log_posterior_fn(model: LatentForceModel, fixed: dict, names: tuple[str, ...
     scan for the record's length, which serves every record.
     """
     static = (model, tuple(names), float(dt), bool(complete), kalman)
-    return Bound(_logpost, static, (numbers(model.complete(fixed)), tuple(priors), initial,
-                                    None if loglik is None else bound(loglik)))
+    return Bound(
+        _logpost,
+        static,
+        (numbers(model.complete(fixed)), tuple(priors), initial, None if loglik is None else bound(loglik)),
+    )
 
 
 def _params_of(fixed: dict, names: tuple[str, ...], x) -> dict:
@@ -174,9 +194,17 @@ def _logpost(static, nums, x, y, mask):
     return lp + ll
 
 
-def make_log_posterior(model: LatentForceModel, fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...],
-                       y, mask, dt: float, initial: Initial | None = None,
-                       kalman: str = "auto") -> tuple[Callable, Callable]:
+def make_log_posterior(
+    model: LatentForceModel,
+    fixed: dict,
+    names: tuple[str, ...],
+    priors: tuple[Prior, ...],
+    y,
+    mask,
+    dt: float,
+    initial: Initial | None = None,
+    kalman: str = "auto",
+) -> tuple[Callable, Callable]:
     """Log posterior of the unconstrained parameter vector, and its log-likelihood part (data fixed)."""
     complete = bool(np.all(mask))
     y = jnp.asarray(np.where(mask, y, 0.0))
@@ -189,8 +217,9 @@ def make_log_posterior(model: LatentForceModel, fixed: dict, names: tuple[str, .
     return (lambda x: logpost(x, y, mask)), loglik
 
 
-def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains: int, *,
-                 use_modes: bool = True) -> tuple[np.ndarray, list[np.ndarray], dict, list]:
+def start_chains(
+    key, logpost: Callable, data: tuple, inits: np.ndarray, chains: int, *, use_modes: bool = True
+) -> tuple[np.ndarray, list[np.ndarray], dict, list]:
     r"""Chain starts ``(chains, p)``, each chain's proposal covariance, a record, and the modes.
 
     With ``use_modes`` (the default): the posterior's modes from L-BFGS
@@ -230,11 +259,22 @@ def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains:
             modes, opt = laplace.find_modes(logpost, starts, args=data)
         if modes:
             x0, which = laplace.chain_starts(key_start, modes, chains)
-            record = {"method": "laplace", "optimiser": opt, "seconds": _time.perf_counter() - t0,
-                      "modes": [{"x": m.x.tolist(), "log_posterior": m.log_posterior, "log_mass": m.log_mass,
-                                 "laplace_ok": m.laplace_ok, "sd": np.sqrt(np.diag(m.cov)).tolist()}
-                                for m in modes],
-                      "chain_mode": which.tolist()}
+            record = {
+                "method": "laplace",
+                "optimiser": opt,
+                "seconds": _time.perf_counter() - t0,
+                "modes": [
+                    {
+                        "x": m.x.tolist(),
+                        "log_posterior": m.log_posterior,
+                        "log_mass": m.log_mass,
+                        "laplace_ok": m.laplace_ok,
+                        "sd": np.sqrt(np.diag(m.cov)).tolist(),
+                    }
+                    for m in modes
+                ],
+                "chain_mode": which.tolist(),
+            }
             return x0, [modes[w].cov for w in which], record, modes
         record = {"method": "init", "optimiser": opt, "note": "the optimiser found no finite optimum"}
     z = np.asarray(jax.random.normal(key_old, (chains, p)))
@@ -245,12 +285,30 @@ def start_chains(key, logpost: Callable, data: tuple, inits: np.ndarray, chains:
     return x0, [np.diag(s**2) for s in sd0], record, []
 
 
-def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
-                    iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
-                    progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
-                    max_time: float = 600.0, use_modes: bool = True, adapt_shape: bool = True,
-                    loglik: Callable | None = None, checkpoint=None, kalman: str = "auto",
-                    independent: bool = True) -> MCMCOutput:
+def run_kalman_mcmc(
+    key,
+    model: LatentForceModel,
+    fixed: dict,
+    free: dict,
+    y,
+    mask,
+    dt: float,
+    *,
+    iterations: int | None,
+    burn_in: int,
+    chains: int,
+    initial: Initial | None = None,
+    progress: Callable | None = None,
+    chunk: int = 100,
+    target_ess: float = 400,
+    max_time: float = 600.0,
+    use_modes: bool = True,
+    adapt_shape: bool = True,
+    loglik: Callable | None = None,
+    checkpoint=None,
+    kalman: str = "auto",
+    independent: bool = True,
+) -> MCMCOutput:
     """Random-walk Metropolis over the ``free`` parameters (Algorithm 1, ISMA 2018).
 
     ``free`` maps a parameter name to ``(prior, init)``; ``fixed`` holds the
@@ -290,8 +348,16 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     covs = np.stack(covs)
     chols = np.stack([np.linalg.cholesky(c) for c in covs]) * (2.38 / np.sqrt(p))
     imh = (jnp.zeros(chains), jnp.zeros(chains)) if proposal is not None else (None, None)
-    states = mcmc.RWMState(jnp.asarray(x0), jnp.full(chains, -jnp.inf), jnp.zeros(chains), jnp.asarray(chols),
-                           jnp.asarray(x0), jnp.asarray(covs), jnp.zeros(chains), *imh)
+    states = mcmc.RWMState(
+        jnp.asarray(x0),
+        jnp.full(chains, -jnp.inf),
+        jnp.zeros(chains),
+        jnp.asarray(chols),
+        jnp.asarray(x0),
+        jnp.asarray(covs),
+        jnp.zeros(chains),
+        *imh,
+    )
 
     n_chunk = max(1, min(chunk, burn_in or chunk, iterations or chunk))
     burn_total = -(-burn_in // n_chunk) * n_chunk  # rounded up to whole chunks, never down
@@ -301,17 +367,30 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     shape_at = tuple(sorted({f * burn_total // 4 for f in fractions} - {0}))
 
     def run_chunk(keys, s, start_step, adapt):
-        s, xs, infos = _run_chains(logpost, keys, s, start_step, adapt, proposal, *data, n_chunk=n_chunk,
-                                   shape_at=shape_at, target=target)
+        s, xs, infos = _run_chains(
+            logpost, keys, s, start_step, adapt, proposal, *data, n_chunk=n_chunk, shape_at=shape_at, target=target
+        )
         stats = {"accepted": infos.accepted, "logdensity": infos.logdensity}
         if proposal is not None:
             stats["independent"] = infos.independent
         return s, xs, stats
 
-    states, xs, stats = sample_in_chunks(key_run, states, run_chunk, names, chains=chains, n_chunk=n_chunk,
-                                         burn_total=burn_total, iterations=iterations, target_ess=target_ess,
-                                         max_time=max_time, t0=t0, progress=progress, checkpoint=checkpoint,
-                                         sampler="kalman-mcmc")
+    states, xs, stats = sample_in_chunks(
+        key_run,
+        states,
+        run_chunk,
+        names,
+        chains=chains,
+        n_chunk=n_chunk,
+        burn_total=burn_total,
+        iterations=iterations,
+        target_ess=target_ess,
+        max_time=max_time,
+        t0=t0,
+        progress=progress,
+        checkpoint=checkpoint,
+        sampler="kalman-mcmc",
+    )
     accepted, lp = stats["accepted"], stats["logdensity"]
     draws, loglik, record = finish(xs, lp, names, priors, target_ess)
     info = {}
@@ -319,30 +398,65 @@ def run_kalman_mcmc(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
         ind = np.asarray(stats["independent"], dtype=bool)
         info["independence"] = {
             "modes": int(proposal.means.shape[0]),
-            "probability": np.asarray(independence.choice_probability(states.imh_accept,
-                                                                      states.imh_count)).tolist(),
+            "probability": np.asarray(independence.choice_probability(states.imh_accept, states.imh_count)).tolist(),
             "share": ind.mean(axis=1).tolist(),
             "acceptance": [float(a[i].mean()) if i.any() else None for a, i in zip(accepted, ind)],
             "random_walk_acceptance": [float(a[~i].mean()) if (~i).any() else None for a, i in zip(accepted, ind)],
         }
-    return MCMCOutput(names, draws, accepted, loglik, accepted.mean(axis=1),
-                      np.exp(np.asarray(states.log_scale)), _time.perf_counter() - t0, record, start,
-                      burn_total, info)
+    return MCMCOutput(
+        names,
+        draws,
+        accepted,
+        loglik,
+        accepted.mean(axis=1),
+        np.exp(np.asarray(states.log_scale)),
+        _time.perf_counter() - t0,
+        record,
+        start,
+        burn_total,
+        info,
+    )
 
 
 @functools.partial(jit, static_argnames=("n_chunk", "shape_at", "target"))
-def _run_chains(logpost: Bound, k, s, start_step, adapt, prop, y, mask, *, n_chunk: int, shape_at: tuple,
-                target: float):
+def _run_chains(
+    logpost: Bound, k, s, start_step, adapt, prop, y, mask, *, n_chunk: int, shape_at: tuple, target: float
+):
     """``n_chunk`` iterations of every chain (vmapped): one compiled program per structure and shape."""
+
     def chain(kc, sc):
-        return mcmc.run_chain(kc, sc, lambda x: logpost(x, y, mask), n_chunk, adapt=adapt,
-                              adapt_shape_at=shape_at, target=target, start=start_step, independent=prop)
+        return mcmc.run_chain(
+            kc,
+            sc,
+            lambda x: logpost(x, y, mask),
+            n_chunk,
+            adapt=adapt,
+            adapt_shape_at=shape_at,
+            target=target,
+            start=start_step,
+            independent=prop,
+        )
+
     return jax.vmap(chain)(k, s)
 
 
-def sample_in_chunks(key, states, run_chunk: Callable, names: tuple[str, ...], *, chains: int, n_chunk: int,
-                     burn_total: int, iterations: int | None, target_ess: float, max_time: float, t0: float,
-                     progress: Callable | None = None, checkpoint=None, sampler: str = "kalman-mcmc"):
+def sample_in_chunks(
+    key,
+    states,
+    run_chunk: Callable,
+    names: tuple[str, ...],
+    *,
+    chains: int,
+    n_chunk: int,
+    burn_total: int,
+    iterations: int | None,
+    target_ess: float,
+    max_time: float,
+    t0: float,
+    progress: Callable | None = None,
+    checkpoint=None,
+    sampler: str = "kalman-mcmc",
+):
     """Warm-up then sampling, in chunks of ``n_chunk`` iterations of one compiled program.
 
     ``run_chunk(keys, states, start_step, adapt) -> (states, xs (chains, n_chunk, p),
@@ -374,7 +488,7 @@ def sample_in_chunks(key, states, run_chunk: Callable, names: tuple[str, ...], *
         states = tree_from_arrays(states, saved.arrays, "state")
         if "draws" in saved.arrays:
             xs_all = [saved.arrays["draws"]]
-            stats_all = {k[len("stats/"):]: [v] for k, v in saved.arrays.items() if k.startswith("stats/")}
+            stats_all = {k[len("stats/") :]: [v] for k, v in saved.arrays.items() if k.startswith("stats/")}
         clock0 = _time.perf_counter() - saved.elapsed_s
     run_keys = jax.random.split(key, chains)
 
@@ -408,8 +522,10 @@ def sample_in_chunks(key, states, run_chunk: Callable, names: tuple[str, ...], *
             draws_x = np.concatenate(xs_all, axis=1)
             quantities = {n: draws_x[..., i] for i, n in enumerate(names)}
             quantities["log_posterior"] = np.concatenate(stats_all["logdensity"], axis=1)
-            finished = (convergence.diagnose(quantities, target_ess=target_ess)["converged"]
-                        or _time.perf_counter() - clock0 >= max_time)
+            finished = (
+                convergence.diagnose(quantities, target_ess=target_ess)["converged"]
+                or _time.perf_counter() - clock0 >= max_time
+            )
         if checkpoint is not None:
             checkpoint.save(sampler, loop_state)
     n_kept = iterations if iterations is not None else done - burn_total
@@ -417,14 +533,16 @@ def sample_in_chunks(key, states, run_chunk: Callable, names: tuple[str, ...], *
     return states, xs, {k: np.concatenate(v, axis=1)[:, :n_kept] for k, v in stats_all.items()}
 
 
-def finish(xs: np.ndarray, logpost: np.ndarray, names: tuple[str, ...], priors: tuple[Prior, ...],
-           target_ess: float) -> tuple[dict, np.ndarray, dict]:
+def finish(
+    xs: np.ndarray, logpost: np.ndarray, names: tuple[str, ...], priors: tuple[Prior, ...], target_ess: float
+) -> tuple[dict, np.ndarray, dict]:
     """Physical draws, the log-likelihood of each draw, and the convergence record."""
     from latentforce.inference import convergence
 
     # The log-likelihood part of each draw: log posterior minus log prior (cheap, exact).
-    log_prior = sum(np.asarray(log_prob_unconstrained(prior, jnp.asarray(xs[..., i])))
-                    for i, prior in enumerate(priors))
+    log_prior = sum(
+        np.asarray(log_prob_unconstrained(prior, jnp.asarray(xs[..., i]))) for i, prior in enumerate(priors)
+    )
     draws = {n: np.asarray(softplus(jnp.asarray(xs[..., i]))) for i, n in enumerate(names)}
     quantities = dict(draws)
     quantities["log_posterior"] = logpost

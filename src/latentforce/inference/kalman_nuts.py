@@ -112,19 +112,40 @@ def _run_chains(logpost: Bound, keys, s, adapt, y, mask, *, n_chunk: int):
             hmc, info = kernel(k, c.hmc, density, step_size, unit_mass, max_num_doublings=MAX_DOUBLINGS)
             acc = jnp.where(jnp.isfinite(info.acceptance_rate), info.acceptance_rate, 0.0)
             da = jax.tree_util.tree_map(lambda new, old: jnp.where(adapt, new, old), da_update(c.da, acc), c.da)
-            stats = {"accepted": acc, "logdensity": hmc.logdensity,
-                     "steps": info.num_integration_steps, "divergent": info.is_divergent}
+            stats = {
+                "accepted": acc,
+                "logdensity": hmc.logdensity,
+                "steps": info.num_integration_steps,
+                "divergent": info.is_divergent,
+            }
             return c._replace(hmc=hmc, da=da), (c.shift + c.root @ hmc.position, stats)
+
         return jax.lax.scan(step, sc, jax.random.split(kc, n_chunk))
 
     s, (xs, stats) = jax.vmap(chain)(keys, s)
     return s, xs, stats
 
 
-def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, mask, dt: float, *,
-                    iterations: int | None, burn_in: int, chains: int, initial: Initial | None = None,
-                    progress: Callable | None = None, chunk: int = 100, target_ess: float = 400,
-                    max_time: float = 600.0, checkpoint=None, kalman: str = "auto") -> MCMCOutput:
+def run_kalman_nuts(
+    key,
+    model: LatentForceModel,
+    fixed: dict,
+    free: dict,
+    y,
+    mask,
+    dt: float,
+    *,
+    iterations: int | None,
+    burn_in: int,
+    chains: int,
+    initial: Initial | None = None,
+    progress: Callable | None = None,
+    chunk: int = 100,
+    target_ess: float = 400,
+    max_time: float = 600.0,
+    checkpoint=None,
+    kalman: str = "auto",
+) -> MCMCOutput:
     """NUTS over the ``free`` parameters; arguments and output as
     :func:`~latentforce.inference.kalman_mcmc.run_kalman_mcmc`.
 
@@ -152,14 +173,40 @@ def run_kalman_nuts(key, model: LatentForceModel, fixed: dict, free: dict, y, ma
     def run_chunk(keys, s, start_step, adapt):
         return _run_chains(logpost, keys, s, adapt, *data, n_chunk=n_chunk)
 
-    states, xs, stats = sample_in_chunks(key_run, states, run_chunk, names, chains=chains, n_chunk=n_chunk,
-                                         burn_total=burn_total, iterations=iterations, target_ess=target_ess,
-                                         max_time=max_time, t0=t0, progress=progress, checkpoint=checkpoint,
-                                         sampler="kalman-nuts")
+    states, xs, stats = sample_in_chunks(
+        key_run,
+        states,
+        run_chunk,
+        names,
+        chains=chains,
+        n_chunk=n_chunk,
+        burn_total=burn_total,
+        iterations=iterations,
+        target_ess=target_ess,
+        max_time=max_time,
+        t0=t0,
+        progress=progress,
+        checkpoint=checkpoint,
+        sampler="kalman-nuts",
+    )
     draws, loglik, record = finish(xs, stats["logdensity"], names, priors, target_ess)
     step_sizes = np.exp(np.asarray(states.da.log_step_size_avg))
-    info = {"mean_integration_steps": float(np.mean(stats["steps"])),
-            "divergences": int(np.sum(stats["divergent"])), "step_size": step_sizes.tolist(),
-            "target_acceptance": TARGET_ACCEPTANCE}
-    return MCMCOutput(names, draws, stats["accepted"], loglik, stats["accepted"].mean(axis=1), step_sizes,
-                      _time.perf_counter() - t0, record, start, burn_total, info)
+    info = {
+        "mean_integration_steps": float(np.mean(stats["steps"])),
+        "divergences": int(np.sum(stats["divergent"])),
+        "step_size": step_sizes.tolist(),
+        "target_acceptance": TARGET_ACCEPTANCE,
+    }
+    return MCMCOutput(
+        names,
+        draws,
+        stats["accepted"],
+        loglik,
+        stats["accepted"].mean(axis=1),
+        step_sizes,
+        _time.perf_counter() - t0,
+        record,
+        start,
+        burn_total,
+        info,
+    )

@@ -38,11 +38,11 @@ FAR_BELOW = 1000.0
 class Mode(NamedTuple):
     """A local maximum of the log posterior in the unconstrained space."""
 
-    x: np.ndarray            # (p,) the optimum
-    log_posterior: float     # log pi(x) at the optimum (unnormalised)
-    cov: np.ndarray          # (p, p) Laplace covariance; a diagonal fallback if the Hessian is not definite
-    laplace_ok: bool         # the Hessian was negative definite
-    log_mass: float          # Laplace estimate of the mode's log probability mass (unnormalised)
+    x: np.ndarray  # (p,) the optimum
+    log_posterior: float  # log pi(x) at the optimum (unnormalised)
+    cov: np.ndarray  # (p, p) Laplace covariance; a diagonal fallback if the Hessian is not definite
+    laplace_ok: bool  # the Hessian was negative definite
+    log_mass: float  # Laplace estimate of the mode's log probability mass (unnormalised)
 
 
 @jit
@@ -51,8 +51,9 @@ def _value_and_grad(logdensity: Bound, x, *args):
     return logdensity(x, *args), jax.jacfwd(logdensity)(x, *args)
 
 
-def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), max_iter: int = 200,
-               same_mode_sd: float = 3.0) -> tuple[list[Mode], dict]:
+def find_modes(
+    logdensity: Callable, starts: np.ndarray, *, args: tuple = (), max_iter: int = 200, same_mode_sd: float = 3.0
+) -> tuple[list[Mode], dict]:
     r"""Maximise ``logdensity(x, *args)`` from each row of ``starts`` ``(n, p)``; distinct optima.
 
     An optimum within ``same_mode_sd`` Laplace standard deviations of a
@@ -124,8 +125,7 @@ def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), ma
         stopped = res.status == 99  # the callback's StopIteration
         if not (res.success or stopped) and res.fun < 1e299:
             # A failed line search (L-BFGS-B's "ABNORMAL") often stops short of the optimum: once more.
-            res = scipy.optimize.minimize(fun, res.x, jac=True, method="L-BFGS-B", options=options,
-                                          callback=callback)
+            res = scipy.optimize.minimize(fun, res.x, jac=True, method="L-BFGS-B", options=options, callback=callback)
             stopped = res.status == 99
         xs[i], fs[i] = shift + L @ res.x, (-res.fun if res.fun < 1e299 else -np.inf)
         messages.append("inside a known mode's Laplace region: stopped there" if stopped else str(res.message))
@@ -146,8 +146,14 @@ def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), ma
         cov, ok = laplace_at(i)
         mode, decrement = _as_mode(xs[i], fs[i], cov, ok, value_and_grad, args)
         if mode is None:
-            rejected.append({"x": xs[i].tolist(), "log_posterior": float(fs[i]),
-                             "newton_decrement": decrement, "hessian_definite": ok})
+            rejected.append(
+                {
+                    "x": xs[i].tolist(),
+                    "log_posterior": float(fs[i]),
+                    "newton_decrement": decrement,
+                    "hessian_definite": ok,
+                }
+            )
             continue
         modes.append(mode)
     if not modes:
@@ -161,8 +167,9 @@ def find_modes(logdensity: Callable, starts: np.ndarray, *, args: tuple = (), ma
     return modes, record
 
 
-def _as_mode(x: np.ndarray, f: float, cov: np.ndarray, ok: bool, value_and_grad: Callable,
-             args: tuple) -> tuple[Mode | None, float]:
+def _as_mode(
+    x: np.ndarray, f: float, cov: np.ndarray, ok: bool, value_and_grad: Callable, args: tuple
+) -> tuple[Mode | None, float]:
     """The optimum ``x`` as a :class:`Mode`, or None where it is none: the Hessian is not negative
     definite, or the squared Newton decrement (about twice the log density a Newton step would
     still gain) is over 1, i.e. the optimiser stopped short. Second value: that decrement."""
@@ -210,8 +217,9 @@ def _within(x: np.ndarray, mode: Mode, k: float) -> bool:
         return False
 
 
-def chain_starts(key, modes: list[Mode], chains: int, *, spread: float = 2.0,
-                 max_log_mass_gap: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+def chain_starts(
+    key, modes: list[Mode], chains: int, *, spread: float = 2.0, max_log_mass_gap: float = 10.0
+) -> tuple[np.ndarray, np.ndarray]:
     r"""Over-dispersed chain starts ``(chains, p)`` and each chain's mode index.
 
     Chains are dealt round-robin to the modes whose Laplace mass is within

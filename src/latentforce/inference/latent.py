@@ -86,14 +86,16 @@ def predicted_observations(pm: particle_model.ParticleModel, path: Float[Array, 
     return jax.vmap(pm.offset)(path[:, pm.layout.mech]) + path[:, pm.layout.force_states] @ pm.D.T
 
 
-def observation_residuals(pm: particle_model.ParticleModel, od: ObservationDensity,
-                          path: Float[Array, "T n"]) -> Float[Array, "T d"]:
+def observation_residuals(
+    pm: particle_model.ParticleModel, od: ObservationDensity, path: Float[Array, "T n"]
+) -> Float[Array, "T d"]:
     r""":math:`y_t - c(\mathrm{mech}_t) - D x_{f,t}` on the observed channels, zero on the missing ones."""
     return (od.y - predicted_observations(pm, path)) * od.maskf
 
 
-def observation_log_likelihood(pm: particle_model.ParticleModel, od: ObservationDensity,
-                               path: Float[Array, "T n"]) -> Float[Array, ""]:
+def observation_log_likelihood(
+    pm: particle_model.ParticleModel, od: ObservationDensity, path: Float[Array, "T n"]
+) -> Float[Array, ""]:
     r""":math:`\sum_t \log N(y_t; c(\mathrm{mech}_t) + D x_{f,t}, R)` over the observed channels."""
     r = observation_residuals(pm, od, path)
     return jnp.sum(od.const) - 0.5 * jnp.einsum("ti,tij,tj->", r, od.Rinv, r)
@@ -102,4 +104,3 @@ def observation_log_likelihood(pm: particle_model.ParticleModel, od: Observation
 def gp_prior_path(key: Array, tr: particle_model.Transition, T: int) -> Float[Array, "T nl"]:
     """One draw of the latent path from its prior."""
     return colour(tr, jax.random.normal(key, (T, tr.A.shape[0])))
-

@@ -34,8 +34,14 @@ def block_length(T: int) -> int:
     return max(1, int(math.ceil(math.sqrt(T))))
 
 
-def linear_recurrence(F: Float[Array, "n n"], u: Float[Array, "T n"], x_init: Float[Array, " n"], *,
-                      reverse: bool = False, block: int | None = None) -> Float[Array, "T n"]:
+def linear_recurrence(
+    F: Float[Array, "n n"],
+    u: Float[Array, "T n"],
+    x_init: Float[Array, " n"],
+    *,
+    reverse: bool = False,
+    block: int | None = None,
+) -> Float[Array, "T n"]:
     r"""All states of :math:`x_t = F x_{t-1} + u_t` (``t = 0..T-1``) from :math:`x_{-1}` = ``x_init``.
 
     ``reverse``: :math:`x_t = F x_{t+1} + u_t` from :math:`x_T` = ``x_init``.

@@ -42,9 +42,9 @@ class RWMState(NamedTuple):
     logdensity: Float[Array, ""]
     log_scale: Float[Array, ""]
     chol: Float[Array, "p p"]
-    mean: Float[Array, " p"]        # running mean of x (adaptation)
-    cov: Float[Array, "p p"]        # running covariance of x (adaptation)
-    count: Float[Array, ""]         # number of adaptation updates so far
+    mean: Float[Array, " p"]  # running mean of x (adaptation)
+    cov: Float[Array, "p p"]  # running covariance of x (adaptation)
+    count: Float[Array, ""]  # number of adaptation updates so far
     # The independence step's warm-up acceptance (mean probability) and how often it was tried;
     # None where no independence proposal is used.
     imh_accept: Float[Array, ""] | None = None
@@ -68,9 +68,16 @@ def init(x: Float[Array, " p"], logdensity: Callable, proposal_sd: Float[Array, 
     return RWMState(x, ld, jnp.zeros(()), jnp.diag(proposal_sd), x, jnp.diag(proposal_sd**2), jnp.zeros(()))
 
 
-def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
-         adapt_shape: Bool[Array, ""], target: float, aux=None,
-         independent: independence.IndependenceProposal | None = None):
+def step(
+    key,
+    state: RWMState,
+    logdensity: Callable,
+    adapt: Bool[Array, ""],
+    adapt_shape: Bool[Array, ""],
+    target: float,
+    aux=None,
+    independent: independence.IndependenceProposal | None = None,
+):
     r"""One Metropolis step; adapts the proposal only where ``adapt`` is true.
 
     With ``independent`` (and ``state.imh_accept``, ``state.imh_count`` set),
@@ -101,8 +108,9 @@ def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
     if independent is not None:
         x_new = jnp.where(use_ind, independence.draw(key_ind, independent), x_new)
         # Hastings ratio q(x) / q(x'); zero for the (symmetric) random walk.
-        log_q_ratio = jnp.where(use_ind, independence.log_density(independent, state.x)
-                                - independence.log_density(independent, x_new), 0.0)
+        log_q_ratio = jnp.where(
+            use_ind, independence.log_density(independent, state.x) - independence.log_density(independent, x_new), 0.0
+        )
     if aux is None:
         ld_new = logdensity(x_new)
     else:
@@ -121,8 +129,7 @@ def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
     imh_accept, imh_count = state.imh_accept, state.imh_count
     if independent is not None:
         imh_count = imh_count + (adapt & use_ind)
-        imh_accept = imh_accept + jnp.where(adapt & use_ind, (alpha - imh_accept) / jnp.maximum(imh_count, 1.0),
-                                            0.0)
+        imh_accept = imh_accept + jnp.where(adapt & use_ind, (alpha - imh_accept) / jnp.maximum(imh_count, 1.0), 0.0)
     w = jnp.where(adapt, 1.0 / (count + 1.0), 0.0)
     diff = x - state.mean
     mean = state.mean + w * diff
@@ -140,9 +147,18 @@ def step(key, state: RWMState, logdensity: Callable, adapt: Bool[Array, ""],
     return out + (jax.tree_util.tree_map(lambda a, b: jnp.where(accepted, a, b), aux_new, aux),)
 
 
-def run_chain(key, state: RWMState, logdensity: Callable, n_steps: int, *, adapt,
-              adapt_shape_at: tuple[int, ...] = (), target: float = 0.234, start=0,
-              independent: independence.IndependenceProposal | None = None):
+def run_chain(
+    key,
+    state: RWMState,
+    logdensity: Callable,
+    n_steps: int,
+    *,
+    adapt,
+    adapt_shape_at: tuple[int, ...] = (),
+    target: float = 0.234,
+    start=0,
+    independent: independence.IndependenceProposal | None = None,
+):
     """Scan ``n_steps`` Metropolis steps; returns the final state, draws and infos.
 
     ``adapt`` may be a traced boolean and ``start`` (the global number of the

@@ -45,11 +45,11 @@ STATES = ("displacement", "velocity", "force")
 class Mixture(NamedTuple):
     """What :func:`mixture_posterior` returns (NumPy arrays)."""
 
-    moments: dict           # state -> (mean (T, width), sd (T, width))
-    paths: dict             # state -> (chains, paths_per_chain, T, width)
+    moments: dict  # state -> (mean (T, width), sd (T, width))
+    paths: dict  # state -> (chains, paths_per_chain, T, width)
     path_index: np.ndarray  # (paths_per_chain,) draw index of each chain's stored paths
-    n_mix: int              # parameter draws mixed
-    point: tuple | None     # (moments, log-likelihood) of the smoother at ``point``
+    n_mix: int  # parameter draws mixed
+    point: tuple | None  # (moments, log-likelihood) of the smoother at ``point``
 
 
 def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int) -> tuple[int, int]:
@@ -66,8 +66,22 @@ def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int)
     return per_chain, max(paths, 1)
 
 
-def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial, outputs: tuple, smoother, kalman: str,
-         with_path: bool, steady_K: int | None, key, theta, y, mask):
+def _one(
+    model: LatentForceModel,
+    fixed: dict,
+    names: tuple,
+    dt: float,
+    initial,
+    outputs: tuple,
+    smoother,
+    kalman: str,
+    with_path: bool,
+    steady_K: int | None,
+    key,
+    theta,
+    y,
+    mask,
+):
     r"""One draw's smoothed means, variances, (path) and log-likelihood; a flag that it is exact.
 
     With ``outputs`` (:class:`latentforce.outputs.OutputSpec`), the state columns are followed by
@@ -104,9 +118,22 @@ def _one(model: LatentForceModel, fixed: dict, names: tuple, dt: float, initial,
     return extend(sm.means), var, path, filt.log_likelihood, jnp.ones((), bool)
 
 
-def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y, mask, dt: float, *,
-                      thin_draws: int = 200, initial=None, point: dict | None = None,
-                      outputs: tuple = (), smoother=None, kalman: str = "auto") -> Mixture:
+def mixture_posterior(
+    key,
+    model: LatentForceModel,
+    fixed: dict,
+    draws: dict,
+    y,
+    mask,
+    dt: float,
+    *,
+    thin_draws: int = 200,
+    initial=None,
+    point: dict | None = None,
+    outputs: tuple = (),
+    smoother=None,
+    kalman: str = "auto",
+) -> Mixture:
     """The mixed state posterior over thinned ``draws`` ``{name: (chains, n)}``; see the module doc.
 
     ``outputs`` (virtual sensors, :mod:`latentforce.outputs`) are mixed likewise and returned
@@ -159,9 +186,11 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     if steady_K:
         fallbacks = [K for K in (2 * steady_K, steady.TRANSIENT) if K > steady_K and steady.applies(T, True, K)]
         fallbacks = sorted(set(fallbacks)) + [None]
+
     def program(with_path, K):
-        return functools.partial(_batch, fixed, initial, smoother, outputs=outputs, kalman=kalman,
-                                 with_path=with_path, steady_K=K, **static)
+        return functools.partial(
+            _batch, fixed, initial, smoother, outputs=outputs, kalman=kalman, with_path=with_path, steady_K=K, **static
+        )
 
     def smoothers(with_path, ks, th):
         """The batch's smoothers; a draw whose covariances did not settle is redone with a longer
@@ -174,7 +203,7 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
             pick = np.concatenate([redo, np.full(len(exact) - len(redo), redo[0])])
             again = [np.asarray(a) for a in program(with_path, K)(ks[pick], th[pick], y, mask)]
             for target, source in zip((means, var, path, ll, exact), again):
-                target[redo] = source[:len(redo)]
+                target[redo] = source[: len(redo)]
         return means, var, path, ll
 
     acc = _Accumulator(T, n + len(outputs))
@@ -185,7 +214,7 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     for with_path, select in ((True, is_path), (False, ~is_path)):
         where = np.argwhere(select)  # (count, 2): (chain, slot)
         for start in range(0, len(where), batch):
-            part = where[start:start + batch]
+            part = where[start : start + batch]
             pad = np.concatenate([part, np.repeat(part[-1:], batch - len(part), axis=0)])
             th = jnp.asarray(thetas[pad[:, 0], pad[:, 1]])
             ks = jax.random.wrap_key_data(jnp.asarray(keys[pad[:, 0], pad[:, 1]]))
@@ -198,15 +227,17 @@ def mixture_posterior(key, model: LatentForceModel, fixed: dict, draws: dict, y,
     mean, var = acc.result()
     moments = {s: (mean[:, ix], np.sqrt(np.clip(var[:, ix], 0.0, None))) for s, ix in index.items()}
     offsets = np.cumsum([0] + [len(index[s]) for s in states])
-    sampled = {s: paths[..., offsets[i]:offsets[i + 1]] for i, s in enumerate(states)}
+    sampled = {s: paths[..., offsets[i] : offsets[i + 1]] for i, s in enumerate(states)}
     point_result = None
     if point is not None:
         th = jnp.repeat(jnp.asarray([[float(point[nm]) for nm in names]]), batch, axis=0)
         # through the program the paths used (compiled already); the path is not kept
         m_p, v_p, _, ll = smoothers(True, jax.random.split(key, batch), th)
         m_p, v_p = m_p[0], v_p[0]
-        point_result = ({s: (m_p[:, ix], np.sqrt(np.clip(v_p[:, ix], 0.0, None))) for s, ix in index.items()},
-                        float(ll[0]))
+        point_result = (
+            {s: (m_p[:, ix], np.sqrt(np.clip(v_p[:, ix], 0.0, None))) for s, ix in index.items()},
+            float(ll[0]),
+        )
     return Mixture(moments, sampled, idx[path_slots], chains * per_chain, point_result)
 
 
@@ -231,11 +262,13 @@ def _settle(fixed, initial, thetas, *, model, names, dt, max_steps):
 
 
 @functools.partial(jit, static_argnames=("model", "names", "dt", "outputs", "kalman", "with_path", "steady_K"))
-def _batch(fixed, initial, smoother, keys, thetas, y, mask, *, model, names, dt, outputs, kalman, with_path,
-           steady_K):
+def _batch(fixed, initial, smoother, keys, thetas, y, mask, *, model, names, dt, outputs, kalman, with_path, steady_K):
     """:func:`_one` over a batch of draws: one program per structure, shape and smoother kind."""
-    return jax.vmap(lambda k, th: _one(model, fixed, names, dt, initial, outputs, smoother, kalman, with_path,
-                                       steady_K, k, th, y, mask))(keys, thetas)
+    return jax.vmap(
+        lambda k, th: _one(
+            model, fixed, names, dt, initial, outputs, smoother, kalman, with_path, steady_K, k, th, y, mask
+        )
+    )(keys, thetas)
 
 
 class _Accumulator:

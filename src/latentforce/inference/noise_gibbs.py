@@ -50,8 +50,10 @@ class NoiseLevels(NamedTuple):
 # a pytree whose numbers (the priors' and the starting values) are leaves and whose names, columns
 # and units are static: a compiled program that takes it serves every prior and start
 jax.tree_util.register_pytree_node(
-    NoiseLevels, lambda nl: ((nl.priors, nl.init), (nl.names, nl.channels, nl.scales)),
-    lambda aux, ch: NoiseLevels(aux[0], aux[1], ch[0], aux[2], ch[1]))
+    NoiseLevels,
+    lambda nl: ((nl.priors, nl.init), (nl.names, nl.channels, nl.scales)),
+    lambda aux, ch: NoiseLevels(aux[0], aux[1], ch[0], aux[2], ch[1]),
+)
 
 
 def noise_levels(model, free: dict, mask=None) -> NoiseLevels:
@@ -60,16 +62,20 @@ def noise_levels(model, free: dict, mask=None) -> NoiseLevels:
     With ``mask`` (``(T, d)``, the observed samples), each must have more than two
     observed samples (the conditional of its variance is proper only then).
     """
-    rows = [(s.noise_param, i, free[s.noise_param][0], float(s.noise_scale), float(free[s.noise_param][1]))
-            for i, s in enumerate(model.sensors) if s.noise_param in free]
+    rows = [
+        (s.noise_param, i, free[s.noise_param][0], float(s.noise_scale), float(free[s.noise_param][1]))
+        for i, s in enumerate(model.sensors)
+        if s.noise_param in free
+    ]
     if not rows:
         return NoiseLevels()
     if mask is not None:
         n = np.sum(np.asarray(mask, dtype=bool), axis=0)
         few = [f"{name} ({int(n[i])} observed samples)" for name, i, *_ in rows if n[i] <= 2]
         if few:
-            raise ValueError(f"an inferred noise level needs more than two observed samples of its channel: "
-                             f"{', '.join(few)}")
+            raise ValueError(
+                f"an inferred noise level needs more than two observed samples of its channel: {', '.join(few)}"
+            )
     bad = [name for name, *_, init in rows if not init > 0]
     if bad:
         raise ValueError(f"initial noise levels must be positive: {bad}")
@@ -95,8 +101,14 @@ def _log_prior_variance(nl: NoiseLevels, var: Float[Array, " m"]) -> Float[Array
     return jnp.stack([prior.log_prob(s[i]) for i, prior in enumerate(nl.priors)]) - jnp.log(2.0 * s)
 
 
-def gibbs_step(key: Array, nl: NoiseLevels, pm: particle_model.ParticleModel, od: ObservationDensity,
-               path: Float[Array, "T n"], var: Float[Array, " d"]) -> tuple[Float[Array, " d"], Array]:
+def gibbs_step(
+    key: Array,
+    nl: NoiseLevels,
+    pm: particle_model.ParticleModel,
+    od: ObservationDensity,
+    path: Float[Array, "T n"],
+    var: Float[Array, " d"],
+) -> tuple[Float[Array, " d"], Array]:
     """One exact update of each inferred channel's noise variance given ``path`` (module doc).
 
     ``var``: every channel's noise variance (SI); returns the updated ones and

@@ -95,11 +95,11 @@ def _step_element(A, Q, H, r, y_t, mask_t):
     S = symmetrise(Hm @ Q @ Hm.T + jnp.diag(jnp.where(mask_t, r, 1.0)))
     chol = cholesky(S)
     HF = Hm @ A
-    K = cho_solve(chol, Hm @ Q).T                   # Q H^T S^{-1}, (n, d)
+    K = cho_solve(chol, Hm @ Q).T  # Q H^T S^{-1}, (n, d)
     A_k = A - K @ HF
     b_k = K @ y_t
     C_k = symmetrise(Q - K @ S @ K.T)
-    W = solve_lower(chol, HF)                       # chol^{-1} H F: J = W^T W is symmetric by construction
+    W = solve_lower(chol, HF)  # chol^{-1} H F: J = W^T W is symmetric by construction
     eta_k = W.T @ solve_lower(chol, y_t)
     J_k = W.T @ W
     return FilteringElements(A_k, b_k, C_k, eta_k, J_k)
@@ -142,7 +142,7 @@ def _filtering_operator(earlier: FilteringElements, later: FilteringElements) ->
     n = Ai.shape[-1]
     M = jnp.eye(n, dtype=Ai.dtype) + Ci @ Jj
     X = solve(M, jnp.concatenate([Ai, (bi + Ci @ etaj)[:, None], Ci], axis=1))
-    XA, Xb, XC = X[:, :n], X[:, n], X[:, n + 1:]
+    XA, Xb, XC = X[:, :n], X[:, n], X[:, n + 1 :]
     Y = solve(M.T, jnp.concatenate([(etaj - Jj @ bi)[:, None], Jj @ Ai], axis=1))
     Yeta, YJ = Y[:, 0], Y[:, 1:]
     return FilteringElements(
@@ -197,8 +197,9 @@ def smoothing_elements(A: Float[Array, "n n"], filtered: FilterResult) -> Smooth
         E = solve(P_p, A @ P_f).T
         return E, m_f - E @ m_p, symmetrise(P_f - E @ P_p @ E.T)
 
-    E, g, L = jax.vmap(element)(filtered.means[:-1], filtered.covs[:-1],
-                                filtered.pred_means[:-1], filtered.pred_covs[:-1])
+    E, g, L = jax.vmap(element)(
+        filtered.means[:-1], filtered.covs[:-1], filtered.pred_means[:-1], filtered.pred_covs[:-1]
+    )
     n = A.shape[0]
     E = jnp.concatenate([E, jnp.zeros((1, n, n), A.dtype)], axis=0)
     g = jnp.concatenate([g, filtered.means[-1:]], axis=0)
@@ -228,8 +229,9 @@ def parallel_kalman_smoother(A, Q, H, R, m0, P0, y, mask=None) -> SmootherResult
     return parallel_rts_smoother(A, parallel_kalman_filter(A, Q, H, R, m0, P0, y, mask))
 
 
-def parallel_sample_smoothed_trajectory(key, A: Float[Array, "n n"], Q: Float[Array, "n n"],
-                                        filtered: FilterResult) -> Float[Array, "T n"]:
+def parallel_sample_smoothed_trajectory(
+    key, A: Float[Array, "n n"], Q: Float[Array, "n n"], filtered: FilterResult
+) -> Float[Array, "T n"]:
     r"""One draw of :math:`x_{1:T} \sim p(x_{1:T} | y_{1:T})`, by an associative scan.
 
     The draw of :func:`latentforce.inference.kalman.sample_smoothed_trajectory`

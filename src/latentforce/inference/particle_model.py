@@ -133,8 +133,7 @@ class ParticleModel:
     """
 
     #: the numbers (pytree leaves: arguments of a compiled program that takes the model)
-    _LEAVES = ("params", "R", "_Minv", "_B", "D", "D_latent", "_phi_force", "_mech0_user", "mech0_mean",
-               "mech0_cov")
+    _LEAVES = ("params", "R", "_Minv", "_B", "D", "D_latent", "_phi_force", "_mech0_user", "mech0_mean", "mech0_cov")
 
     def __init__(self, model, params: dict, dt: float, discretisation: str = "rk4", initial=None, R=None):
         if discretisation not in DISCRETISATIONS:
@@ -149,8 +148,9 @@ class ParticleModel:
         self._Minv = inv(model.system.mass(self.params))
         self._B = model.system.input_matrix()
         self.D = self.D_latent = self._phi_force = self._mech0_user = self.mech0_mean = self.mech0_cov = None
-        (self.D, self.D_latent, self._phi_force, self._mech0_user, self.mech0_mean,
-         self.mech0_cov) = _derived(self, initial)
+        (self.D, self.D_latent, self._phi_force, self._mech0_user, self.mech0_mean, self.mech0_cov) = _derived(
+            self, initial
+        )
 
     def _structure(self, model, dt: float, discretisation: str, stationary_start: bool) -> None:
         """The static attributes (the pytree's tree definition): sizes and switches of ``model``."""
@@ -173,8 +173,10 @@ class ParticleModel:
 
     # ----- the model as a pytree: numbers are leaves, structure is static ----
     def tree_flatten(self):
-        return (tuple(getattr(self, n) for n in self._LEAVES),
-                (self.model, self.dt, self.discretisation, self.stationary_start))
+        return (
+            tuple(getattr(self, n) for n in self._LEAVES),
+            (self.model, self.dt, self.discretisation, self.stationary_start),
+        )
 
     @classmethod
     def tree_unflatten(cls, aux, children):
@@ -251,15 +253,17 @@ class ParticleModel:
         a3 = acc(z3, v3, u1)
         z4, v4 = z + h * v3, v + h * a3
         a4 = acc(z4, v4, u2)
-        return jnp.concatenate([z + (h / 6.0) * (v + 2.0 * v2 + 2.0 * v3 + v4),
-                                v + (h / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)], axis=1)
+        return jnp.concatenate(
+            [z + (h / 6.0) * (v + 2.0 * v2 + 2.0 * v3 + v4), v + (h / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)], axis=1
+        )
 
     def _observe(self, mech, xf):
         r"""Noise-free observation ``c(mech) + D x_f``; equals ``model.observe`` (tested), written
         out with the precomputed :math:`M^{-1}` for speed."""
         z, v = mech[self.layout.displacement], mech[self.layout.velocity]
-        return self.model.sensor_readout(z, v, lambda: self.acceleration(z, v, self._hold(xf, 0.0)),
-                                         lambda: self._hold(xf, 0.0))
+        return self.model.sensor_readout(
+            z, v, lambda: self.acceleration(z, v, self._hold(xf, 0.0)), lambda: self._hold(xf, 0.0)
+        )
 
     def offset(self, mech: Float[Array, " nm"]) -> Float[Array, " d"]:
         """:math:`c(\\mathrm{mech})`: the observation with the force states at zero."""
@@ -403,4 +407,3 @@ def _chol(P):
     d = jnp.diagonal(P)
     d = jnp.where(d > 0, d, jnp.mean(jnp.abs(d)))
     return cholesky(symmetrise(P) + JITTER * jnp.diag(d))
-

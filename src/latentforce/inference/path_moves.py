@@ -62,25 +62,31 @@ class LowFrequencyFrame(NamedTuple):
     basis: Float[Array, "T K"]
 
 
-def lowfreq_coordinates(pm: particle_model.ParticleModel, frame: LowFrequencyFrame,
-                        path: Float[Array, "T n"]) -> tuple[Float[Array, " q"], Float[Array, "T nl"]]:
+def lowfreq_coordinates(
+    pm: particle_model.ParticleModel, frame: LowFrequencyFrame, path: Float[Array, "T n"]
+) -> tuple[Float[Array, " q"], Float[Array, "T nl"]]:
     """``(w, eps_perp)`` of a path (inverse of :func:`lowfreq_path`)."""
     eps = whiten(frame.tr, pm.latent(path))
     W = frame.basis.T @ eps
     return W.ravel(), eps - frame.basis @ W
 
 
-def lowfreq_path(pm: particle_model.ParticleModel, frame: LowFrequencyFrame, eps_perp: Float[Array, "T nl"],
-                 w: Float[Array, " q"]) -> Float[Array, "T n"]:
+def lowfreq_path(
+    pm: particle_model.ParticleModel, frame: LowFrequencyFrame, eps_perp: Float[Array, "T nl"], w: Float[Array, " q"]
+) -> Float[Array, "T n"]:
     """The full path with low-frequency coordinates ``w`` (``colour`` then
     :meth:`~particle_model.ParticleModel.path`)."""
     W = jnp.reshape(w, (frame.basis.shape[1], pm.nl))
     return pm.path(colour(frame.tr, eps_perp + frame.basis @ W))
 
 
-def lowfreq_log_target(pm: particle_model.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
-                       eps_perp: Float[Array, "T nf"], w: Float[Array, " q"]
-                       ) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
+def lowfreq_log_target(
+    pm: particle_model.ParticleModel,
+    od: ObservationDensity,
+    frame: LowFrequencyFrame,
+    eps_perp: Float[Array, "T nf"],
+    w: Float[Array, " q"],
+) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
     r""":math:`\log N(w; 0, I) + \log p(y \mid x_{1:T}(w, \varepsilon_\perp))` up to a constant, and the path.
 
     The maps :math:`w \mapsto (\mathrm{mech}_1, \varepsilon) \mapsto x_{1:T}`
@@ -93,8 +99,9 @@ def lowfreq_log_target(pm: particle_model.ParticleModel, od: ObservationDensity,
     return -0.5 * jnp.sum(w**2) + observation_log_likelihood(pm, od, path), path
 
 
-def lowfreq_init(pm: particle_model.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame,
-                 path: Float[Array, "T n"]) -> mcmc.RWMState:
+def lowfreq_init(
+    pm: particle_model.ParticleModel, od: ObservationDensity, frame: LowFrequencyFrame, path: Float[Array, "T n"]
+) -> mcmc.RWMState:
     r"""Adaptation state of the low-frequency walk, its shape from a Gauss-Newton precision at ``path``.
 
     The proposal covariance starts at :math:`(2.38^2/q)\,(I + J^\top R^{-1} J)^{-1}`,
@@ -118,10 +125,20 @@ def lowfreq_init(pm: particle_model.ParticleModel, od: ObservationDensity, frame
     return mcmc.RWMState(w, jnp.zeros(()), jnp.zeros(()), chol, w, cov, jnp.zeros(()))
 
 
-def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: particle_model.ParticleModel, od: ObservationDensity,
-                 frame: LowFrequencyFrame, path: Float[Array, "T n"], n_steps: int, *, adapt: Array,
-                 step0: Array, reshape_steps: Array, target: float = 0.25
-                 ) -> tuple[mcmc.RWMState, Float[Array, "T n"], Float[Array, " n_steps"]]:
+def lowfreq_move(
+    key: Array,
+    rwm: mcmc.RWMState,
+    pm: particle_model.ParticleModel,
+    od: ObservationDensity,
+    frame: LowFrequencyFrame,
+    path: Float[Array, "T n"],
+    n_steps: int,
+    *,
+    adapt: Array,
+    step0: Array,
+    reshape_steps: Array,
+    target: float = 0.25,
+) -> tuple[mcmc.RWMState, Float[Array, "T n"], Float[Array, " n_steps"]]:
     r"""``n_steps`` Metropolis steps on the path's low-frequency non-centred coordinates, :math:`\theta` fixed.
 
     The sweep's ancestor-sampling splice keeps the reference's future force
@@ -147,8 +164,9 @@ def lowfreq_move(key: Array, rwm: mcmc.RWMState, pm: particle_model.ParticleMode
     # the path is the one at w (up to round-off): no rebuild for the current point's target
     rwm = rwm._replace(x=w, logdensity=-0.5 * jnp.sum(w**2) + observation_log_likelihood(pm, od, path))
 
-    return _walk(key, rwm, log_target, path, n_steps, adapt=adapt, step0=step0, reshape_steps=reshape_steps,
-                 target=target)
+    return _walk(
+        key, rwm, log_target, path, n_steps, adapt=adapt, step0=step0, reshape_steps=reshape_steps, target=target
+    )
 
 
 @jax.tree_util.register_pytree_node_class
@@ -221,8 +239,10 @@ class ResidualMove:
         self.dim = (self.K + 1) * pm.nm
 
     def tree_flatten(self):
-        return ((self.Dinv, self.basis, self.scale_w, self.scale_0),
-                (tuple(int(i) for i in self.cols), tuple(int(i) for i in self.rows), self.applies, self.K, self.dim))
+        return (
+            (self.Dinv, self.basis, self.scale_w, self.scale_0),
+            (tuple(int(i) for i in self.cols), tuple(int(i) for i in self.rows), self.applies, self.K, self.dim),
+        )
 
     @classmethod
     def tree_unflatten(cls, aux, children):
@@ -274,8 +294,15 @@ class ResidualMove:
         return build
 
 
-def residual_log_target(tr: particle_model.Transition, pm: particle_model.ParticleModel, od: ObservationDensity, build,
-                        c: Float[Array, " q"], cP=None, cQ=None) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
+def residual_log_target(
+    tr: particle_model.Transition,
+    pm: particle_model.ParticleModel,
+    od: ObservationDensity,
+    build,
+    c: Float[Array, " q"],
+    cP=None,
+    cQ=None,
+) -> tuple[Float[Array, ""], Float[Array, "T n"]]:
     r"""Log target of the residual-preserving move up to a constant, and the path.
 
     :math:`-\tfrac12|\varepsilon(c)|^2 + \log p(y \mid x_{1:T}(c))`, :math:`\varepsilon`
@@ -288,9 +315,13 @@ def residual_log_target(tr: particle_model.Transition, pm: particle_model.Partic
     return -0.5 * jnp.sum(_whiten(tr, g, cP, cQ) ** 2) + observation_log_likelihood(pm, od, path), path
 
 
-def residual_init(rm: ResidualMove, pm: particle_model.ParticleModel, od: ObservationDensity,
-                  tr: particle_model.Transition,
-                  path: Float[Array, "T n"]) -> mcmc.RWMState:
+def residual_init(
+    rm: ResidualMove,
+    pm: particle_model.ParticleModel,
+    od: ObservationDensity,
+    tr: particle_model.Transition,
+    path: Float[Array, "T n"],
+) -> mcmc.RWMState:
     r"""Adaptation state of the residual-preserving walk, its shape a Gauss-Newton covariance at ``path``.
 
     :math:`(2.38^2/q)(J_\varepsilon^\top J_\varepsilon + J_y^\top R^{-1} J_y)^{-1}`, the
@@ -313,10 +344,19 @@ def residual_init(rm: ResidualMove, pm: particle_model.ParticleModel, od: Observ
     return mcmc.RWMState(jnp.zeros(q), jnp.zeros(()), jnp.zeros(()), chol, jnp.zeros(q), cov, jnp.zeros(()))
 
 
-def residual_move(key: Array, rwm: mcmc.RWMState, rm: ResidualMove, pm: particle_model.ParticleModel,
-                  od: ObservationDensity, tr: particle_model.Transition, path: Float[Array, "T n"], n_steps: int, *,
-                  adapt: Array, target: float = 0.25
-                  ) -> tuple[mcmc.RWMState, Float[Array, "T n"], Float[Array, " n_steps"]]:
+def residual_move(
+    key: Array,
+    rwm: mcmc.RWMState,
+    rm: ResidualMove,
+    pm: particle_model.ParticleModel,
+    od: ObservationDensity,
+    tr: particle_model.Transition,
+    path: Float[Array, "T n"],
+    n_steps: int,
+    *,
+    adapt: Array,
+    target: float = 0.25,
+) -> tuple[mcmc.RWMState, Float[Array, "T n"], Float[Array, " n_steps"]]:
     r"""``n_steps`` residual-preserving Metropolis steps (:class:`ResidualMove`) at fixed :math:`\theta`.
 
     The coordinates are re-origined at ``path`` (``c = 0``); the proposal
@@ -334,21 +374,29 @@ def residual_move(key: Array, rwm: mcmc.RWMState, rm: ResidualMove, pm: particle
 
     ld0 = -0.5 * jnp.sum(_whiten(tr, pm.latent(path), cP, cQ) ** 2) + observation_log_likelihood(pm, od, path)
     rwm = rwm._replace(x=jnp.zeros_like(rwm.x), logdensity=ld0)
-    return _walk(key, rwm, log_target, path, n_steps, adapt=adapt, step0=jnp.zeros((), jnp.int32),
-                 reshape_steps=jnp.asarray((-1,)), target=target)
+    return _walk(
+        key,
+        rwm,
+        log_target,
+        path,
+        n_steps,
+        adapt=adapt,
+        step0=jnp.zeros((), jnp.int32),
+        reshape_steps=jnp.asarray((-1,)),
+        target=target,
+    )
 
 
-def _walk(key, rwm: mcmc.RWMState, log_target: Callable, path, n_steps: int, *, adapt, step0, reshape_steps,
-          target):
+def _walk(key, rwm: mcmc.RWMState, log_target: Callable, path, n_steps: int, *, adapt, step0, reshape_steps, target):
     """``n_steps`` of :func:`mh_step` whose target also returns the path (kept bit-for-bit on rejection)."""
 
     def _one(carry, inp):
         r, x = carry
         k, s = inp
-        r, info, x = mh_step(k, r, log_target, adapt=adapt, reshape=jnp.any(step0 + s == reshape_steps),
-                             target=target, aux=x)
+        r, info, x = mh_step(
+            k, r, log_target, adapt=adapt, reshape=jnp.any(step0 + s == reshape_steps), target=target, aux=x
+        )
         return (r, x), info.accepted
 
     (rwm, path), accs = jax.lax.scan(_one, (rwm, path), (jax.random.split(key, n_steps), jnp.arange(n_steps)))
     return rwm, path, accs
-

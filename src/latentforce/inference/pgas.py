@@ -97,8 +97,9 @@ def observe_through(model, channels, y, mask):
         sensors[i] = s
     y, mask = np.asarray(y, dtype=float), np.asarray(mask, dtype=bool)
     if y.ndim != 2 or y.shape[1] != len(model.sensors) or mask.shape != y.shape:
-        raise ValueError(f"y and mask must both be (T, {len(model.sensors)}), one column per sensor; "
-                         f"got {y.shape} and {mask.shape}")
+        raise ValueError(
+            f"y and mask must both be (T, {len(model.sensors)}), one column per sensor; got {y.shape} and {mask.shape}"
+        )
     y_all = np.full((y.shape[0], len(channels)), np.nan)
     mask_all = np.zeros(y_all.shape, dtype=bool)
     y_all[:, cols], mask_all[:, cols] = y, mask
@@ -114,15 +115,42 @@ def _unnamed(model):
     return LatentForceModel(model.system, model.kernel, [s._replace(name="") for s in model.sensors])
 
 
-def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
-             particles: int = 50, iterations: int | None = 1000, burn_in: int = 500, state_every: int = 1,
-             chains: int = 4, mh_steps: int = 1, discretisation: str = "rk4", proposal: str = "optimal",
-             resampling: str = "multinomial", thin_draws: int = 200, initial=None,
-             progress: Callable | None = None, chunk_blocks: int = 1000, unroll: int = 1,
-             time_points: int = 5, ancestor_sampling: bool = True, interweave: bool = True,
-             lowfreq_modes: int = 16, lowfreq_steps: int = 5, residual_modes: int = 16,
-             residual_steps: int = 60, channels=None, target_ess: float = 400.0, max_time: float = 600.0,
-             max_iterations: int = 50_000, checkpoint=None) -> PGASOutput:
+def run_pgas(
+    key: Array,
+    model,
+    params: dict,
+    free: dict,
+    y,
+    mask,
+    dt: float,
+    *,
+    particles: int = 50,
+    iterations: int | None = 1000,
+    burn_in: int = 500,
+    state_every: int = 1,
+    chains: int = 4,
+    mh_steps: int = 1,
+    discretisation: str = "rk4",
+    proposal: str = "optimal",
+    resampling: str = "multinomial",
+    thin_draws: int = 200,
+    initial=None,
+    progress: Callable | None = None,
+    chunk_blocks: int = 1000,
+    unroll: int = 1,
+    time_points: int = 5,
+    ancestor_sampling: bool = True,
+    interweave: bool = True,
+    lowfreq_modes: int = 16,
+    lowfreq_steps: int = 5,
+    residual_modes: int = 16,
+    residual_steps: int = 60,
+    channels=None,
+    target_ess: float = 400.0,
+    max_time: float = 600.0,
+    max_iterations: int = 50_000,
+    checkpoint=None,
+) -> PGASOutput:
     r"""Blocked particle Gibbs (Algorithm 5, Vibration 2020) with the PGAS kernel of :mod:`smc`.
 
     ``params``: every model parameter (free hyperparameters too: their values
@@ -194,8 +222,9 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool) & jnp.isfinite(y)
     noise = noise_gibbs.noise_levels(model, free, mask)
-    pm = particle_model.ParticleModel(_unnamed(model), params, dt, discretisation, initial,
-                                      R=model.noise_covariance(params))
+    pm = particle_model.ParticleModel(
+        _unnamed(model), params, dt, discretisation, initial, R=model.noise_covariance(params)
+    )
     hyper = Hyper(params, {n: v for n, v in free.items() if n not in noise.names})
     T = y.shape[0]
     p = len(hyper.names)
@@ -222,20 +251,32 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
     rm = ResidualMove(pm, T, residual_modes, np.sqrt(np.diagonal(np.asarray(tr0.Q))[pm.latent_layout.noise]))
     with_rp = rm.applies and int(residual_steps) > 0
     # the block's settings (static): make_block checks the step counts, here before any compile
-    block_settings = dict(particles=int(particles), proposal=proposal, resampling=resampling,
-                          ancestor_sampling=bool(ancestor_sampling), unroll=int(unroll), interweave=bool(interweave),
-                          lowfreq_steps=int(lowfreq_steps), residual_steps=int(residual_steps))
+    block_settings = dict(
+        particles=int(particles),
+        proposal=proposal,
+        resampling=resampling,
+        ancestor_sampling=bool(ancestor_sampling),
+        unroll=int(unroll),
+        interweave=bool(interweave),
+        lowfreq_steps=int(lowfreq_steps),
+        residual_steps=int(residual_steps),
+    )
     make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, noise=noise, **block_settings)
-    block_static = dict(sched=sched, tpoints=tuple(int(t) for t in tpoints), mpoints=tuple(int(t) for t in mpoints),
-                        settings=tuple(sorted(block_settings.items())))
+    block_static = dict(
+        sched=sched,
+        tpoints=tuple(int(t) for t in tpoints),
+        mpoints=tuple(int(t) for t in mpoints),
+        settings=tuple(sorted(block_settings.items())),
+    )
     eks, ref_q = _smooth(pm, y, mask, R, tr0)
 
     def per_chain(a):
         return np.broadcast_to(np.asarray(a), (chains,) + np.shape(a))
 
     lfs, rps = _shapes(pm, rm, basis, od, jax.tree_util.tree_map(per_chain, tr0), per_chain(eks), with_rp=with_rp)
-    states = _init_chains(pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rps, R, chains=int(chains),
-                          sched=sched)
+    states = _init_chains(
+        pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rps, R, chains=int(chains), sched=sched
+    )
 
     n_blocks = sched.n_blocks
     scan_len, segments, reshape_at = reshape_chunks(n_blocks, sched.burn_blocks, chunk_blocks, not pm.is_linear)
@@ -260,13 +301,24 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
             continue
         if start in reshape_at:  # new shapes, the adapted scales kept
             lfs, rps = _shapes(pm, rm, basis, od, states.tr, states.reference, with_rp=with_rp)
-            states = states._replace(rwm_lf=_with_scale_of(lfs, states.rwm_lf),
-                                     rwm_rp=_with_scale_of(rps, states.rwm_rp))
+            states = states._replace(
+                rwm_lf=_with_scale_of(lfs, states.rwm_lf), rwm_rp=_with_scale_of(rps, states.rwm_rp)
+            )
         if auto:
             states = fit_draws(states, end - sched.burn_blocks, sched.n_draws)
-        states, info = _run_chunk(states, np.arange(start, start + scan_len, dtype=np.int32), np.int32(end), data,
-                                  pm, hyper, rm, basis, noise, **block_static)
-        infos.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, :end - start], info))
+        states, info = _run_chunk(
+            states,
+            np.arange(start, start + scan_len, dtype=np.int32),
+            np.int32(end),
+            data,
+            pm,
+            hyper,
+            rm,
+            basis,
+            noise,
+            **block_static,
+        )
+        infos.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, : end - start], info))
         done = end
         if progress is not None:
             acc = float(np.mean(infos[-1].accept))
@@ -278,23 +330,31 @@ def run_pgas(key: Array, model, params: dict, free: dict, y, mask, dt: float, *,
                 stopped = "converged" if verdict["converged"] else "max_time"
                 finished = True
         if checkpoint is not None:
-            checkpoint.save("pgas", lambda: pgas_loop_state(states, infos, ref_q, done, finished, stopped,
-                                                            time.perf_counter() - t_start))
+            checkpoint.save(
+                "pgas",
+                lambda: pgas_loop_state(states, infos, ref_q, done, finished, stopped, time.perf_counter() - t_start),
+            )
     info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)  # the segments tile the blocks
     total = min(sched.total, done * sched.state_every)
     post_sweeps = max(0, done - sched.burn_blocks)
     thin = int(np.asarray(states.thin).reshape(-1)[0])
     n_draws = min(sched.n_draws, -(-post_sweeps // thin))
-    out = _assemble(pm, hyper, states, info, ref_q, sched.burn_in, total, sched.burn_blocks, n_draws, tpoints,
-                    noise.names)
+    out = _assemble(
+        pm, hyper, states, info, ref_q, sched.burn_in, total, sched.burn_blocks, n_draws, tpoints, noise.names
+    )
     out.diagnostics["thin"] = thin
     out.diagnostics["iterations_run"] = max(0, total - sched.burn_in)
     if verdict is None:
         verdict = _verdict(pm, hyper, infos, sched, mpoints, target_ess, noise.names)
     out.diagnostics["convergence"] = verdict
     if auto:
-        out.diagnostics["stopped"] = stopped or ("converged" if verdict["converged"] else "max_time"
-                                                 if time.perf_counter() - t_start > max_time else "max_iterations")
+        out.diagnostics["stopped"] = stopped or (
+            "converged"
+            if verdict["converged"]
+            else "max_time"
+            if time.perf_counter() - t_start > max_time
+            else "max_iterations"
+        )
     return out
 
 
@@ -348,9 +408,22 @@ def _init_chains(pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rp
         ref = dispersed_start(k_path, pm, frame0, lf, eks)
         # the log density is set at the first block
         rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
-        return ChainState(k_run, ref, rwm, rwm, lf, rp, tr, jnp.zeros((), jnp.int32),
-                          jnp.zeros((T, nq)), jnp.zeros((T, nq)), jnp.zeros(()),
-                          jnp.zeros((sched.n_draws + 1, T, pm.n_state)), jnp.asarray(sched.thin, jnp.int32), var0)
+        return ChainState(
+            k_run,
+            ref,
+            rwm,
+            rwm,
+            lf,
+            rp,
+            tr,
+            jnp.zeros((), jnp.int32),
+            jnp.zeros((T, nq)),
+            jnp.zeros((T, nq)),
+            jnp.zeros(()),
+            jnp.zeros((sched.n_draws + 1, T, pm.n_state)),
+            jnp.asarray(sched.thin, jnp.int32),
+            var0,
+        )
 
     return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps)
 
@@ -359,8 +432,17 @@ def _init_chains(pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rp
 def _run_chunk(states, blocks, end, data, pm, hyper, rm, basis, noise, *, sched, tpoints, mpoints, settings):
     """The Gibbs blocks ``blocks`` of every chain (vmapped), those at or past ``end`` skipped
     (:func:`reshape_chunks`); the block is built here, from the traced model, by :func:`make_block`."""
-    block = make_block(pm, hyper, sched, rm, basis, np.asarray(tpoints, dtype=int), np.asarray(mpoints, dtype=int),
-                       noise=noise, **dict(settings))
+    block = make_block(
+        pm,
+        hyper,
+        sched,
+        rm,
+        basis,
+        np.asarray(tpoints, dtype=int),
+        np.asarray(mpoints, dtype=int),
+        noise=noise,
+        **dict(settings),
+    )
     # traced once: for the shapes of the output (the skipped blocks') and in the scan
     vblock = jax.jit(jax.vmap(block, (0, None, None)))
     info_shapes = jax.eval_shape(vblock, states, jax.ShapeDtypeStruct((), jnp.int32), data)[1]
@@ -383,6 +465,6 @@ def fit_draws(states: ChainState, post_sweeps: int, n_slots: int) -> ChainState:
     draws = states.draws
     while -(-post_sweeps // thin) > n_slots:
         kept = draws[:, 0:n_slots:2]
-        draws = jnp.zeros_like(draws).at[:, :kept.shape[1]].set(kept)
+        draws = jnp.zeros_like(draws).at[:, : kept.shape[1]].set(kept)
         thin *= 2
     return states._replace(draws=draws, thin=jnp.full_like(states.thin, thin))

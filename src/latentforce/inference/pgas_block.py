@@ -168,7 +168,7 @@ class BlockData(NamedTuple):
 def _summary_quantities(pm: particle_model.ParticleModel, path: Float[Array, "T n"]):
     nd = pm.ndof
     force_idx = pm.nm + pm.kdim * np.arange(pm.nforce)
-    return jnp.concatenate([path[:, :2 * nd], path[:, force_idx]], axis=1)
+    return jnp.concatenate([path[:, : 2 * nd], path[:, force_idx]], axis=1)
 
 
 class Schedule(NamedTuple):
@@ -184,8 +184,7 @@ class Schedule(NamedTuple):
     n_draws: int  # stored paths
 
 
-def schedule(burn_in: int, iterations: int, state_every: int = 1, mh_steps: int = 1,
-             thin_draws: int = 200) -> Schedule:
+def schedule(burn_in: int, iterations: int, state_every: int = 1, mh_steps: int = 1, thin_draws: int = 200) -> Schedule:
     """The blocks of a run of ``burn_in + iterations`` iterations, a sweep on every ``state_every``-th."""
     k_every, n_mh = int(state_every), int(mh_steps)
     if n_mh < 1:
@@ -201,17 +200,24 @@ def schedule(burn_in: int, iterations: int, state_every: int = 1, mh_steps: int 
     return Schedule(k_every, n_mh, int(burn_in), total, n_blocks, burn_blocks, thin, n_draws)
 
 
-def path_move_shapes(pm: particle_model.ParticleModel, rm: ResidualMove, basis, od: ObservationDensity,
-                     tr: particle_model.Transition, path: Float[Array, "T n"], with_residual: bool
-                     ) -> tuple[mcmc.RWMState, mcmc.RWMState]:
+def path_move_shapes(
+    pm: particle_model.ParticleModel,
+    rm: ResidualMove,
+    basis,
+    od: ObservationDensity,
+    tr: particle_model.Transition,
+    path: Float[Array, "T n"],
+    with_residual: bool,
+) -> tuple[mcmc.RWMState, mcmc.RWMState]:
     """Fresh low-frequency and residual-preserving walks shaped at ``path`` (:func:`lowfreq_init`,
     :func:`residual_init`); without the residual move its walk is a copy of the other."""
     lf = lowfreq_init(pm, od, LowFrequencyFrame(tr, basis), path)
     return lf, (residual_init(rm, pm, od, tr, path) if with_residual else lf)
 
 
-def reshape_chunks(n_blocks: int, burn_blocks: int, chunk_blocks: int, nonlinear: bool
-                   ) -> tuple[int, list[tuple[int, int]], tuple[int, ...]]:
+def reshape_chunks(
+    n_blocks: int, burn_blocks: int, chunk_blocks: int, nonlinear: bool
+) -> tuple[int, list[tuple[int, int]], tuple[int, ...]]:
     """``(scan_len, segments, reshape_at)``: how :func:`~latentforce.inference.pgas.run_pgas` runs its blocks.
 
     ``segments``: the ``(start, end)`` runs of blocks, each one call of one
@@ -228,8 +234,13 @@ def reshape_chunks(n_blocks: int, burn_blocks: int, chunk_blocks: int, nonlinear
     """
     chunk_blocks = max(1, int(chunk_blocks))
     scan_len = -(-n_blocks // max(1, -(-n_blocks // chunk_blocks)))
-    at = () if not nonlinear else tuple(sorted(
-        {int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1}))
+    at = (
+        ()
+        if not nonlinear
+        else tuple(
+            sorted({int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1})
+        )
+    )
     bounds = sorted(set(range(0, n_blocks, scan_len)) | {b for b in at if b < n_blocks} | {n_blocks})
     return scan_len, list(zip(bounds[:-1], bounds[1:])), at
 
@@ -239,12 +250,25 @@ def _with_scale_of(fresh: mcmc.RWMState, adapted: mcmc.RWMState) -> mcmc.RWMStat
     return fresh._replace(log_scale=adapted.log_scale, count=adapted.count)
 
 
-def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, rm: ResidualMove, basis,
-               tpoints, mpoints, *,
-               particles: int = 50, proposal: str = "optimal", resampling: str = "multinomial",
-               ancestor_sampling: bool = True, unroll: int = 1, interweave: bool = True,
-               lowfreq_steps: int = 5, residual_steps: int = 60,
-               noise: noise_gibbs.NoiseLevels = noise_gibbs.NoiseLevels()) -> Callable:
+def make_block(
+    pm: particle_model.ParticleModel,
+    hyper: Hyper,
+    sched: Schedule,
+    rm: ResidualMove,
+    basis,
+    tpoints,
+    mpoints,
+    *,
+    particles: int = 50,
+    proposal: str = "optimal",
+    resampling: str = "multinomial",
+    ancestor_sampling: bool = True,
+    unroll: int = 1,
+    interweave: bool = True,
+    lowfreq_steps: int = 5,
+    residual_steps: int = 60,
+    noise: noise_gibbs.NoiseLevels = noise_gibbs.NoiseLevels(),
+) -> Callable:
     r"""``block(state, b, data) -> (state, BlockInfo)``: Gibbs block ``b`` of one chain (pure, jittable).
 
     :func:`~latentforce.inference.pgas.run_pgas` calls this inside its compiled
@@ -286,8 +310,15 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
     p = len(hyper.names)
     k_every, n_mh, burn_in = sched.state_every, sched.mh_steps, sched.burn_in
     n_blocks, burn_blocks, n_draws = sched.n_blocks, sched.burn_blocks, sched.n_draws
-    sweep = smc.make_sweep(pm, particles, proposal=proposal, resampling=resampling, conditional=True,
-                           ancestor_sampling=ancestor_sampling, unroll=unroll)
+    sweep = smc.make_sweep(
+        pm,
+        particles,
+        proposal=proposal,
+        resampling=resampling,
+        conditional=True,
+        ancestor_sampling=ancestor_sampling,
+        unroll=unroll,
+    )
     target_acc = mcmc.target_acceptance(max(p, 1))
     reshape_steps = jnp.asarray(adaptation_schedule(burn_in * n_mh) or (-1,))
     n_lf, n_rp = int(lowfreq_steps), int(residual_steps)
@@ -316,8 +347,9 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
         rwm_lf, acc_lf = state.rwm_lf, jnp.zeros(())
         if n_lf:
             frame = LowFrequencyFrame(tr, basis)
-            rwm_lf, path, accs_lf = lowfreq_move(k_lf, rwm_lf, pm, od, frame, path, n_lf, adapt=b < burn_blocks,
-                                                 step0=b * n_lf, reshape_steps=lf_reshape)
+            rwm_lf, path, accs_lf = lowfreq_move(
+                k_lf, rwm_lf, pm, od, frame, path, n_lf, adapt=b < burn_blocks, step0=b * n_lf, reshape_steps=lf_reshape
+            )
             acc_lf = jnp.mean(accs_lf.astype(float))
         rwm_rp, acc_rp = state.rwm_rp, jnp.zeros(())
         if n_rp:
@@ -332,13 +364,21 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
         sidx = b - burn_blocks
         slot = jnp.where(post & (sidx % state.thin == 0), sidx // state.thin, n_draws)
         draws = state.draws.at[slot].set(path)
+
         # ---- state_every MH iterations given the path, each mh_steps steps
         def _steps(key_, r, target, j, aux=None):
             def _one(carry, inp2):
                 r_, a_ = carry
                 kk, s_ = inp2
-                out_ = mh_step(kk, r_, target, adapt=j < burn_in,
-                               reshape=jnp.any(j * n_mh + s_ == reshape_steps), target=target_acc, aux=a_)
+                out_ = mh_step(
+                    kk,
+                    r_,
+                    target,
+                    adapt=j < burn_in,
+                    reshape=jnp.any(j * n_mh + s_ == reshape_steps),
+                    target=target_acc,
+                    aux=a_,
+                )
                 return (out_[0], out_[2] if aux is not None else None), out_[1].accepted
 
             (r, aux), accs_ = jax.lax.scan(_one, (r, aux), (jax.random.split(key_, n_mh), jnp.arange(n_mh)))
@@ -366,8 +406,9 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
 
                 # at the current point the rebuilt path is the current one (up to round-off);
                 # the path is kept bit-for-bit when nothing moves (no round-off drift)
-                rwm_nc = rwm_nc._replace(x=rwm.x, logdensity=hyper.log_prior(rwm.x)
-                                         + observation_log_likelihood(pm, od, path_))
+                rwm_nc = rwm_nc._replace(
+                    x=rwm.x, logdensity=hyper.log_prior(rwm.x) + observation_log_likelihood(pm, od, path_)
+                )
                 rwm_nc, accs_nc, (g_, path_, tr_) = _steps(k_nc, rwm_nc, noncentred, j, aux=(g_, path_, tr_))
                 rwm = rwm._replace(x=rwm_nc.x)
                 acc_nc = jnp.mean(accs_nc.astype(float))
@@ -375,7 +416,8 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
 
         js = b * k_every + jnp.arange(k_every)
         (rwm, rwm_nc, path_end, _, tr_end), (xs, accs, accs_nc) = jax.lax.scan(
-            _mh_iter, (state.rwm, state.rwm_nc, path, pm.latent(path), tr), (jax.random.split(k_mh, k_every), js))
+            _mh_iter, (state.rwm, state.rwm_nc, path, pm.latent(path), tr), (jax.random.split(k_mh, k_every), js)
+        )
         theta = hyper.to_constrained(xs)
         fp = path[tpoints][:, pm.nm + pm.kdim * np.arange(pm.nforce)]
         # ---- the inferred noise levels given the final path (one exact Gibbs update each)
@@ -386,11 +428,36 @@ def make_block(pm: particle_model.ParticleModel, hyper: Hyper, sched: Schedule, 
             old, now = (noise_gibbs.standard_deviations(noise, v) for v in (state.noise_var, noise_var))
             sds = jnp.where((jnp.arange(k_every) == k_every - 1)[:, None], now, old)
             acc_noise = acc_noise.astype(float)
-        new = ChainState(key, path_end, rwm, rwm_nc, rwm_lf, rwm_rp, tr_end, b + 1, sum1, sum2, state.count + wgt,
-                         draws, state.thin, noise_var)
-        info = BlockInfo(theta, accs, accs_nc, acc_lf, acc_rp, out.info.log_likelihood, out.info.switched,
-                         jnp.mean(out.info.ess), fp, _summary_quantities(pm, path)[mpoints], sds, acc_noise)
+        new = ChainState(
+            key,
+            path_end,
+            rwm,
+            rwm_nc,
+            rwm_lf,
+            rwm_rp,
+            tr_end,
+            b + 1,
+            sum1,
+            sum2,
+            state.count + wgt,
+            draws,
+            state.thin,
+            noise_var,
+        )
+        info = BlockInfo(
+            theta,
+            accs,
+            accs_nc,
+            acc_lf,
+            acc_rp,
+            out.info.log_likelihood,
+            out.info.switched,
+            jnp.mean(out.info.ess),
+            fp,
+            _summary_quantities(pm, path)[mpoints],
+            sds,
+            acc_noise,
+        )
         return new, info
 
     return _block
-

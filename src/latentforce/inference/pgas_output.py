@@ -41,8 +41,6 @@ class PGASOutput(NamedTuple):
     mh_scale: np.ndarray  # (chains, p) frozen random-walk proposal sd per hyperparameter (log space)
 
 
-
-
 def _parameters(hyper: Hyper, noise_names, info: BlockInfo) -> tuple[tuple, np.ndarray]:
     """``(names, values)``: the inferred parameters' names and their values per MH iteration,
     ``(chains, blocks * state_every, p + m)`` (hyperparameters, then noise levels)."""
@@ -52,15 +50,22 @@ def _parameters(hyper: Hyper, noise_names, info: BlockInfo) -> tuple[tuple, np.n
     return tuple(hyper.names) + tuple(noise_names), np.concatenate([theta, noise], axis=2)
 
 
-def _verdict(pm: particle_model.ParticleModel, hyper: Hyper, infos: list, sched: Schedule, mpoints,
-             target_ess: float, noise_names=()) -> dict:
+def _verdict(
+    pm: particle_model.ParticleModel,
+    hyper: Hyper,
+    infos: list,
+    sched: Schedule,
+    mpoints,
+    target_ess: float,
+    noise_names=(),
+) -> dict:
     """The convergence record over the post-burn-in draws so far (hyperparameters and noise
     levels per iteration, the monitored displacement, velocity and force per sweep)."""
     info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)
     names, values = _parameters(hyper, noise_names, info)
-    theta = values[:, sched.burn_in:sched.total]
+    theta = values[:, sched.burn_in : sched.total]
     params = {n: theta[:, :, i] for i, n in enumerate(names)}
-    mon = info.monitored[:, sched.burn_blocks:]  # (chains, sweeps, M, q)
+    mon = info.monitored[:, sched.burn_blocks :]  # (chains, sweeps, M, q)
     nd, nf = pm.ndof, pm.nforce
     columns = {"displacement": range(0, nd), "velocity": range(nd, 2 * nd), "force": range(2 * nd, 2 * nd + nf)}
     states = {}
@@ -72,8 +77,9 @@ def _verdict(pm: particle_model.ParticleModel, hyper: Hyper, infos: list, sched:
     return convergence.diagnose(params, states, target_ess=target_ess)
 
 
-def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, total, burn_blocks,
-              n_draws, tpoints, noise_names=()) -> PGASOutput:
+def _assemble(
+    pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, total, burn_blocks, n_draws, tpoints, noise_names=()
+) -> PGASOutput:
     chains = info.accept.shape[0]
     names, theta = _parameters(hyper, noise_names, info)
     theta = theta[:, :total]
@@ -108,19 +114,35 @@ def _assemble(pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, to
         "mh_proposal_sd": mh_sd.tolist(),
         "mh_proposal_corr": mh_corr.tolist(),
         "mh_sampling_space": "log",
-        "acceptance_noncentred":
-            np.reshape(info.accept_noncentred, (chains, -1))[:, burn_in:total].mean(axis=1).tolist()
-        if hyper.names else [],
+        "acceptance_noncentred": np.reshape(info.accept_noncentred, (chains, -1))[:, burn_in:total]
+        .mean(axis=1)
+        .tolist()
+        if hyper.names
+        else [],
         "acceptance_lowfreq": info.accept_lowfreq[:, burn_blocks:].mean(axis=1).tolist(),
         "acceptance_residual": info.accept_residual[:, burn_blocks:].mean(axis=1).tolist(),
     }
     if noise_names:  # per chain, per inferred channel: the independence sampler's acceptance
-        diag["acceptance_noise"] = {n: info.accept_noise[:, burn_blocks:, i].mean(axis=1).tolist()
-                                    for i, n in enumerate(noise_names)}
+        diag["acceptance_noise"] = {
+            n: info.accept_noise[:, burn_blocks:, i].mean(axis=1).tolist() for i, n in enumerate(noise_names)
+        }
     diag.update(convergence_diagnostics(th_post, fp, tpoints))
-    return PGASOutput(names, th_post, th_burn, np.asarray(states.draws)[:, :n_draws], state_mean, state_sd,
-                      accept[:, burn_in:].mean(axis=1) if hyper.names else np.zeros(chains), switch, ess,
-                      info.log_likelihood[:, post], fp, tpoints, diag, mh_sd)
+    return PGASOutput(
+        names,
+        th_post,
+        th_burn,
+        np.asarray(states.draws)[:, :n_draws],
+        state_mean,
+        state_sd,
+        accept[:, burn_in:].mean(axis=1) if hyper.names else np.zeros(chains),
+        switch,
+        ess,
+        info.log_likelihood[:, post],
+        fp,
+        tpoints,
+        diag,
+        mh_sd,
+    )
 
 
 def convergence_diagnostics(theta: dict, force_points: np.ndarray, tpoints) -> dict:
@@ -142,5 +164,3 @@ def convergence_diagnostics(theta: dict, force_points: np.ndarray, tpoints) -> d
             out["rhat"][name] = float(az.rhat(np.asarray(arr)))
             out["ess_bulk"][name] = float(az.ess(np.asarray(arr)))
     return out
-
-

@@ -17,8 +17,9 @@ from latentforce.inference.path_moves import (
 from latentforce.linalg import cholesky, solve, symmetrise
 
 
-def extended_kalman_smoother(pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask,
-                             R=None) -> Float[Array, "T n"]:
+def extended_kalman_smoother(
+    pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None
+) -> Float[Array, "T n"]:
     r"""Smoothed means of the sampler's state-space model in ``(mech, x_f)``.
 
     The transition is :math:`x_t = (\Phi(\mathrm{mech}_{t-1}, x_{f,t-1}) + E x_{f,t-1},
@@ -66,8 +67,14 @@ def extended_kalman_smoother(pm: particle_model.ParticleModel, tr: particle_mode
     return jnp.concatenate([msm, ms[-1:]])
 
 
-def dispersed_start(key: Array, pm: particle_model.ParticleModel, frame: LowFrequencyFrame, rwm_lf: mcmc.RWMState,
-                    path: Float[Array, "T n"], spread: float = 2.0) -> Float[Array, "T n"]:
+def dispersed_start(
+    key: Array,
+    pm: particle_model.ParticleModel,
+    frame: LowFrequencyFrame,
+    rwm_lf: mcmc.RWMState,
+    path: Float[Array, "T n"],
+    spread: float = 2.0,
+) -> Float[Array, "T n"]:
     r"""A chain's starting path: ``path`` (the smoother's) moved by ``spread`` times its
     Gauss-Newton posterior sd in the low-frequency coordinates (``rwm_lf.cov``, :func:`lowfreq_init`).
 
@@ -83,4 +90,3 @@ def dispersed_start(key: Array, pm: particle_model.ParticleModel, frame: LowFreq
     w, eps_perp = lowfreq_coordinates(pm, frame, path)
     step = spread * cholesky(rwm_lf.cov) @ jax.random.normal(key, w.shape)
     return lowfreq_path(pm, frame, eps_perp, w + step)
-

@@ -15,8 +15,9 @@ import numpy as np
 from latentforce.checkpoint import LoopState, tree_arrays, tree_from_arrays
 
 
-def pgas_loop_state(states, infos: list, ref_q, done: int, finished: bool, stopped: str | None,
-                    elapsed_s: float) -> LoopState:
+def pgas_loop_state(
+    states, infos: list, ref_q, done: int, finished: bool, stopped: str | None, elapsed_s: float
+) -> LoopState:
     """:func:`latentforce.inference.pgas.run_pgas`'s loop after its segment ending at block ``done``.
 
     ``states``: the chains' :class:`~latentforce.inference.pgas_block.ChainState`;
@@ -42,5 +43,4 @@ def pgas_restore(saved: LoopState, template, info_type) -> tuple:
     """
     states = tree_from_arrays(template, saved.arrays, "state")
     info = info_type(**{name: saved.arrays[f"info/{name}"] for name in info_type._fields})
-    return (states, [info], jnp.asarray(saved.arrays["ref_q"]), saved.done, saved.finished,
-            saved.extra.get("stopped"))
+    return (states, [info], jnp.asarray(saved.arrays["ref_q"]), saved.done, saved.finished, saved.extra.get("stopped"))

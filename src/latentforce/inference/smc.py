@@ -126,130 +126,20 @@ _LOG_2PI = math.log(2.0 * math.pi)
 PROPOSALS = ("optimal", "bootstrap")
 
 
-# ---------------------------------------------------------------------------
-# Resampling: (key, log_weights, n) -> indices
-# ---------------------------------------------------------------------------
-def _points(scheme: str, u: Float[Array, " n"]) -> Float[Array, " n"]:
-    """Map ``n`` i.i.d. U(0,1) draws to the scheme's points in [0, 1)."""
-    n = u.shape[-1]
-    if scheme == "multinomial":
-        return u
-    if scheme == "stratified":
-        return (jnp.arange(n) + u) / n
-    if scheme == "systematic":
-        return (jnp.arange(n) + u[..., :1]) / n
-    raise ValueError(f"unknown resampling scheme {scheme!r}; valid: {RESAMPLING}")
-
-
-def _inverse_cdf(log_weights: Float[Array, " N"], points: Float[Array, " n"]) -> Int[Array, " n"]:
-    """Indices ``i`` with ``cdf[i-1] <= p < cdf[i]`` for the normalised weights."""
-    w = jnp.exp(log_weights - jnp.max(log_weights))
-    cdf = jnp.cumsum(w)
-    # compare_all is the fastest search for the few dozen particles we use on CPU.
-    idx = jnp.searchsorted(cdf, points * cdf[-1], side="right", method="compare_all")
-    return jnp.minimum(idx, log_weights.shape[0] - 1).astype(jnp.int32)
-
-
-def _resampler(scheme: str):
-    def resample(key: Array, log_weights: Float[Array, " N"], n: int) -> Int[Array, " n"]:
-        u = jax.random.uniform(key, (n,), dtype=log_weights.dtype)
-        return _inverse_cdf(log_weights, _points(scheme, u))
-
-    resample.__name__ = scheme
-    resample.__doc__ = (
-        f"{scheme.capitalize()} resampling: ``n`` ancestor indices drawn with probabilities "
-        "proportional to ``exp(log_weights)`` (unnormalised log weights accepted)."
-    )
-    return resample
-
-
-multinomial = _resampler("multinomial")
-systematic = _resampler("systematic")
-stratified = _resampler("stratified")
-RESAMPLING = {"multinomial": multinomial, "systematic": systematic, "stratified": stratified}
-
-
-_TWO_M32 = 2.0**-32
-
-
-def uniform32(key: Array, shape: tuple, dtype=float) -> Float[Array, "..."]:
-    """Uniforms on ``(0, 1)`` from one 32-bit word each: ``(b + 1/2) 2^-32``.
-
-    In double precision exactly representable and never 0 or 1. Half the random
-    bits of ``jax.random.uniform`` in double precision (which uses 64 per
-    number); a resampling point needs no finer grid than ``2^-32``. In single
-    precision the values are rounded: never 0, but the largest words round to 1.
-    """
-    return _unit_interval(jax.random.bits(key, shape, jnp.uint32), dtype)
-
-
-def _unit_interval(words: Array, dtype) -> Array:
-    """``(b + 1/2) 2^-32`` of 32-bit words ``b``: :func:`uniform32`'s map to ``(0, 1)``."""
-    return (words.astype(dtype) + 0.5) * _TWO_M32
-
-
-# Taylor coefficients of sin (x, x^3, ..., x^11) and cos (1, x^2, ..., x^12): on [0, pi/2]
-# the first omitted terms are below 6e-8, the single-precision rounding of the result
-_SIN_TAYLOR = tuple((-1.0) ** k / math.factorial(2 * k + 1) for k in range(6))
-_COS_TAYLOR = tuple((-1.0) ** k / math.factorial(2 * k) for k in range(7))
-
-
-def _even_poly(coefs, x2):
-    acc = np.float32(coefs[-1])
-    for c in coefs[-2::-1]:
-        acc = acc * x2 + np.float32(c)
-    return acc
-
-
-def unit_circle(words: Array) -> tuple[Array, Array]:
-    r"""``(cos phi, sin phi)`` in single precision for the uniform angle each 32-bit word encodes.
-
-    The top two bits pick the quadrant ``q``, the other 30 the angle
-    :math:`\psi \in [0, \pi/2)` within it: :math:`\phi = q\pi/2 + \psi`.
-    Sine and cosine of :math:`\psi` are Taylor polynomials (within 2.5e-7
-    of the exact values; tested); the quadrant only swaps and negates them.
-    XLA's CPU sine and cosine reduce any argument, which costs about 5 ns a
-    value here against well under 1 ns for the polynomials.
-    """
-    q = words >> np.uint32(30)
-    psi = (words & np.uint32(0x3FFFFFFF)).astype(jnp.float32) * np.float32(0.5 * math.pi * 2.0**-30)
-    psi2 = psi * psi
-    s, c = psi * _even_poly(_SIN_TAYLOR, psi2), _even_poly(_COS_TAYLOR, psi2)
-    odd = (q & np.uint32(1)) == 1
-    x, y = jnp.where(odd, s, c), jnp.where(odd, c, s)
-    return jnp.where((q == 1) | (q == 2), -x, x), jnp.where(q >= 2, -y, y)
-
-
-def box_muller(key: Array, shape: tuple, dtype=float) -> Float[Array, "..."]:
-    """Standard normals by the Box-Muller transform, one 32-bit word per normal.
-
-    The transform runs in single precision and the result is cast to
-    ``dtype``: on CPU the double-precision logarithm and sine/cosine cost
-    several times their single-precision versions, and the random bits
-    themselves (about 10 ns a word here) are half those of double-precision
-    uniforms. The angle's cosine and sine come from :func:`unit_circle`.
-    Each value is within a few 1e-6 (single-precision rounding) of the exact
-    transform of its words, and the tail beyond 6.76 sd (probability
-    1.4e-11, where the radius's uniform reaches its smallest value ``2^-33``)
-    is cut: far below any Monte-Carlo error of the sampler.
-    At T = 1024, N = 50 the sweep's random numbers cost about 4.4 ms in
-    double precision (a third of a sweep).
-    """
-    n = math.prod(shape)
-    half = -(-n // 2)
-    words = jax.random.bits(key, (2, half), jnp.uint32)
-    u = _unit_interval(words[0], jnp.float32)  # may round to 1: a zero radius
-    r = jnp.sqrt(-2.0 * jnp.log(u))
-    cos, sin = unit_circle(words[1])
-    z = jnp.concatenate([r * cos, r * sin])[:n]
-    return z.astype(dtype).reshape(shape)
-
-
-def effective_sample_size(log_weights: Float[Array, " N"]) -> Float[Array, ""]:
-    """ESS :math:`1 / \\sum_i \\bar w_i^2` of (unnormalised) log weights."""
-    lw = log_weights - jax.scipy.special.logsumexp(log_weights)
-    return jnp.exp(-jax.scipy.special.logsumexp(2.0 * lw))
-
+# resampling schemes and random draws (re-exported: callers use smc.box_muller ...)
+from latentforce.inference.draws import (  # noqa: E402, F401
+    RESAMPLING,
+    _inverse_cdf,
+    _points,
+    _resampler,
+    box_muller,
+    effective_sample_size,
+    multinomial,
+    stratified,
+    systematic,
+    uniform32,
+    unit_circle,
+)
 
 
 # ---------------------------------------------------------------------------
@@ -278,8 +168,7 @@ def _masked_R(R, maskf):
     return R_t
 
 
-def sweep_constants(pm: ParticleModel, tr: Transition, y, mask, proposal: str = "optimal",
-                    R=None) -> SweepConstants:
+def sweep_constants(pm: ParticleModel, tr: Transition, y, mask, proposal: str = "optimal", R=None) -> SweepConstants:
     """Precompute masked observation matrices, ``K, S``, Cholesky factors (once per sweep/theta).
 
     ``R``: the noise covariance of the channels (default the model's, ``pm.R``);
@@ -309,6 +198,7 @@ def sweep_constants(pm: ParticleModel, tr: Transition, y, mask, proposal: str = 
     # step 0 uses the initial covariance, every later step Q
     prior_cov = jnp.concatenate([tr.Pinf[None], jnp.broadcast_to(tr.Q, (T - 1,) + tr.Q.shape)])
     if proposal == "optimal":
+
         def _gain(P, Dm, Rm, m):
             S = symmetrise(Dm @ P @ Dm.T + Rm)
             Sinv, logdetS = _inv_logdet(S, m)
@@ -322,12 +212,26 @@ def sweep_constants(pm: ParticleModel, tr: Transition, y, mask, proposal: str = 
         L = jax.vmap(_chol)(prior_cov)
         K = jnp.zeros((T, pm.nl, pm.n_obs))
         Sinv, S_const = Rinv, obs_const
-    return SweepConstants(yz, D_t, Rinv, obs_const, tr.A[:, pm.latent_layout.force], q_scale, symmetrise(Q_inv), L,
-                          K, Sinv, S_const, pm.mech0_mean, maskf)
+    return SweepConstants(
+        yz,
+        D_t,
+        Rinv,
+        obs_const,
+        tr.A[:, pm.latent_layout.force],
+        q_scale,
+        symmetrise(Q_inv),
+        L,
+        K,
+        Sinv,
+        S_const,
+        pm.mech0_mean,
+        maskf,
+    )
 
 
-def ancestor_information(pm: ParticleModel, sc: SweepConstants, reference: Float[Array, "T n"],
-                         innovation: bool | None = None):
+def ancestor_information(
+    pm: ParticleModel, sc: SweepConstants, reference: Float[Array, "T n"], innovation: bool | None = None
+):
     r"""Backward information recursion :math:`(\Lambda_t, \eta_t)` along the reference (module doc).
 
     ``Lambda[t], eta[t]`` summarise :math:`\log p(y_{t:T})` as a quadratic in the
@@ -343,6 +247,7 @@ def ancestor_information(pm: ParticleModel, sc: SweepConstants, reference: Float
     C_mech = jax.vmap(jax.jacfwd(pm.offset))(mech) * sc.maskf[:, :, None]  # (T, d, nm)
     D_f = sc.D[:, :, G.force]
     if innovation:
+
         def step(x):  # the state's mean one step on, its innovation held
             mech_x, xf_x = x[L.mech], x[L.force_states]
             return jnp.concatenate([pm.phi(mech_x, xf_x) + E @ xf_x, A_f @ xf_x])
@@ -390,9 +295,17 @@ class SweepOutput(NamedTuple):
     log_weights: Float[Array, " N"]  # normalised, at the final step
 
 
-def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal",
-               resampling: str = "multinomial", conditional: bool = True,
-               ancestor_sampling: bool = True, unroll: int = 1, innovation: bool | None = None) -> Callable:
+def make_sweep(
+    pm: ParticleModel,
+    n_particles: int,
+    *,
+    proposal: str = "optimal",
+    resampling: str = "multinomial",
+    conditional: bool = True,
+    ancestor_sampling: bool = True,
+    unroll: int = 1,
+    innovation: bool | None = None,
+) -> Callable:
     r"""Build ``sweep(key, sc, reference) -> SweepOutput``: one pass of SMC (pure, jittable).
 
     ``conditional=False``: the particle filter of Algorithm 1 (``reference``
@@ -477,8 +390,27 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
             Lam = jnp.zeros((T, n_as, n_as))
             eta = jnp.zeros((T, n_as))
 
-        def _propagate(mech_pred, m, g_prev, y_t, D_t, Rinv_t, oc_t, K_t, Sinv_t, Sc_t, m_t, noise_t, p_t,
-                       Lam_t, eta_t, qref_t, rpred_t, *, first):
+        def _propagate(
+            mech_pred,
+            m,
+            g_prev,
+            y_t,
+            D_t,
+            Rinv_t,
+            oc_t,
+            K_t,
+            Sinv_t,
+            Sc_t,
+            m_t,
+            noise_t,
+            p_t,
+            Lam_t,
+            eta_t,
+            qref_t,
+            rpred_t,
+            *,
+            first,
+        ):
             """Resample-move-weight at one step: returns the new particles, ancestors, the
             resampling log weights and the second-stage log weights."""
             r = y_t - voffset(mech_pred) * m_t - _mv(m, D_t)
@@ -511,8 +443,7 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
                     rows.append(g_prev + log_f + Delta)
                 # the barrier stops XLA from fusing (and so recomputing) the RK4 step and
                 # the residuals into every consumer (reductions over particles, the gather)
-                packed, log_weights = jax.lax.optimization_barrier(
-                    (jnp.concatenate(moved, axis=1), jnp.stack(rows)))
+                packed, log_weights = jax.lax.optimization_barrier((jnp.concatenate(moved, axis=1), jnp.stack(rows)))
                 anc = _draw(log_weights, p_t)
                 if conditional and not ancestor_sampling:
                     anc = jnp.where(is_ref, ref, anc)
@@ -539,13 +470,28 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
             return jnp.concatenate([mech_new, xf_new], axis=1), anc, res_logw, g
 
         # the per-step inputs, in _propagate's order: step 0 below, steps 1.. in the scan
-        per_step = (sc.y, sc.D, sc.Rinv, sc.obs_const, sc.K, sc.Sinv, sc.S_const, sc.maskf, noise, points,
-                    Lam, eta, q_ref, ref_pred)
+        per_step = (
+            sc.y,
+            sc.D,
+            sc.Rinv,
+            sc.obs_const,
+            sc.K,
+            sc.Sinv,
+            sc.S_const,
+            sc.maskf,
+            noise,
+            points,
+            Lam,
+            eta,
+            q_ref,
+            ref_pred,
+        )
 
         # ---- t = 0: every particle predicts mech_0 = m_0 and the latent prior mean 0
         mech_pred0 = jnp.broadcast_to(sc.mech0_mean, (N, nm))
-        x0, _, _, logw0 = _propagate(mech_pred0, jnp.zeros((N, nl), dtype), jnp.zeros(N, dtype),
-                                     *(a[0] for a in per_step), first=True)
+        x0, _, _, logw0 = _propagate(
+            mech_pred0, jnp.zeros((N, nl), dtype), jnp.zeros(N, dtype), *(a[0] for a in per_step), first=True
+        )
 
         def _step(carry, inputs):
             x_prev, g_prev = carry
@@ -555,7 +501,8 @@ def make_sweep(pm: ParticleModel, n_particles: int, *, proposal: str = "optimal"
             return (x_new, g), (x_new, anc, res_logw, g)
 
         (_, g_T), (xs, ancs, res_logw, gs) = jax.lax.scan(
-            _step, (x0, logw0), tuple(a[1:] for a in per_step), unroll=unroll)
+            _step, (x0, logw0), tuple(a[1:] for a in per_step), unroll=unroll
+        )
         particles = jnp.concatenate([x0[None], xs])
         ancestors = jnp.concatenate([jnp.broadcast_to(jnp.arange(N, dtype=ancs.dtype), (1, N)), ancs])
         # Eq. (5) with unnormalised second-stage weights g_t:

@@ -44,10 +44,10 @@ TOL = 1e-10
 
 class SteadySmoother(NamedTuple):
     means: Float[Array, "T n"]
-    variances: Float[Array, "T n"]   # diagonals of the smoothed covariances
+    variances: Float[Array, "T n"]  # diagonals of the smoothed covariances
     log_likelihood: Float[Array, ""]
-    path: Float[Array, "T n"]        # a backward-sampled trajectory (zeros unless asked for)
-    converged: Bool[Array, ""]       # both transients died out within K steps
+    path: Float[Array, "T n"]  # a backward-sampled trajectory (zeros unless asked for)
+    converged: Bool[Array, ""]  # both transients died out within K steps
 
 
 def applies(T: int, complete: bool, K: int | None = None) -> bool:
@@ -102,8 +102,9 @@ def _close(a, b, tol=TOL):
     return jnp.all(jnp.abs(a - b) <= tol * d)
 
 
-def steady_smoother(A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int | None = None,
-                    rows=None) -> SteadySmoother:
+def steady_smoother(
+    A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int | None = None, rows=None
+) -> SteadySmoother:
     r"""Smoothed means, variances and log-likelihood of a complete record (module doc).
 
     With ``key``, also one trajectory drawn from the smoothing distribution
@@ -172,26 +173,28 @@ def steady_smoother(A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int
     if rows is None:
         diag = lambda P: jnp.diagonal(P, axis1=-2, axis2=-1)
     else:
-        diag = lambda P: jnp.concatenate([jnp.diagonal(P, axis1=-2, axis2=-1),
-                                          jnp.einsum("ki,...ij,kj->...k", rows, P, rows)], axis=-1)
+        diag = lambda P: jnp.concatenate(
+            [jnp.diagonal(P, axis1=-2, axis2=-1), jnp.einsum("ki,...ij,kj->...k", rows, P, rows)], axis=-1
+        )
     # tail[j] is P_s at t = T-2-j; the last step P_s(T-1) = P_f(T-1) = P_f_inf.
-    variances = jnp.concatenate([
-        diag(head),
-        jnp.broadcast_to(diag(P_mid), (T - 2 * K - 1, diag(P_mid).shape[-1])),
-        diag(tail[::-1]),
-        diag(Pf_inf)[None],
-    ])
+    variances = jnp.concatenate(
+        [
+            diag(head),
+            jnp.broadcast_to(diag(P_mid), (T - 2 * K - 1, diag(P_mid).shape[-1])),
+            diag(tail[::-1]),
+            diag(Pf_inf)[None],
+        ]
+    )
 
     def backward(x_last, G_step, late_inputs, head_inputs):
         """A backward recursion x_t = f(x_{t+1}): steady for t >= K-1, the head's own gains before."""
-        x_mid, late = jax.lax.scan(lambda x, inp: (G_step(x, G_inf, *inp),) * 2, x_last, late_inputs,
-                                   reverse=True)
+        x_mid, late = jax.lax.scan(lambda x, inp: (G_step(x, G_inf, *inp),) * 2, x_last, late_inputs, reverse=True)
         _, head = jax.lax.scan(lambda x, inp: (G_step(x, *inp),) * 2, x_mid, head_inputs, reverse=True)
         return jnp.concatenate([head, late, x_last[None]])
 
     # t = K-1 .. T-2 with G_inf; t = 0 .. K-2 with G_head[t].
-    late = (m_f[K - 1:T - 1], m_p_next[K - 1:T - 1])
-    head = (G_head[:K - 1], m_f[:K - 1], m_p_next[:K - 1])
+    late = (m_f[K - 1 : T - 1], m_p_next[K - 1 : T - 1])
+    head = (G_head[: K - 1], m_f[: K - 1], m_p_next[: K - 1])
     means = backward(m_f[-1], lambda x, G, mf, mp1: mf + G @ (x - mp1), late, head)
 
     path = jnp.zeros_like(means)
@@ -205,5 +208,5 @@ def steady_smoother(A, Q, H, R, m0, P0, y: Float[Array, "T d"], key=None, K: int
         def draw(x, G, mf, mp1, e, root=root_inf):
             return mf + G @ (x - mp1) + root @ e
 
-        path = backward(x_last, draw, late + (eps[K - 1:T - 1],), head + (eps[:K - 1], root_head[:K - 1]))
+        path = backward(x_last, draw, late + (eps[K - 1 : T - 1],), head + (eps[: K - 1], root_head[: K - 1]))
     return SteadySmoother(means, variances, ll, path, forward_converged & backward_converged)

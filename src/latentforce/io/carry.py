@@ -59,11 +59,14 @@ def carried_prior(folder: str | Path, param: str, where: str) -> Carried:
     folder = Path(folder)
     nc = folder / "posterior.nc"
     if not folder.is_dir():
-        raise LatentForceError(f"{where}: the posterior to carry over is taken from the result folder "
-                               f"{str(folder)!r}, which does not exist.")
+        raise LatentForceError(
+            f"{where}: the posterior to carry over is taken from the result folder "
+            f"{str(folder)!r}, which does not exist."
+        )
     if not nc.is_file():
-        raise LatentForceError(f"{where}: {str(folder)!r} holds no posterior.nc; give the folder of a "
-                               "finished estimate run.")
+        raise LatentForceError(
+            f"{where}: {str(folder)!r} holds no posterior.nc; give the folder of a finished estimate run."
+        )
     try:
         with xr.open_datatree(nc, engine="h5netcdf") as tree:
             post = tree["posterior"].to_dataset() if "posterior" in tree.children else xr.Dataset()
@@ -74,21 +77,28 @@ def carried_prior(folder: str | Path, param: str, where: str) -> Carried:
     if draws is None:
         fixed = _fixed_value(folder, param)
         if fixed is not None:
-            raise LatentForceError(f"{where}: the run in {str(folder)!r} did not infer {param!r}: it was fixed "
-                                   f"at {fixed:g}. Give that number instead, or carry a parameter it sampled.")
+            raise LatentForceError(
+                f"{where}: the run in {str(folder)!r} did not infer {param!r}: it was fixed "
+                f"at {fixed:g}. Give that number instead, or carry a parameter it sampled."
+            )
         names = ", ".join(sampled) if sampled else "none (it sampled no parameter)"
-        raise LatentForceError(f"{where}: the run in {str(folder)!r} has no posterior draws of {param!r}; "
-                               f"its sampled parameters are: {names}. Name one with param = \"...\".")
+        raise LatentForceError(
+            f"{where}: the run in {str(folder)!r} has no posterior draws of {param!r}; "
+            f'its sampled parameters are: {names}. Name one with param = "...".'
+        )
     if draws.size < 2 or not np.all(np.isfinite(draws)) or not np.all(draws > 0):
-        raise LatentForceError(f"{where}: the draws of {param!r} in {str(nc)!r} are not positive finite "
-                               f"numbers (or fewer than two); they cannot serve as a prior.")
+        raise LatentForceError(
+            f"{where}: the draws of {param!r} in {str(nc)!r} are not positive finite "
+            f"numbers (or fewer than two); they cannot serve as a prior."
+        )
     x = _softplus_inverse(draws)
     loc, scale = float(np.mean(x)), float(np.std(x, ddof=1))
     if not (math.isfinite(scale) and scale > 0):
-        raise LatentForceError(f"{where}: the draws of {param!r} in {str(nc)!r} are all equal; a posterior "
-                               "with no spread cannot serve as a prior (fix the parameter instead).")
-    return Carried(SoftplusNormal(loc, scale), str(folder.resolve()), param, int(draws.size),
-                   _converged(folder))
+        raise LatentForceError(
+            f"{where}: the draws of {param!r} in {str(nc)!r} are all equal; a posterior "
+            "with no spread cannot serve as a prior (fix the parameter instead)."
+        )
+    return Carried(SoftplusNormal(loc, scale), str(folder.resolve()), param, int(draws.size), _converged(folder))
 
 
 def _summary(folder: Path) -> dict:

@@ -87,6 +87,7 @@ def _who(spec: ChannelSpec) -> str:
 
 def _check_file(path: Path) -> None:
     """The checks ``load_data`` makes before opening a file."""
+
     def fail(message):
         return LatentForceError(f"data file {str(path)!r}: {message}")
 
@@ -104,19 +105,22 @@ def _check_missing(spec: ChannelSpec, src: _Source, missing: str) -> None:
         i = int(np.flatnonzero(bad)[0])
         raise LatentForceError(
             f"{src.where}: channel {spec.column!r} holds {int(bad.sum())} NaN/inf value(s), the first at sample "
-            f"{i} (t = {src.raw.t0 + i * src.raw.dt:.6g} s); set missing = \"skip\" in [data] to treat them "
-            "as missing observations.")
+            f'{i} (t = {src.raw.t0 + i * src.raw.dt:.6g} s); set missing = "skip" in [data] to treat them '
+            "as missing observations."
+        )
 
 
-def _read_sources(specs: Sequence[ChannelSpec], path: Path | None, time_column: str | None,
-                  sample_rate: float | None, missing: str):
+def _read_sources(
+    specs: Sequence[ChannelSpec], path: Path | None, time_column: str | None, sample_rate: float | None, missing: str
+):
     """Each spec's channel as it was sampled, plus the truth columns of table-format files."""
     by_file: dict[Path, list[int]] = {}
     for i, spec in enumerate(specs):
         file = spec.path if spec.path is not None else path
         if file is None:
-            raise LatentForceError(f"{_who(spec)}: no data file: give [data].path (or --data FILE), or a "
-                                   "path key in this sensor's table.")
+            raise LatentForceError(
+                f"{_who(spec)}: no data file: give [data].path (or --data FILE), or a path key in this sensor's table."
+            )
         by_file.setdefault(Path(file), []).append(i)
     sources: list[_Source | None] = [None] * len(specs)
     truths: list[tuple[np.ndarray, dict]] = []
@@ -129,11 +133,13 @@ def _read_sources(specs: Sequence[ChannelSpec], path: Path | None, time_column: 
                 sources[i] = _Source(table.channel(specs[i].column), where)
                 _check_missing(specs[i], sources[i], missing)
             continue
-        ds = load_data(file, [specs[i].column for i in idx], time_column=time_column,
-                       sample_rate=sample_rate, missing=missing)
+        ds = load_data(
+            file, [specs[i].column for i in idx], time_column=time_column, sample_rate=sample_rate, missing=missing
+        )
         for k, i in enumerate(idx):
-            raw = RawChannel(values=ds.values[:, k], t0=float(ds.time[0]), dt=float(ds.dt), unit=None,
-                             time=np.asarray(ds.time))
+            raw = RawChannel(
+                values=ds.values[:, k], t0=float(ds.time[0]), dt=float(ds.dt), unit=None, time=np.asarray(ds.time)
+            )
             sources[i] = _Source(raw, where)
         if ds.truth:
             truths.append((np.asarray(ds.time), ds.truth))
@@ -168,11 +174,11 @@ def _grid(specs: Sequence[ChannelSpec], sources: list[_Source], dt: float | None
             f"the time spans of {_who(a)} ({sources[early].where}: {t0[early]:.6g} s to {ends[early]:.6g} s) and "
             f"{_who(b)} ({sources[late].where}: {t0[late]:.6g} s to {ends[late]:.6g} s) do not overlap, so no "
             "time has both; check the files' start times (UFF abscissa minimum, TDMS wf_start_offset and "
-            "wf_start_time, SEP005 start_timestamp).")
+            "wf_start_time, SEP005 start_timestamp)."
+        )
     fastest = int(np.argmin(steps))
     step = float(dt) if dt is not None else float(steps[fastest])
-    grid_name = (f"[data].dt = {step:.6g} s" if dt is not None
-                 else f"the fastest channel's, {_who(specs[fastest])}")
+    grid_name = f"[data].dt = {step:.6g} s" if dt is not None else f"the fastest channel's, {_who(specs[fastest])}"
     origin = float(t0.min())
     index = []
     for j, (spec, src) in enumerate(zip(specs, sources)):
@@ -182,24 +188,30 @@ def _grid(specs: Sequence[ChannelSpec], sources: list[_Source], dt: float | None
         o = round(offset)
         if r < 1 or abs(ratio - r) > RATE_RTOL * ratio:
             common = Fraction(ratio).limit_denominator(1000)
-            hint = (f"give [data].dt = {step / common.denominator:.9g} (a step both rates share) or resample"
-                    if abs(float(common) - ratio) <= RATE_RTOL * ratio else "resample the data")
+            hint = (
+                f"give [data].dt = {step / common.denominator:.9g} (a step both rates share) or resample"
+                if abs(float(common) - ratio) <= RATE_RTOL * ratio
+                else "resample the data"
+            )
             raise LatentForceError(
                 f"{_who(spec)} ({src.where}) is sampled at {_hz(steps[j])} and cannot be put on the common "
                 f"time grid of {_hz(step)} ({grid_name}): its sample times do not fall on the grid (the "
-                f"ratio of the steps is {ratio:.6g}, not a whole number); {hint}.")
+                f"ratio of the steps is {ratio:.6g}, not a whole number); {hint}."
+            )
         if abs(offset - o) > OFFSET_TOL:
             raise LatentForceError(
                 f"{_who(spec)} ({src.where}) starts at {t0[j]:.9g} s, between two points of the common time "
                 f"grid of {_hz(step)} ({grid_name}) that starts at {origin:.9g} s ({offset - o:+.3g} steps "
-                "off); shift or resample the channel so its samples fall on the grid.")
+                "off); shift or resample the channel so its samples fall on the grid."
+            )
         index.append(o + r * np.arange(src.raw.values.size))
     T = int(max(int(k[-1]) for k in index)) + 1
     return origin, step, T, index
 
 
-def _assemble(specs: Sequence[ChannelSpec], sources: list[_Source], dt: float | None,
-              truths: list[tuple[np.ndarray, dict]]) -> Dataset:
+def _assemble(
+    specs: Sequence[ChannelSpec], sources: list[_Source], dt: float | None, truths: list[tuple[np.ndarray, dict]]
+) -> Dataset:
     origin, step, T, index = _grid(specs, sources, dt)
     time = None
     for src, k in zip(sources, index):
@@ -222,13 +234,20 @@ def _assemble(specs: Sequence[ChannelSpec], sources: list[_Source], dt: float | 
     for t, columns in truths:
         if t.size == T and np.allclose(t, time, rtol=0.0, atol=OFFSET_TOL * step):
             truth.update(columns)
-    return Dataset(time=time, dt=step, values=values, mask=mask, columns=[s.column for s in specs],
-                   truth=truth, units=units)
+    return Dataset(
+        time=time, dt=step, values=values, mask=mask, columns=[s.column for s in specs], truth=truth, units=units
+    )
 
 
-def load_channels(specs: Sequence[ChannelSpec], path: str | Path | None = None, *,
-                  time_column: str | None = "time", sample_rate: float | None = None, dt: float | None = None,
-                  missing: str = "error") -> Dataset:
+def load_channels(
+    specs: Sequence[ChannelSpec],
+    path: str | Path | None = None,
+    *,
+    time_column: str | None = "time",
+    sample_rate: float | None = None,
+    dt: float | None = None,
+    missing: str = "error",
+) -> Dataset:
     """Read sensor channels (each from ``spec.path`` or ``path``) onto one time grid, in SI.
 
     Table formats (``.csv``, ``.h5``, ``.mat``, ``.nc``) take their time from
@@ -242,15 +261,20 @@ def load_channels(specs: Sequence[ChannelSpec], path: str | Path | None = None, 
     if not specs:
         raise ValueError("load_channels needs at least one channel")
     specs = [s._replace(path=None if s.path is None else Path(s.path)) for s in specs]
-    sources, truths = _read_sources(specs, None if path is None else Path(path), time_column, sample_rate,
-                                    missing)
+    sources, truths = _read_sources(specs, None if path is None else Path(path), time_column, sample_rate, missing)
     return _assemble(specs, sources, dt, truths)
 
 
-def dataset_from_sep005(records, columns: Sequence[str] | None = None, *, problem=None,
-                        quantities: Sequence[str | None] | None = None,
-                        units: Sequence[str | None] | None = None, dt: float | None = None,
-                        missing: str | None = None) -> Dataset:
+def dataset_from_sep005(
+    records,
+    columns: Sequence[str] | None = None,
+    *,
+    problem=None,
+    quantities: Sequence[str | None] | None = None,
+    units: Sequence[str | None] | None = None,
+    dt: float | None = None,
+    missing: str | None = None,
+) -> Dataset:
     """A :class:`~latentforce.io.data.Dataset` from SEP005 channel dicts (as SDyPy readers return them).
 
     ``columns`` are record names. With ``problem`` (a
@@ -302,12 +326,20 @@ def load_problem_data(problem) -> Dataset:
 
         data_path(problem)  # the config's "no data path" message
     sensors = {s.name: s for s in problem.model.sensors}
-    specs = [ChannelSpec(column=c, quantity=sensors[c].quantity if c in sensors else None, unit=u, path=p,
-                         label=f"[[sensors]][{i}]")
-             for i, (c, u, p) in enumerate(zip(problem.columns, units, paths))]
-    return load_channels(specs, settings.path, time_column=settings.time_column,
-                         sample_rate=settings.sample_rate, dt=getattr(settings, "dt", None),
-                         missing=settings.missing)
+    specs = [
+        ChannelSpec(
+            column=c, quantity=sensors[c].quantity if c in sensors else None, unit=u, path=p, label=f"[[sensors]][{i}]"
+        )
+        for i, (c, u, p) in enumerate(zip(problem.columns, units, paths))
+    ]
+    return load_channels(
+        specs,
+        settings.path,
+        time_column=settings.time_column,
+        sample_rate=settings.sample_rate,
+        dt=getattr(settings, "dt", None),
+        missing=settings.missing,
+    )
 
 
 def noise_in_si(problem, dataset: Dataset):
@@ -326,9 +358,12 @@ def noise_in_si(problem, dataset: Dataset):
 
     model = problem.model
     # an inferred noise stays a parameter in the channel's unit: the model scales it (noise_scale)
-    sensors = [s._replace(noise_std=float(s.noise_std) * sc,
-                          noise_scale=sc if s.noise_param in problem.free else s.noise_scale)
-               for s, sc in zip(model.sensors, scales)]
+    sensors = [
+        s._replace(
+            noise_std=float(s.noise_std) * sc, noise_scale=sc if s.noise_param in problem.free else s.noise_scale
+        )
+        for s, sc in zip(model.sensors, scales)
+    ]
     return problem._replace(model=LatentForceModel(model.system, model.kernel, sensors))
 
 
@@ -337,12 +372,13 @@ def channel_units(dataset: Dataset) -> dict[str, dict]:
     ``original`` (what they were given in), ``scale`` (SI per original unit) and ``source``
     (``"sensor"``, ``"file"`` or ``"assumed"``). Empty when the data set resolved no units."""
     units = getattr(dataset, "units", None) or {}
-    return {c: {"unit": u.si, "original": u.unit, "scale": u.scale, "source": u.source}
-            for c, u in units.items()}
+    return {c: {"unit": u.si, "original": u.unit, "scale": u.scale, "source": u.source} for c, u in units.items()}
 
 
 def sensor_unit_scales(problem) -> list[float]:
     """SI per unit of each sensor's ``unit`` key (1.0 where none is given), in sensor order."""
     units = tuple(getattr(problem.data, "units", ()) or ()) or (None,) * len(problem.model.sensors)
-    return [1.0 if u is None else resolve_unit(s.quantity, u, None, who=f"sensor {s.name!r}", where="").scale
-            for s, u in zip(problem.model.sensors, units)]
+    return [
+        1.0 if u is None else resolve_unit(s.quantity, u, None, who=f"sensor {s.name!r}", where="").scale
+        for s, u in zip(problem.model.sensors, units)
+    ]

@@ -36,12 +36,12 @@ from pydantic import ValidationError
 
 from latentforce.errors import LatentForceError
 from latentforce.io.carry import carried_prior
+from latentforce.io.matrices import _check_psd, _initial_state, _matrix
 from latentforce.io.schema import (
     _ConfigFile,
     _did_you_mean,
     _Fail,
     _from_validation_error,
-    _InitialSection,
     _PriorTable,
     _SensorSection,
     _SystemSection,
@@ -100,7 +100,7 @@ class InferenceSettings(NamedTuple):
     target_ess: float = 400.0
     max_time: float = 600.0
     checkpoint_every: float = 60.0  # seconds between checkpoints (latentforce.checkpoint); 0: every chunk
-    kalman: str = "auto"    # "auto" | "sequential" | "parallel" (latentforce.inference.kalman_choice)
+    kalman: str = "auto"  # "auto" | "sequential" | "parallel" (latentforce.inference.kalman_choice)
 
 
 class DataSettings(NamedTuple):
@@ -143,12 +143,17 @@ def _carried_spec(fail: _Fail, key: str, table: _PriorTable, param: str) -> Para
     for extra in extras:
         if extra not in ("from", "param"):
             valid = ("prior", "from", "param", "init")
-            raise fail(f"{key}.{extra}", f"unknown key for a \"posterior\" prior{_did_you_mean(extra, valid)} "
-                                         f"Valid keys: {', '.join(valid)}.")
+            raise fail(
+                f"{key}.{extra}",
+                f'unknown key for a "posterior" prior{_did_you_mean(extra, valid)} Valid keys: {", ".join(valid)}.',
+            )
     source, param = extras.get("from"), extras.get("param", param)
     if not isinstance(source, str) or not source:
-        raise fail(f"{key}.from", "a \"posterior\" prior needs from = \"FOLDER\", the result folder of an "
-                                  "earlier run whose posterior becomes this prior.")
+        raise fail(
+            f"{key}.from",
+            'a "posterior" prior needs from = "FOLDER", the result folder of an '
+            "earlier run whose posterior becomes this prior.",
+        )
     if not isinstance(param, str) or not param:
         raise fail(f"{key}.param", f"must be a parameter name (a string), got {param!r}.")
     folder = fail.base_dir / Path(source).expanduser()
@@ -165,16 +170,21 @@ def _prior_spec(fail: _Fail, key: str, table: _PriorTable, param: str = "") -> P
     if name == "posterior":
         return _carried_spec(fail, key, table, param)
     if name not in PRIOR_PARAMS:
-        raise fail(f"{key}.prior", f"unknown prior {name!r}{_did_you_mean(name, tuple(PRIOR_PARAMS), '{!r}')} "
-                                   f"Valid priors: {', '.join(PRIOR_PARAMS)}, posterior "
-                                   "(carried from an earlier result folder).")
+        raise fail(
+            f"{key}.prior",
+            f"unknown prior {name!r}{_did_you_mean(name, tuple(PRIOR_PARAMS), '{!r}')} "
+            f"Valid priors: {', '.join(PRIOR_PARAMS)}, posterior "
+            "(carried from an earlier result folder).",
+        )
     wanted = PRIOR_PARAMS[name]
     extras = dict(table.model_extra or {})
     for extra in extras:
         if extra not in wanted:
             valid = ("prior", "init") + wanted
-            raise fail(f"{key}.{extra}", f"unknown key for a {name!r} prior"
-                                         f"{_did_you_mean(extra, valid)} Valid keys: {', '.join(valid)}.")
+            raise fail(
+                f"{key}.{extra}",
+                f"unknown key for a {name!r} prior{_did_you_mean(extra, valid)} Valid keys: {', '.join(valid)}.",
+            )
     missing = [p for p in wanted if p not in extras]
     if missing:
         raise fail(key, f"a {name!r} prior needs {' and '.join(wanted)}; missing: {', '.join(missing)}.")
@@ -187,18 +197,26 @@ def _prior_spec(fail: _Fail, key: str, table: _PriorTable, param: str = "") -> P
         raise fail(key, f"{exc}.") from None
     init = table.init if table.init is not None else prior.default_init()
     if init is None:
-        raise fail(f"{key}.init", f"a {name!r} prior has no natural starting value: give init "
-                                  f"(a positive number).")
+        raise fail(f"{key}.init", f"a {name!r} prior has no natural starting value: give init (a positive number).")
     if not (math.isfinite(init) and init > 0):
-        raise fail(f"{key}.init", f"the initial value must be positive and finite, got {init!r}"
-                                  + ("" if table.init is not None else " (from the prior; give init)") + ".")
+        raise fail(
+            f"{key}.init",
+            f"the initial value must be positive and finite, got {init!r}"
+            + ("" if table.init is not None else " (from the prior; give init)")
+            + ".",
+        )
     return ParamSpec(prior=prior, init=float(init))
 
 
 def _scalar(fail: _Fail, key: str, value: float, rule: str) -> float:
     """Check a fixed scalar: ``rule`` is "positive", "nonnegative" or "any"."""
-    words = {"m": "mass", "c": "damping", "k": "stiffness", "variance": "force variance",
-             "lengthscale": "force lengthscale"}
+    words = {
+        "m": "mass",
+        "c": "damping",
+        "k": "stiffness",
+        "variance": "force variance",
+        "lengthscale": "force lengthscale",
+    }
     what = words.get(key.rsplit(".", 1)[-1], "value")
     if rule == "positive" and not value > 0:
         raise fail(key, f"the {what} must be positive, got {value!r}.")
@@ -214,36 +232,25 @@ def _split(fail: _Fail, key: str, name: str, value, rule: str, fixed: dict, free
         fixed[name] = _scalar(fail, key, value, rule)
 
 
-def _matrix(fail: _Fail, key: str, rows: list[list[float]]) -> np.ndarray:
-    n = len(rows)
-    if n == 0 or any(len(r) != n for r in rows):
-        raise fail(key, f"must be a square matrix (a list of {n} rows of {n} numbers each).")
-    return np.asarray(rows, dtype=float)
-
-
-def _check_psd(fail: _Fail, key: str, A: np.ndarray, name: str, definite: bool) -> None:
-    scale = max(float(np.abs(A).max()), np.finfo(float).tiny)
-    if not np.allclose(A, A.T, rtol=0.0, atol=1e-10 * scale):
-        raise fail(key, f"the {name} matrix must be symmetric.")
-    eig = np.linalg.eigvalsh(A)
-    if definite and not eig.min() > 0:
-        raise fail(key, f"the {name} matrix must be positive definite (smallest eigenvalue {eig.min():.6g}).")
-    if not definite and eig.min() < -1e-10 * scale:
-        raise fail(key, f"the {name} matrix must be positive semi-definite (smallest eigenvalue "
-                        f"{eig.min():.6g}).")
-
-
 def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
     """Build the system object and sort its parameters into fixed and free."""
     if s.type in PLANNED_SYSTEM_TYPES:
-        raise fail("[system].type", f"system type {s.type!r} is not available yet; available system "
-                                    f"types: {', '.join(SYSTEM_TYPES)}.")
+        raise fail(
+            "[system].type",
+            f"system type {s.type!r} is not available yet; available system types: {', '.join(SYSTEM_TYPES)}.",
+        )
     if s.type not in SYSTEM_TYPES:
-        raise fail("[system].type", f"unknown system type {s.type!r}"
-                                    f"{_did_you_mean(s.type, SYSTEM_TYPES + PLANNED_SYSTEM_TYPES, '{!r}')} "
-                                    f"Available system types: {', '.join(SYSTEM_TYPES)}.")
-    given = {n for n in ("m", "c", "k", "k3", "M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs")
-             if getattr(s, n) is not None}
+        raise fail(
+            "[system].type",
+            f"unknown system type {s.type!r}"
+            f"{_did_you_mean(s.type, SYSTEM_TYPES + PLANNED_SYSTEM_TYPES, '{!r}')} "
+            f"Available system types: {', '.join(SYSTEM_TYPES)}.",
+        )
+    given = {
+        n
+        for n in ("m", "c", "k", "k3", "M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs")
+        if getattr(s, n) is not None
+    }
 
     def require(names):
         for n in names:
@@ -261,13 +268,15 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
             _split(fail, f"[system].{n}", n, getattr(s, n), rules[n], fixed, free)
 
     if s.type == "duffing":
-        refuse(("M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs"),
-               "a duffing system is single-DOF: give m, c, k and k3.")
+        refuse(
+            ("M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs"),
+            "a duffing system is single-DOF: give m, c, k and k3.",
+        )
         require(("m", "c", "k", "k3"))
         scalars(("m", "c", "k", "k3"))
         return Duffing()
 
-    refuse(("k3",), "k3 (cubic stiffness) belongs to a duffing system; use type = \"duffing\".")
+    refuse(("k3",), 'k3 (cubic stiffness) belongs to a duffing system; use type = "duffing".')
     frame = given & {"masses", "dampings", "stiffnesses"}
     if frame:
         return _shear_frame(fail, s, given, fixed, free, refuse, require)
@@ -286,8 +295,10 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
     n = M.shape[0]
     for name, A in (("C", C), ("K", K)):
         if A.shape != M.shape:
-            raise fail(f"[system].{name}", f"is {A.shape[0]}x{A.shape[0]} but M is {n}x{n}; "
-                                           f"all three matrices must have the same size.")
+            raise fail(
+                f"[system].{name}",
+                f"is {A.shape[0]}x{A.shape[0]} but M is {n}x{n}; all three matrices must have the same size.",
+            )
     _check_psd(fail, "[system].M", M, "mass", definite=True)
     _check_psd(fail, "[system].K", K, "stiffness", definite=False)
     # Damping need not be symmetric, but it must dissipate energy.
@@ -315,20 +326,29 @@ def _check_force_dofs(fail: _Fail, force_dofs: list[int] | None, n: int) -> None
 def _shear_frame(fail: _Fail, s: _SystemSection, given: set, fixed: dict, free: dict, refuse, require):
     """A shear frame: one mass per floor and one damper and spring per storey, each a number
     or a prior table (parameters ``m_i``, ``c_i``, ``k_i``)."""
-    refuse(("m", "c", "k", "M", "C", "K"), "give a shear frame's floors and storeys as lists (masses, "
-                                           "dampings, stiffnesses), or matrices M, C, K, not both.")
+    refuse(
+        ("m", "c", "k", "M", "C", "K"),
+        "give a shear frame's floors and storeys as lists (masses, "
+        "dampings, stiffnesses), or matrices M, C, K, not both.",
+    )
     require(("masses", "dampings", "stiffnesses"))
     n = len(s.masses)
     for key in ("dampings", "stiffnesses"):
         if len(getattr(s, key)) != n:
-            raise fail(f"[system].{key}", f"has {len(getattr(s, key))} entries but masses has {n}: "
-                                          "a shear frame has one mass per floor and one damper and "
-                                          "one spring per storey (storey i joins floor i to floor i-1, "
-                                          "storey 0 to the ground).")
+            raise fail(
+                f"[system].{key}",
+                f"has {len(getattr(s, key))} entries but masses has {n}: "
+                "a shear frame has one mass per floor and one damper and "
+                "one spring per storey (storey i joins floor i to floor i-1, "
+                "storey 0 to the ground).",
+            )
     if n < 1:
         raise fail("[system].masses", "must list at least one floor mass.")
-    for key, short, rule in (("masses", "m", "positive"), ("dampings", "c", "nonnegative"),
-                             ("stiffnesses", "k", "positive")):
+    for key, short, rule in (
+        ("masses", "m", "positive"),
+        ("dampings", "c", "nonnegative"),
+        ("stiffnesses", "k", "positive"),
+    ):
         for i, value in enumerate(getattr(s, key)):
             _split(fail, f"[system].{key}[{i}]", f"{short}_{i}", value, rule, fixed, free)
     _check_force_dofs(fail, s.force_dofs, n)
@@ -339,17 +359,26 @@ def _sensor(fail: _Fail, i: int, sen: _SensorSection, free: dict, noise_names: d
     """A :class:`Sensor` from ``[[sensors]][i]``; an inferred ``noise_std`` joins ``free``
     as ``noise_std_<column>`` (:attr:`Sensor.noise_param`)."""
     key = f"[[sensors]][{i}].noise_std"
-    sensor = Sensor(sen.quantity, sen.dof, 1.0, name=sen.column,
-                    coefficients=None if sen.coefficients is None else tuple(sen.coefficients))
+    sensor = Sensor(
+        sen.quantity,
+        sen.dof,
+        1.0,
+        name=sen.column,
+        coefficients=None if sen.coefficients is None else tuple(sen.coefficients),
+    )
     if not isinstance(sen.noise_std, _PriorTable):
         if not sen.noise_std > 0:
-            raise fail(key, f"the noise standard deviation of column {sen.column!r} must be positive, "
-                            f"got {sen.noise_std!r}.")
+            raise fail(
+                key, f"the noise standard deviation of column {sen.column!r} must be positive, got {sen.noise_std!r}."
+            )
         return sensor._replace(noise_std=float(sen.noise_std))
     name = sensor.noise_param
     if name in noise_names:
-        raise fail(key, f"columns {noise_names[name]!r} and {sen.column!r} both give the parameter name "
-                        f"{name!r} to their inferred noise; rename one of the columns.")
+        raise fail(
+            key,
+            f"columns {noise_names[name]!r} and {sen.column!r} both give the parameter name "
+            f"{name!r} to their inferred noise; rename one of the columns.",
+        )
     noise_names[name] = sen.column
     spec = _prior_spec(fail, key, sen.noise_std, name)
     free[name] = spec
@@ -378,8 +407,9 @@ def _free_key(name: str) -> str:
     return f"[system].{name}"
 
 
-def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | None = None,
-                     data_override: str | Path | None = None) -> Problem:
+def config_from_dict(
+    d: dict, source: str = "<dict>", base_dir: Path | str | None = None, data_override: str | Path | None = None
+) -> Problem:
     """Validate a config given as a dict (as parsed from TOML) and build the :class:`Problem`.
 
     ``source`` names the config in messages; relative data paths are resolved
@@ -401,8 +431,11 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
 
     f = cfg.force
     if f.kernel not in KERNELS:
-        raise fail("[force].kernel", f"unknown kernel {f.kernel!r}{_did_you_mean(f.kernel, tuple(KERNELS), '{!r}')} "
-                                     f"Valid kernels: {', '.join(KERNELS)}.")
+        raise fail(
+            "[force].kernel",
+            f"unknown kernel {f.kernel!r}{_did_you_mean(f.kernel, tuple(KERNELS), '{!r}')} "
+            f"Valid kernels: {', '.join(KERNELS)}.",
+        )
     kernel = kernel_from_name(f.kernel)
     _split(fail, "[force].variance", "force_variance", f.variance, "positive", fixed, free)
     _split(fail, "[force].lengthscale", "force_lengthscale", f.lengthscale, "positive", fixed, free)
@@ -413,11 +446,14 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
     for i, sen in enumerate(cfg.sensors):
         if sen.dof >= system.ndof:
             valid = "only DOF 0" if system.ndof == 1 else f"DOFs 0..{system.ndof - 1}"
-            raise fail(f"[[sensors]][{i}].dof", f"sensor {i} (column {sen.column!r}) measures DOF {sen.dof} "
-                                                f"but the system has {valid}.")
+            raise fail(
+                f"[[sensors]][{i}].dof",
+                f"sensor {i} (column {sen.column!r}) measures DOF {sen.dof} but the system has {valid}.",
+            )
         if sen.column in seen:
-            raise fail(f"[[sensors]][{i}].column", f"column {sen.column!r} is already used by sensor "
-                                                   f"{seen[sen.column]}.")
+            raise fail(
+                f"[[sensors]][{i}].column", f"column {sen.column!r} is already used by sensor {seen[sen.column]}."
+            )
         seen[sen.column] = i
         _check_sensor_unit(fail, i, sen)
         check_sensor(fail, i, sen, system)
@@ -432,37 +468,61 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
     inf = cfg.inference
     method = inf.method or _default_method(system.is_linear, free)
     if method in ("kalman", "kalman-mcmc", "kalman-nuts") and not system.is_linear:
-        raise fail("[inference].method", f"method {method!r} needs a linear system but [system].type is "
-                                         f"{cfg.system.type!r}; use method = \"pgas\" (or the Gaussian "
-                                         f"approximations \"ekf\", \"ukf\").")
+        raise fail(
+            "[inference].method",
+            f"method {method!r} needs a linear system but [system].type is "
+            f'{cfg.system.type!r}; use method = "pgas" (or the Gaussian '
+            f'approximations "ekf", "ukf").',
+        )
     if method == "kalman" and free:
         names = ", ".join(_free_key(n) for n in free)
-        raise fail("[inference].method", f"method \"kalman\" needs every parameter fixed, but {names} "
-                                         f"has a prior; use method = \"kalman-mcmc\" to infer it, or give "
-                                         f"a number.")
+        raise fail(
+            "[inference].method",
+            f'method "kalman" needs every parameter fixed, but {names} '
+            f'has a prior; use method = "kalman-mcmc" to infer it, or give '
+            f"a number.",
+        )
     if method in ("kalman-mcmc", "kalman-nuts") and not free:
-        raise fail("[inference].method", f"method \"{method}\" needs at least one inferred parameter "
-                                         "(a prior table), but every parameter is fixed; use "
-                                         "method = \"kalman\".")
+        raise fail(
+            "[inference].method",
+            f'method "{method}" needs at least one inferred parameter '
+            "(a prior table), but every parameter is fixed; use "
+            'method = "kalman".',
+        )
     if method in ("ekf", "ukf") and outputs and not system.is_linear:
-        raise fail("[[outputs]]", f"method \"{method}\" gives virtual sensors only for linear systems in this "
-                                  "version; use method = \"pgas\" for outputs of a nonlinear system.")
+        raise fail(
+            "[[outputs]]",
+            f'method "{method}" gives virtual sensors only for linear systems in this '
+            'version; use method = "pgas" for outputs of a nonlinear system.',
+        )
     if method == "pgas":
         for name in free:
             if name not in PGAS_FREE_OK and name not in noise_names:
-                raise fail(_free_key(name), f"method \"pgas\" can infer only the force variance and "
-                                            f"lengthscale and the sensors' noise_std in this version; "
-                                            f"give {name} as a number, or "
-                                            f"use method = \"kalman-mcmc\" for a linear system, or "
-                                            f"\"ekf\" / \"ukf\" (Gaussian approximations) for any system.")
+                raise fail(
+                    _free_key(name),
+                    f'method "pgas" can infer only the force variance and '
+                    f"lengthscale and the sensors' noise_std in this version; "
+                    f"give {name} as a number, or "
+                    f'use method = "kalman-mcmc" for a linear system, or '
+                    f'"ekf" / "ukf" (Gaussian approximations) for any system.',
+                )
     settings = InferenceSettings(
-        method=method, particles=inf.particles,
+        method=method,
+        particles=inf.particles,
         iterations=None if inf.iterations == "auto" else inf.iterations,
         burn_in=DEFAULT_BURN_IN[method] if inf.burn_in is None else inf.burn_in,
-        state_every=inf.state_every, chains=inf.chains, seed=inf.seed, mh_steps=inf.mh_steps,
-        discretisation=inf.discretisation, proposal=inf.proposal,
-        thin_draws=inf.thin_draws, target_ess=inf.target_ess, max_time=inf.max_time,
-        checkpoint_every=inf.checkpoint_every, kalman=inf.kalman)
+        state_every=inf.state_every,
+        chains=inf.chains,
+        seed=inf.seed,
+        mh_steps=inf.mh_steps,
+        discretisation=inf.discretisation,
+        proposal=inf.proposal,
+        thin_draws=inf.thin_draws,
+        target_ess=inf.target_ess,
+        max_time=inf.max_time,
+        checkpoint_every=inf.checkpoint_every,
+        kalman=inf.kalman,
+    )
 
     dat = cfg.data
     if dat.time_column is not None and dat.sample_rate is not None:
@@ -475,18 +535,41 @@ def config_from_dict(d: dict, source: str = "<dict>", base_dir: Path | str | Non
         path = None
     # With a sample rate the time axis is implicit; otherwise default to "time".
     time_column = None if dat.sample_rate is not None else (dat.time_column or "time")
-    data = DataSettings(path=path, time_column=time_column, sample_rate=dat.sample_rate, missing=dat.missing,
-                        dt=dat.dt, units=tuple(sen.unit for sen in cfg.sensors),
-                        sensor_paths=tuple(None if sen.path is None
-                                           else (base_dir / Path(sen.path).expanduser()).resolve()
-                                           for sen in cfg.sensors))
+    data = DataSettings(
+        path=path,
+        time_column=time_column,
+        sample_rate=dat.sample_rate,
+        missing=dat.missing,
+        dt=dat.dt,
+        units=tuple(sen.unit for sen in cfg.sensors),
+        sensor_paths=tuple(
+            None if sen.path is None else (base_dir / Path(sen.path).expanduser()).resolve() for sen in cfg.sensors
+        ),
+    )
 
-    carried = {key: {"from": c.source, "param": c.param, "draws": c.draws, "converged": c.converged,
-                     "softplus_loc": c.prior.loc, "softplus_scale": c.prior.scale}
-               for key, c in fail.carried.items()}
-    return Problem(model=model, fixed=fixed, free=free, columns=[s.name for s in sensors],
-                   initial=initial, inference=settings, data=data, config_path=Path(source), carried=carried,
-                   outputs=outputs)
+    carried = {
+        key: {
+            "from": c.source,
+            "param": c.param,
+            "draws": c.draws,
+            "converged": c.converged,
+            "softplus_loc": c.prior.loc,
+            "softplus_scale": c.prior.scale,
+        }
+        for key, c in fail.carried.items()
+    }
+    return Problem(
+        model=model,
+        fixed=fixed,
+        free=free,
+        columns=[s.name for s in sensors],
+        initial=initial,
+        inference=settings,
+        data=data,
+        config_path=Path(source),
+        carried=carried,
+        outputs=outputs,
+    )
 
 
 _TOML_POSITION = re.compile(r"\(at line (\d+), column (\d+)\)")
@@ -510,8 +593,7 @@ def load_config(path: str | Path, data_override: str | None = None) -> Problem:
         raise LatentForceError(f"{path}: invalid TOML{where}: {reason}.") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise LatentForceError(f"config file {str(path)!r} cannot be read ({exc}).") from None
-    problem = config_from_dict(raw, source=str(path), base_dir=path.resolve().parent,
-                               data_override=data_override)
+    problem = config_from_dict(raw, source=str(path), base_dir=path.resolve().parent, data_override=data_override)
     return problem._replace(config_path=path.resolve())
 
 
@@ -531,48 +613,10 @@ def _check_sensor_unit(fail: _Fail, i: int, sen: _SensorSection) -> None:
 def data_path(problem: Problem) -> Path:
     """The data file to read, or an error when neither the config nor ``--data`` gives one."""
     if problem.data.path is None:
-        raise LatentForceError(f"{problem.config_path}: [data].path is missing; give it in the config "
-                               f"or pass --data FILE.")
+        raise LatentForceError(
+            f"{problem.config_path}: [data].path is missing; give it in the config or pass --data FILE."
+        )
     return problem.data.path
-
-
-def _initial_state(section: _InitialSection, model: LatentForceModel, kernel, fail):
-    """``(mean, cov)`` of the first state from ``[initial]``: ``mean`` with ``sd`` (independent
-    states) or ``cov`` (a full covariance matrix, symmetric positive semi-definite)."""
-    layout = (f"{model.ndof} displacement(s), {model.ndof} velocity(ies), then "
-              f"{model.nforce} x {kernel.dim} force state(s) of the {kernel.name} kernel")
-    n = model.n_state
-    if (section.sd is None) == (section.cov is None):
-        raise fail("[initial]", "give either sd (a list of standard deviations) or cov (a full "
-                                f"{n} x {n} covariance matrix, a list of rows), not "
-                                f"{'both' if section.sd is not None else 'neither'}.")
-    lengths = {"mean": len(section.mean)}
-    if section.sd is not None:
-        lengths["sd"] = len(section.sd)
-    else:
-        lengths["cov"] = len(section.cov)
-        for i, row in enumerate(section.cov):
-            if len(row) != n:
-                raise fail(f"[initial].cov[{i}]", f"has {len(row)} entries but the state vector has {n}: "
-                                                  f"{layout}.")
-    for name, got in lengths.items():
-        if got != n:
-            raise fail(f"[initial].{name}", f"has {got} entries but the state vector has {n}: {layout}.")
-    mean = np.asarray(section.mean, dtype=float)
-    if section.sd is not None:
-        return mean, np.diag(np.asarray(section.sd, dtype=float) ** 2)
-    cov = np.asarray(section.cov, dtype=float)
-    if not np.all(np.isfinite(cov)):
-        raise fail("[initial].cov", "holds a value that is not a finite number.")
-    scale = max(float(np.max(np.abs(cov))), np.finfo(float).tiny)
-    asym = float(np.max(np.abs(cov - cov.T)))
-    if asym > 1e-10 * scale:
-        raise fail("[initial].cov", f"is not symmetric (largest |cov[i][j] - cov[j][i]| = {asym:.3g}).")
-    low = float(np.min(np.linalg.eigvalsh(0.5 * (cov + cov.T))))
-    if low < -1e-10 * scale:
-        raise fail("[initial].cov", f"is not positive semi-definite (smallest eigenvalue {low:.3g}); "
-                                    "a covariance matrix must have no negative eigenvalue.")
-    return mean, 0.5 * (cov + cov.T)
 
 
 def initial_params(problem: Problem) -> dict[str, float | np.ndarray]:

@@ -127,8 +127,9 @@ class _CsvTable(_Table):
             try:
                 out[i] = float(cell)
             except ValueError:
-                raise _err(self.path, f"column {name!r} holds a non-numeric entry {cell!r} at "
-                                      f"{self.row_label(i)}") from None
+                raise _err(
+                    self.path, f"column {name!r} holds a non-numeric entry {cell!r} at {self.row_label(i)}"
+                ) from None
         return out
 
 
@@ -214,8 +215,7 @@ def _open(path: Path) -> _Table:
         raise
     except (OSError, UnicodeDecodeError) as exc:
         raise _err(path, f"cannot be read as a {ext} file ({exc})") from None
-    raise _err(path, f"unknown file type {ext or '(no extension)'!r}; supported: "
-                     f"{', '.join(SUPPORTED_EXTENSIONS)}")
+    raise _err(path, f"unknown file type {ext or '(no extension)'!r}; supported: {', '.join(SUPPORTED_EXTENSIONS)}")
 
 
 def _as_vector(path: Path, name: str, raw: np.ndarray) -> np.ndarray:
@@ -247,21 +247,28 @@ def _check_time(path: Path, table: _Table, name: str, t: np.ndarray) -> float:
     d = np.diff(t)
     if np.any(d <= 0):
         i = _first(d <= 0) + 1
-        raise _err(path, f"time column {name!r} is not increasing at {table.row_label(i)} "
-                         f"({t[i - 1]!r} then {t[i]!r})")
+        raise _err(path, f"time column {name!r} is not increasing at {table.row_label(i)} ({t[i - 1]!r} then {t[i]!r})")
     dt = float(np.median(d))
     off = np.abs(d - dt) > _UNEVEN_RTOL * dt
     if off.any():
         i = _first(off) + 1
-        raise _err(path, f"time column {name!r} is not evenly sampled: the step before "
-                         f"{table.row_label(i)} is {d[i - 1]!r} but the nominal step is {dt!r}; "
-                         f"resample the data, or give [data].sample_rate if the time stamps "
-                         f"are only rounded")
+        raise _err(
+            path,
+            f"time column {name!r} is not evenly sampled: the step before "
+            f"{table.row_label(i)} is {d[i - 1]!r} but the nominal step is {dt!r}; "
+            f"resample the data, or give [data].sample_rate if the time stamps "
+            f"are only rounded",
+        )
     return dt
 
 
-def load_data(path: str | Path, columns: list[str], time_column: str | None = "time",
-              sample_rate: float | None = None, missing: str = "error") -> Dataset:
+def load_data(
+    path: str | Path,
+    columns: list[str],
+    time_column: str | None = "time",
+    sample_rate: float | None = None,
+    missing: str = "error",
+) -> Dataset:
     """Read the sensor ``columns`` (and truth columns if present) from a data file.
 
     With ``sample_rate`` the time axis is ``arange(T) / sample_rate`` and no
@@ -296,27 +303,29 @@ def load_data(path: str | Path, columns: list[str], time_column: str | None = "t
         table.close()
 
 
-def _load(path: Path, table: _Table, columns: list[str], time_column: str | None,
-          sample_rate: float | None, missing: str) -> Dataset:
+def _load(
+    path: Path, table: _Table, columns: list[str], time_column: str | None, sample_rate: float | None, missing: str
+) -> Dataset:
     available = table.names
     listing = ", ".join(repr(n) for n in available) or "(none)"
     for name in columns:
         if name not in available:
-            raise _err(path, f"column {name!r} not found{_suggest(name, available)}. "
-                             f"Available columns: {listing}.")
+            raise _err(path, f"column {name!r} not found{_suggest(name, available)}. Available columns: {listing}.")
 
     use_time = sample_rate is None
     if use_time:
         time_column = time_column or "time"
         if time_column not in available:
-            raise _err(path, f"time column {time_column!r} not found{_suggest(time_column, available)}. "
-                             f"Available columns: {listing}. Give [data].time_column, or "
-                             f"[data].sample_rate for data without a time column")
+            raise _err(
+                path,
+                f"time column {time_column!r} not found{_suggest(time_column, available)}. "
+                f"Available columns: {listing}. Give [data].time_column, or "
+                f"[data].sample_rate for data without a time column",
+            )
     elif not sample_rate > 0:
         raise ValueError(f"sample_rate must be positive, got {sample_rate!r}")
 
-    truth_names = [n for n in available
-                   if _TRUTH_PATTERN.match(n) and n not in columns and n != time_column]
+    truth_names = [n for n in available if _TRUTH_PATTERN.match(n) and n not in columns and n != time_column]
 
     # Read everything and check lengths against the first sensor channel.
     channels = {name: _as_vector(path, name, table.read(name)) for name in columns}
@@ -326,8 +335,11 @@ def _load(path: Path, table: _Table, columns: list[str], time_column: str | None
         channels[name] = _as_vector(path, name, table.read(name))
     for name, arr in channels.items():
         if arr.size != T:
-            raise _err(path, f"column {name!r} has {arr.size} samples but column "
-                             f"{columns[0]!r} has {T}; all channels must have the same length")
+            raise _err(
+                path,
+                f"column {name!r} has {arr.size} samples but column "
+                f"{columns[0]!r} has {T}; all channels must have the same length",
+            )
     if T == 0:
         raise _err(path, f"column {columns[0]!r} has no samples")
     if T < 2:
@@ -346,9 +358,12 @@ def _load(path: Path, table: _Table, columns: list[str], time_column: str | None
         for j, name in enumerate(columns):
             bad = ~mask[:, j]
             if bad.any():
-                raise _err(path, f"column {name!r} holds {int(bad.sum())} NaN/inf value(s), the first "
-                                 f"at {table.row_label(_first(bad))}; set missing = \"skip\" in [data] "
-                                 f"to treat them as missing observations.")
+                raise _err(
+                    path,
+                    f"column {name!r} holds {int(bad.sum())} NaN/inf value(s), the first "
+                    f'at {table.row_label(_first(bad))}; set missing = "skip" in [data] '
+                    f"to treat them as missing observations.",
+                )
     values = np.where(mask, values, np.nan)
     truth = {n: channels[n] for n in truth_names}
     return Dataset(time=time, dt=dt, values=values, mask=mask, columns=list(columns), truth=truth)
@@ -364,8 +379,7 @@ def write_csv(path: str | Path, columns: dict[str, np.ndarray]) -> None:
     arrays = [np.asarray(columns[n], dtype=np.float64).reshape(-1) for n in names]
     lengths = {a.size for a in arrays}
     if len(lengths) > 1:
-        raise ValueError(f"columns differ in length: "
-                         f"{ {n: a.size for n, a in zip(names, arrays)} }")
+        raise ValueError(f"columns differ in length: { {n: a.size for n, a in zip(names, arrays)} }")
     with open(path, "w", newline="", encoding="utf-8") as f:
         writer = csv.writer(f, lineterminator="\n")
         writer.writerow(names)
@@ -401,4 +415,5 @@ def write_data(path: str | Path, columns: dict[str, np.ndarray]) -> None:
         xr.Dataset({n: ("time", a) for n, a in arrays.items()}).to_netcdf(path, engine="h5netcdf")
     else:
         raise LatentForceError(
-            f"Cannot write {str(path)!r}: unknown extension {ext!r}. Supported: .csv, .h5, .hdf5, .mat, .nc.")
+            f"Cannot write {str(path)!r}: unknown extension {ext!r}. Supported: .csv, .h5, .hdf5, .mat, .nc."
+        )

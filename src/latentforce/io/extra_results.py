@@ -58,6 +58,6 @@ def split_output_columns(header: list[str], table: np.ndarray, outputs) -> tuple
             col = f"{name}_{kind}"
             if col in header:
                 j = header.index(col)
-                target[name] = table[:, j:j + 1]
+                target[name] = table[:, j : j + 1]
                 used.add(j)
     return means, sds, used

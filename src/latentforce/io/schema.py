@@ -160,12 +160,16 @@ def _unknown_key_message(source: str, loc: tuple) -> str:
     prefix = loc[:-1]
     if not prefix:
         valid = list(_SECTIONS)
-        return (f"unknown section [{name}] in {source}{_did_you_mean(name, valid, '[{}]')} "
-                f"Valid sections: {', '.join(valid)}.")
+        return (
+            f"unknown section [{name}] in {source}{_did_you_mean(name, valid, '[{}]')} "
+            f"Valid sections: {', '.join(valid)}."
+        )
     model = _SECTIONS.get(prefix[0])
     valid = list(model.model_fields) if model is not None else []
-    return (f"unknown key `{name}` in {_key(prefix)} of {source}{_did_you_mean(name, valid)} "
-            f"Valid keys: {', '.join(valid)}.")
+    return (
+        f"unknown key `{name}` in {_key(prefix)} of {source}{_did_you_mean(name, valid)} "
+        f"Valid keys: {', '.join(valid)}."
+    )
 
 
 def _from_validation_error(source: str, exc: ValidationError) -> LatentForceError:
@@ -184,14 +188,17 @@ def _from_validation_error(source: str, exc: ValidationError) -> LatentForceErro
     if kind in ("model_type", "dict_type"):
         return LatentForceError(f"{source}: {key} must be a table.")
     if kind == "list_type" and loc in (("sensors",), ("outputs",)):
-        return LatentForceError(f"{source}: {key} must be an array of tables: write each one "
-                                f"under its own {key} header.")
+        return LatentForceError(
+            f"{source}: {key} must be an array of tables: write each one under its own {key} header."
+        )
     if kind == "too_short" and loc == ("sensors",):
         return LatentForceError(f"{source}: at least one [[sensors]] table is required.")
     shown = "" if isinstance(err.get("input"), (dict, list)) else f" = {err.get('input')!r}"
     if kind == "float_type" and len(loc) >= 3 and loc[0] in ("system", "force") and loc[2] == "number":
-        msg = ("must be a number (known and fixed) or a prior table such as "
-               "{ prior = \"normal\", mean = 1.0, sd = 0.1, init = 1.0 } (inferred)")
+        msg = (
+            "must be a number (known and fixed) or a prior table such as "
+            '{ prior = "normal", mean = 1.0, sd = 0.1, init = 1.0 } (inferred)'
+        )
     return LatentForceError(f"{source}: {key}{shown}: {msg}.")
 
 

@@ -25,19 +25,28 @@ def check_sensor(fail: Callable, i: int, sen, system) -> None:
     key = f"[[sensors]][{i}].coefficients"
     if sen.quantity == "strain":
         if sen.coefficients is None:
-            raise fail(key, f"{what} measures strain, a linear map of the displacements: give "
-                            f"coefficients, one per DOF ({system.ndof}).")
+            raise fail(
+                key,
+                f"{what} measures strain, a linear map of the displacements: give "
+                f"coefficients, one per DOF ({system.ndof}).",
+            )
         if len(sen.coefficients) != system.ndof:
-            raise fail(key, f"{what} gives {len(sen.coefficients)} coefficient(s) but the system has "
-                            f"{system.ndof} DOF(s): give one per DOF.")
+            raise fail(
+                key,
+                f"{what} gives {len(sen.coefficients)} coefficient(s) but the system has "
+                f"{system.ndof} DOF(s): give one per DOF.",
+            )
     elif sen.coefficients is not None:
-        raise fail(key, f"{what}: coefficients belong to a strain sensor (quantity = \"strain\"), "
-                        f"not to {sen.quantity!r}.")
+        raise fail(
+            key, f'{what}: coefficients belong to a strain sensor (quantity = "strain"), not to {sen.quantity!r}.'
+        )
     if sen.quantity == "force" and sen.dof not in system.force_dofs:
-        raise fail(f"[[sensors]][{i}].dof",
-                   f"{what} is a load cell at DOF {sen.dof}, but no latent force acts there "
-                   f"([system].force_dofs = {list(system.force_dofs)}); a force sensor measures the "
-                   f"latent force at a DOF it acts on.")
+        raise fail(
+            f"[[sensors]][{i}].dof",
+            f"{what} is a load cell at DOF {sen.dof}, but no latent force acts there "
+            f"([system].force_dofs = {list(system.force_dofs)}); a force sensor measures the "
+            f"latent force at a DOF it acts on.",
+        )
 
 
 def _reserved(model) -> set[str]:
@@ -50,8 +59,7 @@ def _reserved(model) -> set[str]:
 
 def validate_outputs(fail: Callable, tables: list[dict], model) -> tuple[OutputSpec, ...]:
     """``[[outputs]]`` tables (already shape-checked) as :class:`~latentforce.outputs.OutputSpec`."""
-    widths = {"displacement": model.ndof, "velocity": model.ndof, "acceleration": model.ndof,
-              "force": model.nforce}
+    widths = {"displacement": model.ndof, "velocity": model.ndof, "acceleration": model.ndof, "force": model.nforce}
     reserved = _reserved(model)
     seen: dict[str, int] = {}
     specs = []
@@ -59,26 +67,39 @@ def validate_outputs(fail: Callable, tables: list[dict], model) -> tuple[OutputS
         name = t["name"]
         what = f"output {i} ({name!r})"
         if not _NAME.match(name):
-            raise fail(f"[[outputs]][{i}].name", f"{what}: a name must start with a letter and hold only "
-                                                 "letters, digits and underscores (it becomes a column "
-                                                 "and a file name).")
+            raise fail(
+                f"[[outputs]][{i}].name",
+                f"{what}: a name must start with a letter and hold only "
+                "letters, digits and underscores (it becomes a column "
+                "and a file name).",
+            )
         if name in reserved or name.endswith(("_mean", "_sd")):
-            raise fail(f"[[outputs]][{i}].name", f"{what}: the name is taken by a state or a summary "
-                                                 f"column ({', '.join(sorted(reserved))}, *_mean, *_sd); "
-                                                 "choose another.")
+            raise fail(
+                f"[[outputs]][{i}].name",
+                f"{what}: the name is taken by a state or a summary "
+                f"column ({', '.join(sorted(reserved))}, *_mean, *_sd); "
+                "choose another.",
+            )
         if name in seen:
             raise fail(f"[[outputs]][{i}].name", f"{what}: the name is already used by output {seen[name]}.")
         seen[name] = i
         given = [k for k in widths if t.get(k) is not None]
         if not given:
-            raise fail(f"[[outputs]][{i}]", f"{what} gives no coefficients: give at least one of "
-                                            "displacement, velocity, acceleration (one per DOF) or force "
-                                            "(one per latent force).")
+            raise fail(
+                f"[[outputs]][{i}]",
+                f"{what} gives no coefficients: give at least one of "
+                "displacement, velocity, acceleration (one per DOF) or force "
+                "(one per latent force).",
+            )
         for k in given:
             if len(t[k]) != widths[k]:
                 per = "latent force" if k == "force" else "DOF"
-                raise fail(f"[[outputs]][{i}].{k}", f"{what} gives {len(t[k])} coefficient(s) but the model "
-                                                    f"has {widths[k]} {per}(s): give one per {per}.")
-        specs.append(OutputSpec(name=name, unit=t.get("unit") or "",
-                                **{k: tuple(float(c) for c in t[k]) for k in given}))
+                raise fail(
+                    f"[[outputs]][{i}].{k}",
+                    f"{what} gives {len(t[k])} coefficient(s) but the model "
+                    f"has {widths[k]} {per}(s): give one per {per}.",
+                )
+        specs.append(
+            OutputSpec(name=name, unit=t.get("unit") or "", **{k: tuple(float(c) for c in t[k]) for k in given})
+        )
     return tuple(specs)

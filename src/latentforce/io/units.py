@@ -33,6 +33,7 @@ SI_UNITS: dict[str, str] = {
     "strain": "m/m",
 }
 
+
 class _WrongDimension(ValueError):
     """A unit that parses but measures something else."""
 
@@ -109,8 +110,9 @@ def _quantity_for(text: str) -> str | None:
     return None
 
 
-def resolve_unit(quantity: str | None, sensor_unit: str | None, file_unit: str | None,
-                 *, who: str, where: str) -> ChannelUnit:
+def resolve_unit(
+    quantity: str | None, sensor_unit: str | None, file_unit: str | None, *, who: str, where: str
+) -> ChannelUnit:
     """The unit of one channel and its factor to SI.
 
     ``quantity``: the sensor's (``"displacement"``, ``"velocity"``,
@@ -120,7 +122,7 @@ def resolve_unit(quantity: str | None, sensor_unit: str | None, file_unit: str |
     sensor and ``where`` the file in messages.
     """
     if sensor_unit is not None and not sensor_unit.strip():
-        raise LatentForceError(f"{who}: unit is empty; give a unit such as \"m/s^2\", or leave the key out.")
+        raise LatentForceError(f'{who}: unit is empty; give a unit such as "m/s^2", or leave the key out.')
     given, source = (sensor_unit, "sensor") if sensor_unit is not None else (file_unit, "file")
     if given is None or (source == "file" and given.strip().lower() in _NO_UNIT):
         if quantity is None:
@@ -133,23 +135,31 @@ def resolve_unit(quantity: str | None, sensor_unit: str | None, file_unit: str |
         if quantity is None:
             quantity = _quantity_for(given)
             if quantity is None:
-                raise _WrongDimension(f"dimension {_dimension(_parse(given))}, which is none of "
-                                      f"{', '.join(f'{k} ({v})' for k, v in SI_UNITS.items())}")
+                raise _WrongDimension(
+                    f"dimension {_dimension(_parse(given))}, which is none of "
+                    f"{', '.join(f'{k} ({v})' for k, v in SI_UNITS.items())}"
+                )
         si = SI_UNITS[quantity]
         scale = unit_scale(given, si)
     except ValueError as exc:
-        hint = ("" if source == "sensor"
-                else " Give the channel's unit in the sensor's unit key to override the file's label.")
+        hint = (
+            ""
+            if source == "sensor"
+            else " Give the channel's unit in the sensor's unit key to override the file's label."
+        )
         if isinstance(exc, _WrongDimension):
             if quantity is None:
                 need = f"any sensor quantity: it has {exc}"
             else:
                 article = "an" if quantity[0] in "aeiou" else "a"
-                need = (f"quantity {quantity!r}: it has {exc}; {article} {quantity} channel needs a unit like "
-                        f"{SI_UNITS[quantity]!r}")
+                need = (
+                    f"quantity {quantity!r}: it has {exc}; {article} {quantity} channel needs a unit like "
+                    f"{SI_UNITS[quantity]!r}"
+                )
             raise LatentForceError(f"{who}: unit {given!r} (from {origin}) does not fit {need}.{hint}") from None
         raise LatentForceError(
             f"{who}: unit {given!r} (from {origin}) is not a unit the units library (pint) knows "
-            f"({exc}); write it like \"m/s^2\", \"g\", \"mm\", \"um\", \"in/s\", \"N\", \"kN\" or "
-            f"\"ustrain\".{hint}") from None
+            f'({exc}); write it like "m/s^2", "g", "mm", "um", "in/s", "N", "kN" or '
+            f'"ustrain".{hint}'
+        ) from None
     return ChannelUnit(unit=given, si=si, scale=scale, source=source)

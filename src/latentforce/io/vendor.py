@@ -35,14 +35,34 @@ __all__ = ["VENDOR_EXTENSIONS", "RawChannel", "Sep005Table", "TdmsTable", "UffTa
 VENDOR_EXTENSIONS = (".uff", ".unv", ".tdms")
 # UFF function types that are time records: 0 "general or unknown", 1 "time response".
 _UFF_TIME_TYPES = (0, 1)
-_UFF_TYPE_NAMES = {2: "auto spectrum", 3: "cross spectrum", 4: "frequency response function",
-                   5: "transmissibility", 6: "coherence", 7: "auto correlation", 8: "cross correlation",
-                   9: "power spectral density", 10: "energy spectral density",
-                   11: "probability density function", 12: "spectrum", 13: "cumulative frequency distribution",
-                   14: "peaks valley", 15: "stress/cycles", 16: "strain/cycles", 17: "orbit",
-                   18: "mode indicator function", 19: "force pattern", 20: "partial power",
-                   21: "partial coherence", 22: "eigenvalue", 23: "eigenvector", 24: "shock response spectrum",
-                   25: "finite impulse response filter", 26: "multiple coherence", 27: "order function"}
+_UFF_TYPE_NAMES = {
+    2: "auto spectrum",
+    3: "cross spectrum",
+    4: "frequency response function",
+    5: "transmissibility",
+    6: "coherence",
+    7: "auto correlation",
+    8: "cross correlation",
+    9: "power spectral density",
+    10: "energy spectral density",
+    11: "probability density function",
+    12: "spectrum",
+    13: "cumulative frequency distribution",
+    14: "peaks valley",
+    15: "stress/cycles",
+    16: "strain/cycles",
+    17: "orbit",
+    18: "mode indicator function",
+    19: "force pattern",
+    20: "partial power",
+    21: "partial coherence",
+    22: "eigenvalue",
+    23: "eigenvector",
+    24: "shock response spectrum",
+    25: "finite impulse response filter",
+    26: "multiple coherence",
+    27: "order function",
+}
 # Time stamps stored as numbers (an uneven UFF abscissa, a SEP005 time vector) must lie this
 # close to an even grid, in steps: ASCII UFF keeps 6 significant digits of each time stamp.
 _EVEN_TOL = 1e-3
@@ -99,8 +119,10 @@ def _even(x: np.ndarray, fail, what: str) -> tuple[float, float]:
     off = np.abs(x - (x[0] + dt * np.arange(n)))
     if off.max() > _EVEN_TOL * dt:
         i = int(np.argmax(off))
-        raise fail(f"{what} is not evenly sampled: sample {i} is at {x[i]!r} s, {off[i] / dt:.3g} steps off "
-                   f"the even grid of step {dt!r} s from {x[0]!r} s; resample the data")
+        raise fail(
+            f"{what} is not evenly sampled: sample {i} is at {x[i]!r} s, {off[i] / dt:.3g} steps off "
+            f"the even grid of step {dt!r} s from {x[0]!r} s; resample the data"
+        )
     return float(x[0]), dt
 
 
@@ -130,8 +152,10 @@ class UffTable:
             fh.seek(max(0, path.stat().st_size - 256))
             tail = fh.read()
         if not tail.rstrip().endswith(b"-1"):
-            raise self._fail("is cut short or corrupt: a UFF file ends with a record's closing \"    -1\" "
-                             "line, and this one does not (an interrupted export or copy?)")
+            raise self._fail(
+                'is cut short or corrupt: a UFF file ends with a record\'s closing "    -1" '
+                "line, and this one does not (an interrupted export or copy?)"
+            )
         try:
             self._uff = pyuff.UFF(str(path))
             types = [int(t) for t in self._uff.get_set_types()]
@@ -141,25 +165,37 @@ class UffTable:
             raise self._fail(f"is not a readable UFF file (pyuff: {exc})") from None
         if not self._index:
             found = sorted(set(types))
-            raise self._fail("holds no UFF 58/58b record (function at a nodal DOF, the time-record data "
-                             "set)" + (f"; its data sets are of type(s) {found}" if found else
-                                       "; it holds no UFF data set at all (not a UFF file?)"))
+            raise self._fail(
+                "holds no UFF 58/58b record (function at a nodal DOF, the time-record data "
+                "set)"
+                + (
+                    f"; its data sets are of type(s) {found}"
+                    if found
+                    else "; it holds no UFF data set at all (not a UFF file?)"
+                )
+            )
         self._heads = [heads] if isinstance(heads, dict) else list(heads)
         self.names = [h["id1"] for h in self._heads if h.get("func_type") in _UFF_TIME_TYPES]
 
     def channel(self, name: str) -> RawChannel:
         hits = [k for k, h in enumerate(self._heads) if h["id1"] == name]
         if not hits:
-            raise self._fail(f"no UFF 58 time record has ID line 1 {name!r}{_suggest(name, self.names)}. "
-                             f"Available records (their ID line 1): {_listing(self.names)}.")
+            raise self._fail(
+                f"no UFF 58 time record has ID line 1 {name!r}{_suggest(name, self.names)}. "
+                f"Available records (their ID line 1): {_listing(self.names)}."
+            )
         if len(hits) > 1:
-            raise self._fail(f"{len(hits)} UFF 58 records have ID line 1 {name!r} (data sets "
-                             f"{', '.join(str(self._index[k]) for k in hits)}); the channel is ambiguous")
+            raise self._fail(
+                f"{len(hits)} UFF 58 records have ID line 1 {name!r} (data sets "
+                f"{', '.join(str(self._index[k]) for k in hits)}); the channel is ambiguous"
+            )
         head = self._heads[hits[0]]
         kind = head.get("func_type")
         if kind not in _UFF_TIME_TYPES:
-            raise self._fail(f"record {name!r} is a {_UFF_TYPE_NAMES.get(kind, f'type {kind}')} (UFF 58 "
-                             f"function type {kind}), not a time record (function type 1)")
+            raise self._fail(
+                f"record {name!r} is a {_UFF_TYPE_NAMES.get(kind, f'type {kind}')} (UFF 58 "
+                f"function type {kind}), not a time record (function type 1)"
+            )
         what = f"record {name!r}"
         try:
             record = self._uff.read_sets(self._index[hits[0]])
@@ -168,15 +204,18 @@ class UffTable:
         data = np.asarray(record["data"])
         expected = int(record.get("num_pts", data.size))
         if data.size != expected:
-            raise self._fail(f"{what} holds {data.size} values but its header announces {expected}; the "
-                             f"file is cut short or corrupt")
+            raise self._fail(
+                f"{what} holds {data.size} values but its header announces {expected}; the file is cut short or corrupt"
+            )
         values = _numeric(data, self._fail, what)
         unit = str(record.get("ordinate_axis_units_lab", "")).strip() or None
         if int(record.get("abscissa_spacing", 1)) == 1:
             t0, dt = float(record["abscissa_min"]), float(record["abscissa_inc"])
             if not (np.isfinite(t0) and np.isfinite(dt) and dt > 0):
-                raise self._fail(f"{what} has abscissa start {t0!r} and increment {dt!r}; the increment "
-                                 f"(the sample step) must be positive")
+                raise self._fail(
+                    f"{what} has abscissa start {t0!r} and increment {dt!r}; the increment "
+                    f"(the sample step) must be positive"
+                )
             return RawChannel(values=values, t0=t0, dt=dt, unit=unit)
         x = np.asarray(record["x"], dtype=np.float64)
         # ASCII UFF keeps 6 significant digits of each abscissa value: t0 + i dt is the better time.
@@ -221,30 +260,43 @@ class TdmsTable:
             if console is not None:
                 console.setLevel(level)
         if handler.messages:
-            raise self._fail(f"is cut short or corrupt (npTDMS: {handler.messages[0]}); the last "
-                             "segment is incomplete (an interrupted acquisition or copy?)")
+            raise self._fail(
+                f"is cut short or corrupt (npTDMS: {handler.messages[0]}); the last "
+                "segment is incomplete (an interrupted acquisition or copy?)"
+            )
         self._channels = {f"{g.name}/{c.name}": c for g in tdms.groups() for c in g.channels()}
         self.names = list(self._channels)
 
     def channel(self, name: str) -> RawChannel:
         if name not in self._channels:
-            raise self._fail(f"channel {name!r} not found{_suggest(name, self.names)}. Available channels "
-                             f"(\"group/channel\"): {_listing(self.names)}.")
+            raise self._fail(
+                f"channel {name!r} not found{_suggest(name, self.names)}. Available channels "
+                f'("group/channel"): {_listing(self.names)}.'
+            )
         ch = self._channels[name]
         what = f"channel {name!r}"
         props = ch.properties
         if "wf_increment" not in props:
-            raise self._fail(f"{what} has no waveform timing (the wf_increment property, the sample step "
-                             "in seconds); save it as a waveform channel")
+            raise self._fail(
+                f"{what} has no waveform timing (the wf_increment property, the sample step "
+                "in seconds); save it as a waveform channel"
+            )
         dt = float(props["wf_increment"])
         t0 = float(props.get("wf_start_offset", 0.0))
         if not (np.isfinite(t0) and np.isfinite(dt) and dt > 0):
-            raise self._fail(f"{what} has wf_start_offset {t0!r} and wf_increment {dt!r}; the increment "
-                             "(the sample step) must be positive")
+            raise self._fail(
+                f"{what} has wf_start_offset {t0!r} and wf_increment {dt!r}; the increment "
+                "(the sample step) must be positive"
+            )
         values = _numeric(ch[:], self._fail, what)
         unit = props.get("unit_string")
-        return RawChannel(values=values, t0=t0, dt=dt, unit=None if unit is None else str(unit),
-                          start=_datetime64(props.get("wf_start_time")))
+        return RawChannel(
+            values=values,
+            t0=t0,
+            dt=dt,
+            unit=None if unit is None else str(unit),
+            start=_datetime64(props.get("wf_start_time")),
+        )
 
 
 # ----- SEP005 ------------------------------------------------------------------------
@@ -262,29 +314,31 @@ class Sep005Table:
                 raise self._fail(f"record {i} is a {type(rec).__name__}, not a dict")
             for key in ("name", "data"):
                 if key not in rec:
-                    raise self._fail(f"record {i} has no {key!r} key (SEP005 channels need name, data, "
-                                     "unit_str and fs or time)")
+                    raise self._fail(
+                        f"record {i} has no {key!r} key (SEP005 channels need name, data, unit_str and fs or time)"
+                    )
             if "fs" not in rec and "time" not in rec:
-                raise self._fail(f"record {i} ({rec['name']!r}) has neither 'fs' (samples per second) nor "
-                                 "'time' (the time vector): its time axis is unknown")
+                raise self._fail(
+                    f"record {i} ({rec['name']!r}) has neither 'fs' (samples per second) nor "
+                    "'time' (the time vector): its time axis is unknown"
+                )
         self._records = list(records)
         self.names = [str(r["name"]) for r in self._records]
 
     def channel(self, name: str) -> RawChannel:
         hits = [i for i, n in enumerate(self.names) if n == name]
         if not hits:
-            raise self._fail(f"no record is named {name!r}{_suggest(name, self.names)}. Available records: "
-                             f"{_listing(self.names)}.")
+            raise self._fail(
+                f"no record is named {name!r}{_suggest(name, self.names)}. Available records: {_listing(self.names)}."
+            )
         if len(hits) > 1:
-            raise self._fail(f"records {', '.join(map(str, hits))} are all named {name!r}; the channel is "
-                             "ambiguous")
+            raise self._fail(f"records {', '.join(map(str, hits))} are all named {name!r}; the channel is ambiguous")
         rec = self._records[hits[0]]
         what = f"record {hits[0]} ({name!r})"
         values = _numeric(rec["data"], self._fail, what)
         if "fs" in rec:
             fs = rec["fs"]
-            if isinstance(fs, bool) or not isinstance(fs, (int, float, np.number)) or not (np.isfinite(fs)
-                                                                                              and fs > 0):
+            if isinstance(fs, bool) or not isinstance(fs, (int, float, np.number)) or not (np.isfinite(fs) and fs > 0):
                 raise self._fail(f"{what} has fs = {fs!r}; it must be a positive number (samples per second)")
             t0, dt, time = 0.0, 1.0 / float(fs), None
         else:
@@ -296,10 +350,10 @@ class Sep005Table:
         try:
             start = _datetime64(rec.get("start_timestamp"))
         except (TypeError, ValueError) as exc:
-            raise self._fail(f"{what} has start_timestamp {rec.get('start_timestamp')!r}, which is not an "
-                             f"ISO 8601 time ({exc})") from None
-        return RawChannel(values=values, t0=t0, dt=dt, unit=None if unit is None else str(unit), start=start,
-                          time=time)
+            raise self._fail(
+                f"{what} has start_timestamp {rec.get('start_timestamp')!r}, which is not an ISO 8601 time ({exc})"
+            ) from None
+        return RawChannel(values=values, t0=t0, dt=dt, unit=None if unit is None else str(unit), start=start, time=time)
 
 
 def open_vendor(path: Path) -> UffTable | TdmsTable:

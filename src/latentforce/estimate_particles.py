@@ -1,0 +1,200 @@
+"""The particle methods' part of :func:`latentforce.estimate.run`: ``pgas`` packed into a
+``RunResult``, and the mechanical start shared with ``ekf``/``ukf`` (split from ``estimate.py``)."""
+
+from __future__ import annotations
+
+import functools
+import time as _time
+
+import numpy as np
+
+from latentforce.compile import jit, numbers
+from latentforce.errors import LatentForceError
+from latentforce.io.config import Problem
+from latentforce.io.data import Dataset
+from latentforce.outputs import path_outputs, sample_moments
+from latentforce.outputs import split as split_outputs
+from latentforce.results import RunResult, summarise_parameters
+
+#: the most iterations an "auto" pgas run makes (it stops earlier when converged or at max_time)
+PGAS_AUTO_ITERATIONS = 50_000
+
+
+def _label_times(record: dict, time: np.ndarray) -> dict:
+    """A convergence record with ``name[t=index]`` relabelled ``name[t=time]``."""
+    import re
+
+    def relabel(name):
+        return re.sub(r"\[t=(\d+)\]", lambda m: f"[t={time[int(m.group(1))]:.6g}]", name)
+
+    out = dict(record)
+    out["worst"] = [dict(w, name=relabel(w["name"])) for w in record.get("worst", [])]
+    return out
+
+
+@functools.partial(jit, static_argnames=("model",))
+def _default_initial(params, *, model):
+    # one compiled program: op by op its small solves compiled some dozens of programs
+    return model.default_initial(params)
+
+
+def _mechanical_initial(problem: Problem, params0: dict):
+    """The mechanical states' ``(mean, cov)`` start of the particle sampler's model (``pgas``,
+    ``ekf``, ``ukf``): the user's ``[initial]``; else None for a linear system (the joint
+    stationary start at each parameter value), the model's near-rest default for a nonlinear one."""
+    model = problem.model
+    mech = model.layout.mech
+    if problem.initial is not None:
+        mean, cov = problem.initial
+        return np.asarray(mean)[mech], np.asarray(cov)[mech, mech]
+    if model.system.is_linear:
+        return None
+    # one compiled program: op by op its small solves compiled some dozens of programs
+    m0, P0 = _default_initial(numbers(params0), model=model)
+    return np.asarray(m0)[mech], np.asarray(P0)[mech, mech]
+
+
+def _run_pgas(
+    key,
+    problem: Problem,
+    dataset: Dataset,
+    params0: dict,
+    y,
+    mask,
+    common: dict,
+    progress,
+    t0: float,
+    channels=None,
+    checkpoint=None,
+) -> RunResult:
+    """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
+    from latentforce.inference import convergence
+    from latentforce.inference.pgas import run_pgas
+
+    model = problem.model
+    settings = problem.inference
+    free = {n: (spec.prior, spec.init) for n, spec in problem.free.items()}
+    # The initial state: the user's [initial] for the mechanical states (the force states
+    # start from their stationary GP distribution); else for a linear system the joint
+    # stationary distribution at the current hyperparameters (particle_model.ParticleModel), for a
+    # nonlinear one the model's near-rest default at the initial hyperparameters.
+    initial = _mechanical_initial(problem, params0)
+    # An inferred noise level gets an exact Gibbs step whose conditional is proper only with
+    # more than two observed samples of its channel (inference/noise_gibbs.py).
+    observed_n = np.sum(mask & np.isfinite(y), axis=0)
+    for i, s in enumerate(model.sensors):
+        if s.noise_param in problem.free and observed_n[i] <= 2:
+            raise LatentForceError(
+                f"{problem.config_path}: [[sensors]][{i}].noise_std (column {s.name!r}) is inferred, but the "
+                f'column has {int(observed_n[i])} observed samples; method "pgas" needs more than two to '
+                "infer a noise level. Give noise_std as a number."
+            )
+    # PGAS needs a conditional resampling scheme; multinomial is the valid one we have.
+    out = run_pgas(
+        key,
+        model,
+        params0,
+        free,
+        np.where(mask, y, np.nan),
+        mask,
+        dataset.dt,
+        particles=settings.particles,
+        iterations=settings.iterations,
+        burn_in=settings.burn_in,
+        state_every=settings.state_every,
+        chains=settings.chains,
+        mh_steps=settings.mh_steps,
+        discretisation=settings.discretisation,
+        proposal=settings.proposal,
+        resampling="multinomial",
+        thin_draws=settings.thin_draws,
+        initial=initial,
+        progress=progress,
+        channels=channels,
+        target_ess=settings.target_ess,
+        max_time=settings.max_time,
+        max_iterations=PGAS_AUTO_ITERATIONS,
+        checkpoint=checkpoint,
+    )
+    paths = model.layout.quantities(out.trajectories)
+    state_mean = {n: np.asarray(v) for n, v in out.state_mean.items()}
+    state_sd = {n: np.asarray(v) for n, v in out.state_sd.items()}
+    if problem.outputs:  # from the stored paths, the acceleration from the equation of motion
+        sampled = path_outputs(
+            model, problem.outputs, params0, paths["displacement"], paths["velocity"], paths["force"]
+        )
+        out_mean, out_sd, out_paths = split_outputs(problem.outputs, *sample_moments(sampled), sampled)
+        state_mean.update(out_mean)
+        state_sd.update(out_sd)
+        paths.update(out_paths)
+    # Each stored trajectory came from the sweep of one Gibbs block; pair it with the
+    # hyperparameters drawn at the end of that block (conditional on that trajectory).
+    k = settings.state_every
+    burn_blocks = -(-settings.burn_in // k)
+    iterations = int(out.diagnostics.pop("iterations_run"))
+    thin = int(out.diagnostics.pop("thin"))
+    slots = np.arange(out.trajectories.shape[1])
+    idx = np.clip((burn_blocks + slots * thin) * k + k - 1 - settings.burn_in, 0, max(iterations - 1, 0))
+    param_draws = {n: v[:, idx] for n, v in out.theta.items()}
+    pooled = {n: v.reshape(-1) for n, v in out.theta.items()}
+    point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
+    point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})
+    ll = out.log_likelihood
+    diagnostics = dict(out.diagnostics)
+    record = diagnostics.pop("convergence")
+    diagnostics.update(
+        {
+            "particles": settings.particles,
+            "iterations": iterations,
+            "iterations_setting": "auto" if settings.iterations is None else settings.iterations,
+            "burn_in": settings.burn_in,
+            "state_every": k,
+            "chains": settings.chains,
+            "discretisation": settings.discretisation,
+            "proposal": settings.proposal,
+            "resampling": "multinomial",
+            "log_likelihood_note": "particle-filter estimate of log p(y | theta), mean over the last sweeps",
+        }
+    )
+    from latentforce.inference.hyper_moves import HYPERPARAMETERS
+    from latentforce.priors import Flat
+
+    flat = [n for n, (prior, _) in free.items() if isinstance(prior, Flat) and n in HYPERPARAMETERS]
+    if flat:
+        record_s = len(dataset.time) * dataset.dt
+        diagnostics.setdefault("warnings", []).append(
+            f"flat prior on {', '.join(flat)}: on a record of {record_s:.3g} s a Matérn force's variance "
+            "and lengthscale are pinned mainly in one combination (variance/lengthscale^(2p+1) for "
+            "Matérn-(p+1/2)), so with a flat "
+            "prior the posterior can be improper along that ridge and the slow part of the force "
+            "wanders. Use proper priors (e.g. lognormal) on the force hyperparameters; see docs/config.md."
+        )
+    # The run's verdict: the hyperparameters (every iteration) and the displacement, velocity
+    # and force at 24 spread times (every sweep); its time indices become the record's times.
+    record = _label_times(record, np.asarray(dataset.time))
+    message = convergence.warning_message(record, "pgas")
+    if message:
+        diagnostics.setdefault("warnings", []).append(message)
+    truth = common["truth"]
+    if truth:
+        from latentforce.results import coverage
+
+        diagnostics["coverage_3sd"] = {
+            name: coverage(truth[name][:, 0], out.state_mean[name][:, 0], out.state_sd[name][:, 0]) for name in truth
+        }
+    return RunResult(
+        method="pgas",
+        state_mean=state_mean,
+        state_sd=state_sd,
+        param_draws=param_draws,
+        path_draws=paths,
+        sample_stats={"log_likelihood": ll, "switch_rate": out.switch_rate, "ess_per_particle": out.ess},
+        acceptance=[float(a) for a in out.acceptance],
+        log_likelihood=float(np.mean(ll[:, -max(1, ll.shape[1] // 10) :])) if ll.size else float("nan"),
+        point_estimate=point,
+        diagnostics=diagnostics,  # made JSON-safe by the writer
+        param_summary=summarise_parameters(out.theta) if out.theta else None,
+        convergence=record,
+        wall_time_s=_time.perf_counter() - t0,
+        **common,
+    )
