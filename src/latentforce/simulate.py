@@ -81,7 +81,7 @@ def integrate(model: LatentForceModel, params: dict, force_fine, dt_fine: float,
     s0 = jnp.concatenate([z0, v0])
     _, states = jax.lax.scan(_step, s0, (force_fine[:-1], force_fine[1:]))
     states = jnp.concatenate([s0[None], states], axis=0)
-    z, v = states[:, :nd], states[:, nd:]
+    z, v = states[:, model.layout.displacement], states[:, model.layout.velocity]
     a = jax.vmap(lambda zz, vv, uu: system.acceleration(params, zz, vv, uu))(z, v, force_fine)
     return z, v, a
 

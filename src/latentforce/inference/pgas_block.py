@@ -86,7 +86,6 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
 from latentforce.inference import mcmc, noise_gibbs, particle_model, smc
@@ -166,9 +165,7 @@ class BlockData(NamedTuple):
 
 
 def _summary_quantities(pm: particle_model.ParticleModel, path: Float[Array, "T n"]):
-    nd = pm.ndof
-    force_idx = pm.nm + pm.kdim * np.arange(pm.nforce)
-    return jnp.concatenate([path[:, : 2 * nd], path[:, force_idx]], axis=1)
+    return jnp.concatenate([path[:, pm.layout.mech], path[:, pm.layout.force]], axis=1)
 
 
 class Schedule(NamedTuple):
@@ -419,7 +416,7 @@ def make_block(
             _mh_iter, (state.rwm, state.rwm_nc, path, pm.latent(path), tr), (jax.random.split(k_mh, k_every), js)
         )
         theta = hyper.to_constrained(xs)
-        fp = path[tpoints][:, pm.nm + pm.kdim * np.arange(pm.nforce)]
+        fp = path[tpoints][:, pm.layout.force]
         # ---- the inferred noise levels given the final path (one exact Gibbs update each)
         noise_var, sds, acc_noise = state.noise_var, jnp.zeros((k_every, 0)), jnp.zeros(0)
         if n_noise:
