@@ -122,14 +122,20 @@ def test_derivatives_match_jax_linalg():
 # ---------------------------------------------------------------------------
 def _recording_programs(monkeypatch, texts, *modules):
     """Replace every module-level compiled program (a ``jit`` function) of ``modules`` by one that
-    keeps its StableHLO text at each call."""
+    keeps its StableHLO text, once per program and signature (the arguments' tree, the arrays' shapes
+    and types, the other arguments' values): the optimiser calls one program hundreds of times."""
+    seen = set()
     for module in modules:
         for name, prog in list(vars(module).items()):
             if not (callable(prog) and hasattr(prog, "lower") and hasattr(prog, "trace")):
                 continue
 
             def call(*args, _prog=prog, _name=name, **kw):
-                texts.append((_name, _prog.lower(*args, **kw).as_text()))
+                leaves, tree = jax.tree_util.tree_flatten((args, kw))
+                sig = tuple((np.shape(x), str(x.dtype)) if hasattr(x, "dtype") else x for x in leaves)
+                if (_name, tree, sig) not in seen:
+                    seen.add((_name, tree, sig))
+                    texts.append((_name, _prog.lower(*args, **kw).as_text()))
                 return _prog(*args, **kw)
 
             monkeypatch.setattr(module, name, call)
