@@ -25,7 +25,6 @@ uses (``m, c, k, k3`` or ``M, C, K``, ``force_variance``,
 
 from __future__ import annotations
 
-import math
 import re
 import tomllib
 from pathlib import Path
@@ -35,8 +34,8 @@ import numpy as np
 from pydantic import ValidationError
 
 from latentforce.errors import LatentForceError
-from latentforce.io.carry import carried_prior
 from latentforce.io.matrices import _check_psd, _initial_state, _matrix
+from latentforce.io.params import ParamSpec, _prior_spec, _split
 from latentforce.io.schema import (
     _ConfigFile,
     _did_you_mean,
@@ -49,7 +48,6 @@ from latentforce.io.schema import (
 from latentforce.io.sensor_checks import check_sensor, validate_outputs
 from latentforce.kernels import KERNELS, kernel_from_name
 from latentforce.models import LatentForceModel, Sensor
-from latentforce.priors import PRIOR_PARAMS, Prior, prior_from_spec
 from latentforce.systems import SYSTEM_TYPES, Duffing, LinearSystem, ShearFrame
 
 __all__ = [
@@ -76,13 +74,6 @@ DEFAULT_BURN_IN = {"kalman": 0, "kalman-mcmc": 500, "kalman-nuts": 300, "pgas": 
 
 
 # ----- the result ------------------------------------------------------------
-class ParamSpec(NamedTuple):
-    """An inferred parameter: its prior on the physical value and a starting value."""
-
-    prior: Prior
-    init: float
-
-
 class InferenceSettings(NamedTuple):
     """``[inference]`` with defaults filled in and ``method`` resolved."""
 
@@ -136,102 +127,6 @@ class Problem(NamedTuple):
 
 
 # ----- stage 2: meaning ------------------------------------------------------
-def _carried_spec(fail: _Fail, key: str, table: _PriorTable, param: str) -> ParamSpec:
-    """``prior = "posterior"``: the marginal posterior of ``param`` in an earlier result folder
-    (:mod:`latentforce.io.carry`), ``from`` resolved against the config's folder."""
-    extras = dict(table.model_extra or {})
-    for extra in extras:
-        if extra not in ("from", "param"):
-            valid = ("prior", "from", "param", "init")
-            raise fail(
-                f"{key}.{extra}",
-                f'unknown key for a "posterior" prior{_did_you_mean(extra, valid)} Valid keys: {", ".join(valid)}.',
-            )
-    source, param = extras.get("from"), extras.get("param", param)
-    if not isinstance(source, str) or not source:
-        raise fail(
-            f"{key}.from",
-            'a "posterior" prior needs from = "FOLDER", the result folder of an '
-            "earlier run whose posterior becomes this prior.",
-        )
-    if not isinstance(param, str) or not param:
-        raise fail(f"{key}.param", f"must be a parameter name (a string), got {param!r}.")
-    folder = fail.base_dir / Path(source).expanduser()
-    carried = carried_prior(folder, param, f"{fail.source}: {key}")
-    init = table.init if table.init is not None else carried.prior.default_init()
-    if not (math.isfinite(init) and init > 0):
-        raise fail(f"{key}.init", f"the initial value must be positive and finite, got {init!r}.")
-    fail.carried[key] = carried
-    return ParamSpec(prior=carried.prior, init=float(init))
-
-
-def _prior_spec(fail: _Fail, key: str, table: _PriorTable, param: str = "") -> ParamSpec:
-    name = table.prior
-    if name == "posterior":
-        return _carried_spec(fail, key, table, param)
-    if name not in PRIOR_PARAMS:
-        raise fail(
-            f"{key}.prior",
-            f"unknown prior {name!r}{_did_you_mean(name, tuple(PRIOR_PARAMS), '{!r}')} "
-            f"Valid priors: {', '.join(PRIOR_PARAMS)}, posterior "
-            "(carried from an earlier result folder).",
-        )
-    wanted = PRIOR_PARAMS[name]
-    extras = dict(table.model_extra or {})
-    for extra in extras:
-        if extra not in wanted:
-            valid = ("prior", "init") + wanted
-            raise fail(
-                f"{key}.{extra}",
-                f"unknown key for a {name!r} prior{_did_you_mean(extra, valid)} Valid keys: {', '.join(valid)}.",
-            )
-    missing = [p for p in wanted if p not in extras]
-    if missing:
-        raise fail(key, f"a {name!r} prior needs {' and '.join(wanted)}; missing: {', '.join(missing)}.")
-    for p, v in extras.items():
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise fail(f"{key}.{p}", f"must be a finite number, got {v!r}.")
-    try:
-        prior = prior_from_spec(name, **extras)
-    except ValueError as exc:
-        raise fail(key, f"{exc}.") from None
-    init = table.init if table.init is not None else prior.default_init()
-    if init is None:
-        raise fail(f"{key}.init", f"a {name!r} prior has no natural starting value: give init (a positive number).")
-    if not (math.isfinite(init) and init > 0):
-        raise fail(
-            f"{key}.init",
-            f"the initial value must be positive and finite, got {init!r}"
-            + ("" if table.init is not None else " (from the prior; give init)")
-            + ".",
-        )
-    return ParamSpec(prior=prior, init=float(init))
-
-
-def _scalar(fail: _Fail, key: str, value: float, rule: str) -> float:
-    """Check a fixed scalar: ``rule`` is "positive", "nonnegative" or "any"."""
-    words = {
-        "m": "mass",
-        "c": "damping",
-        "k": "stiffness",
-        "variance": "force variance",
-        "lengthscale": "force lengthscale",
-    }
-    what = words.get(key.rsplit(".", 1)[-1], "value")
-    if rule == "positive" and not value > 0:
-        raise fail(key, f"the {what} must be positive, got {value!r}.")
-    if rule == "nonnegative" and not value >= 0:
-        raise fail(key, f"the {what} must be non-negative, got {value!r}.")
-    return float(value)
-
-
-def _split(fail: _Fail, key: str, name: str, value, rule: str, fixed: dict, free: dict) -> None:
-    if isinstance(value, _PriorTable):
-        free[name] = _prior_spec(fail, key, value, name)
-    else:
-        fixed[name] = _scalar(fail, key, value, rule)
-
-
 def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
     """Build the system object and sort its parameters into fixed and free."""
     if s.type in PLANNED_SYSTEM_TYPES:
