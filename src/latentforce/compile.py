@@ -171,17 +171,19 @@ class _Jit:
         return self._jitted
 
     def __call__(self, *args, **kwargs):
-        leaves = jax.tree_util.tree_leaves((args, kwargs))
-        if self._nested is not None and any(isinstance(x, jax.core.Tracer) for x in leaves):
-            return self._nested(*args, **kwargs)
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))):
+            return self._plain()(*args, **kwargs)
         try:
             return self._get()(*args, **kwargs)
-        except ValueError as exc:  # inside another trace (possibly with concrete arguments only)
+        except ValueError as exc:  # inside another trace with concrete arguments only
             if "compiler_options" not in str(exc) or not cpu_options():
                 raise
-            if self._nested is None:
-                self._nested = jax.jit(self._fn, **self._kwargs)
-            return self._nested(*args, **kwargs)
+            return self._plain()(*args, **kwargs)
+
+    def _plain(self):
+        if self._nested is None:
+            self._nested = jax.jit(self._fn, **self._kwargs)
+        return self._nested
 
     def lower(self, *args, **kwargs):
         return self._get().lower(*args, **kwargs)

@@ -14,7 +14,7 @@ from typing import Callable
 import jax
 import numpy as np
 
-from latentforce.compile import numbers, require_x64
+from latentforce.compile import call, numbers, require_x64
 from latentforce.errors import LatentForceError
 from latentforce.estimate_particles import PGAS_AUTO_ITERATIONS, _mechanical_initial, _run_pgas  # noqa: F401
 from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_compiled, state_moments
@@ -112,7 +112,7 @@ def _run(
     y = np.asarray(dataset.values, dtype=float)
     mask = np.asarray(dataset.mask, dtype=bool)
     initial = None if problem.initial is None else Initial(*problem.initial)
-    params0 = _fixed(problem)
+    params0 = dict(problem.fixed)
     for name, spec in problem.free.items():
         params0[name] = spec.init
     _check_stable(problem, params0)
@@ -139,14 +139,6 @@ def _run(
     key_psd = jax.random.fold_in(key, 0x5D)
     result.force_psd = force_spectrum(key_psd, problem, result, params0, y, mask, dataset.dt, initial)
     return result, extras
-
-
-def _fixed(problem: Problem) -> dict:
-    """The known numbers: the config's fixed values and every sensor's configured noise level not
-    inferred (``model.noise_params``), so that the compiled programs take all of them as
-    arguments and serve every configuration of the same structure."""
-    noise = {k: v for k, v in problem.model.noise_params().items() if k not in problem.free}
-    return {**noise, **problem.fixed}
 
 
 def _mass_warning(problem: Problem, result: RunResult) -> None:
@@ -283,7 +275,7 @@ def _run_gaussian(
 ) -> RunResult:
     """``ekf`` / ``ukf``: the Gaussian smoother at fixed parameters, or random-walk Metropolis over the
     inferred ones on its approximate likelihood with the states mixed over the draws."""
-    from latentforce.inference.gaussian import for_parameters, smooth_at
+    from latentforce.inference.gaussian import for_parameters
 
     model, settings = problem.model, problem.inference
     loglik, smoother = for_parameters(
@@ -294,7 +286,7 @@ def _run_gaussian(
             key, problem, dataset, y, mask, None, common, progress, t0, extras, checkpoint, gaussian=(loglik, smoother)
         )
     y0 = np.where(mask, y, 0.0)
-    sm = smooth_at(smoother, numbers(params0), y0, mask)
+    sm = call(smoother, numbers(params0), y0, mask)
     if not np.isfinite(float(sm.log_likelihood)):
         raise LatentForceError(
             f"The {settings.method.upper()} log-likelihood is not finite for the configured "
@@ -380,7 +372,7 @@ def _run_kalman_sampler(
     out = runner(
         key_mcmc,
         model,
-        _fixed(problem),
+        dict(problem.fixed),
         free,
         y,
         mask,
@@ -404,7 +396,7 @@ def _run_kalman_sampler(
     mix = mixture_posterior(
         key_mix,
         model,
-        _fixed(problem),
+        dict(problem.fixed),
         out.draws,
         y,
         mask,

@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from latentforce.compile import Bound, jit
+from latentforce.compile import Bound
 from latentforce.inference import particle_model
 from latentforce.linalg import cho_solve, cholesky, psd_sqrt, solve, symmetrise
 
@@ -203,13 +203,6 @@ def _loglik(static, numbers, params, y, mask):
 def _smoother(static, numbers, params, y, mask, key=None):
     pm, tr, R = _build(static, numbers, params)
     return gaussian_smoother(static[0], pm, tr, y, mask, R, key)
-
-
-@jit
-def smooth_at(smoother: Bound, params: dict, y, mask) -> GaussianSmoother:
-    """``smoother(params, y, mask)`` (of :func:`for_parameters`) as one compiled program, which every
-    model of one structure and every record of one shape share (op by op, it compiled each primitive)."""
-    return smoother(params, y, mask)
 
 
 def gaussian_smoother(

@@ -148,7 +148,7 @@ class ParticleModel:
         self._Minv = inv(model.system.mass(self.params))
         self._B = model.system.input_matrix()
         self.D = self.D_latent = self._phi_force = self._mech0_user = self.mech0_mean = self.mech0_cov = None
-        (self.D, self.D_latent, self._phi_force, self._mech0_user, self.mech0_mean, self.mech0_cov) = _derived(
+        (self.D, self.D_latent, self._phi_force, self._mech0_user, self.mech0_mean, self.mech0_cov) = _derived_program(
             self, initial
         )
 
@@ -360,17 +360,11 @@ class ParticleModel:
         return A_d, tr.Q[perm][:, perm], H, m1, tr.Pinf[perm][:, perm]
 
 
-def _derived(pm: ParticleModel, initial):
+@jit
+def _derived_program(pm: ParticleModel, initial):
     """``(D, D_latent, phi_force, mech0_user, mech0_mean, mech0_cov)`` of a partly built ``pm``: one
     compiled program for every model of one structure (op by op, each primitive compiled on its own);
-    inline where ``pm`` is built inside a program (our ``jit``'s compiler options are for top-level
-    programs only: JAX refuses them on a nested one)."""
-    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((pm, initial))):
-        return _derived_of(pm, initial)
-    return _derived_program(pm, initial)
-
-
-def _derived_of(pm: ParticleModel, initial):
+    inlined where ``pm`` is built inside another program (:func:`latentforce.compile.jit`)."""
     zero_mech, zero_f = jnp.zeros(pm.nm), jnp.zeros(pm.nfx)
     D = jax.jacfwd(lambda xf: pm.model.observe(pm._gp_dummy(), jnp.concatenate([zero_mech, xf])))(zero_f)
     # Observation Jacobian in the latent (x_f, w) about rest: the proposal's linearisation
@@ -379,9 +373,6 @@ def _derived_of(pm: ParticleModel, initial):
     phi_force = jax.jacfwd(pm.phi, argnums=1)(zero_mech, zero_f)
     mech0 = pm.initial_mech(initial)
     return D, D_latent, phi_force, None if pm.stationary_start else mech0, *mech0
-
-
-_derived_program = jit(_derived_of)
 
 
 def _mv1(M, x):
