@@ -28,6 +28,7 @@ Usage::
     python benchmarks/nonlinear_calibration.py --quick   # one small case, every method (CI)
     python benchmarks/nonlinear_calibration.py           # the grid (hours on 2 cores)
     python benchmarks/nonlinear_calibration.py --methods ekf,ukf --orders 1,2
+    python benchmarks/nonlinear_calibration.py --quick --orders 0,1,2,3   # the small case at every order
 """
 
 from __future__ import annotations
@@ -272,8 +273,11 @@ def main(argv=None) -> int:
     args.max_time = args.max_time or (60.0 if args.quick else 180.0)
     cases = QUICK if args.quick else grid()
     if args.orders:
-        keep = {int(o) for o in args.orders.split(",")}
-        cases = [c for c in cases if c.order in keep]
+        keep = sorted({int(o) for o in args.orders.split(",")})
+        # quick: its small case at each order asked for; the grid: the grid's cases of those orders
+        cases = (
+            [c._replace(order=o) for o in keep for c in QUICK] if args.quick else [c for c in cases if c.order in keep]
+        )
     methods = [m.strip() for m in args.methods.split(",")]
     import tempfile
 
