@@ -29,6 +29,7 @@ Usage::
     python benchmarks/nonlinear_calibration.py           # the grid (hours on 2 cores)
     python benchmarks/nonlinear_calibration.py --methods ekf,ukf --orders 1,2
     python benchmarks/nonlinear_calibration.py --quick --orders 0,1,2,3   # the small case at every order
+    python benchmarks/nonlinear_calibration.py --quick --orders 0,1,2,3 --sensors acc   # ... acceleration only
 """
 
 from __future__ import annotations
@@ -262,6 +263,9 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="one small case (CI)")
     parser.add_argument("--methods", default="pgas,ekf,ukf")
     parser.add_argument("--orders", default=None, help="only these Matérn orders (0..3), comma-separated")
+    parser.add_argument(
+        "--sensors", default=None, help='quick mode: the small case with these sensors instead ("acc", "acc,vel", ...)'
+    )
     parser.add_argument("--max-time", type=float, default=None, help="pgas max_time (default 180; quick 60)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None)
@@ -278,6 +282,10 @@ def main(argv=None) -> int:
         cases = (
             [c._replace(order=o) for o in keep for c in QUICK] if args.quick else [c for c in cases if c.order in keep]
         )
+    if args.sensors:
+        if not args.quick:
+            parser.error("--sensors applies to --quick (the grid spans the sensor sets itself)")
+        cases = [c._replace(sensors=args.sensors) for c in cases]
     methods = [m.strip() for m in args.methods.split(",")]
     import tempfile
 

@@ -75,3 +75,14 @@ def test_a_constant_quantity_is_left_out_of_the_verdict():
 def test_monitored_times_are_spread_and_unique(T, n):
     times = convergence.monitored_times(T, n)
     assert len(times) == min(n, T) and np.all(np.diff(times) > 0) and times[-1] == T - 1
+
+
+def test_a_pgas_warning_names_a_sweep_that_hardly_switched():
+    """An unconverged pgas run whose ancestor switch rate is below LOW_SWITCH_RATE gets the likely
+    cause and what to do appended to its warning; at or above it (or unknown), nothing."""
+    from latentforce.estimate_particles import LOW_SWITCH_RATE, low_switch_advice
+
+    text = low_switch_advice(0.008)
+    assert "0.008" in text and "displacement" in text and "Matérn-1/2" in text and "\n" not in text
+    assert low_switch_advice(LOW_SWITCH_RATE) == "" and low_switch_advice(0.6) == ""
+    assert low_switch_advice(float("nan")) == ""

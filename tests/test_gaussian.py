@@ -203,3 +203,33 @@ def test_variances_fifteen_orders_apart_keep_the_unscented_smoother_stable():
         assert 100 * np.mean((mean - truth) ** 2) / np.var(truth) < 1.0, kind
         assert np.mean(np.abs(mean - truth) < 3 * sd) > 0.95, kind
         assert np.all(np.isfinite(np.asarray(out.path)))
+
+
+def test_a_smoother_that_breaks_down_is_an_error_not_a_nan_posterior(tmp_path, monkeypatch):
+    """A Gaussian smoother whose log-likelihood is finite but whose moments are not (seen with
+    ``ukf`` at Matérn-7/2) stops with a one-paragraph error naming the method, the state and the
+    config; nothing is written. The breakdown is injected: no fixed case triggers it reliably."""
+    from typer.testing import CliRunner
+
+    from latentforce import estimate
+    from latentforce.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    runner = CliRunner()
+    (tmp_path / "ukf.toml").write_text(DUFFING_CONFIG.format(c=0.5, method="ukf", extra=""))
+    r = runner.invoke(app, ["simulate", "ukf.toml", "--out", "data.csv", "--duration", "2", "--sample-rate", "50"])
+    assert r.exit_code == 0, r.output
+    real = estimate._smoothed_moments
+
+    def broken(*args, **kwargs):
+        mean, sd = real(*args, **kwargs)
+        sd = dict(sd)
+        sd["force"] = np.full_like(sd["force"], np.nan)
+        return mean, sd
+
+    monkeypatch.setattr(estimate, "_smoothed_moments", broken)
+    r = runner.invoke(app, ["estimate", "ukf.toml", "--out", "out"])
+    assert r.exit_code != 0
+    assert "UKF smoother broke down" in r.output and "force" in r.output and "ukf.toml" in r.output
+    assert "Traceback" not in r.output
+    assert not (tmp_path / "out").exists()

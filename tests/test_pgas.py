@@ -516,13 +516,15 @@ def test_lowfreq_move_matches_exact_conditional():
     )
 
 
-@pytest.mark.parametrize("kernel,acc_only", [(Matern(0), True), (Matern(1), False)])
+@pytest.mark.parametrize(
+    "kernel,acc_only", [(Matern(0), True), (Matern(1), False), (Matern(2), False), (Matern(3), True)]
+)
 def test_residual_move_matches_exact_conditional(kernel, acc_only):
     """The residual-preserving move alone, from dispersed starts, vs its exact Gaussian target.
 
     Linear SDOF at fixed theta; acceleration samples 10-14 missing (the map
     keeps a virtual residual there). Matérn-1/2 with acceleration only, and
-    Matérn-3/2 (the force's derivative state held) with the displacement
+    Matérn-3/2 (the force's derivative state following the force value) with the displacement
     channel too, whose residuals the move changes. The model being linear, the
     map from the move's coordinates c to the path is affine, so the log target
     is quadratic in c: its exact mean and covariance follow from its gradient
@@ -541,14 +543,25 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
     assert rm.applies and list(rm.rows) == [1] and list(rm.cols) == [0]
     g_start = 2.0 * latent.gp_prior_path(jax.random.key(4), tr, T)
     start = pm.path(g_start.at[0, pm.nfx :].set(jnp.array([0.3, -1.0]) - pm.mech0_mean))
-    build = rm.builder(pm, od, start)
+    build = rm.builder(pm, od, tr, start)
     c0 = jnp.zeros(rm.dim)
     assert np.allclose(build(c0)[1], start, atol=1e-9)
-    # the map keeps the acceleration residuals (and the force's derivative states)
+    # the map keeps the acceleration residuals
     moved = build(jax.random.normal(jax.random.key(1), (rm.dim,)))[1]
     resid = lambda x: prob["y"][:, 1] - jax.vmap(pm._observe)(x[:, : pm.nm], x[:, pm.nm :])[:, 1]  # noqa: E731
     assert np.allclose(np.where(mask[:, 1], resid(moved) - resid(start), 0.0), 0.0, atol=1e-9)
-    assert np.allclose(moved[:, pm.nm + 1 :], start[:, pm.nm + 1 :])
+    if pm.nfx > 1:
+        # and the remainders of the derivative states' innovations after the force prior's
+        # filter gains on the force value (ResidualMove), not the derivative states themselves
+        K = np.asarray(path_moves._value_gains(tr, np.array([0]), np.arange(1, pm.nfx), T))
+
+        def remainders(x):
+            xf = np.asarray(pm.latent(x))[:, : pm.nfx]
+            e = np.concatenate([xf[:1], xf[1:] - xf[:-1] @ np.asarray(tr.A)[: pm.nfx, : pm.nfx].T])
+            return e[:, 1:] - np.einsum("tbu,tu->tb", K, e[:, :1])
+
+        np.testing.assert_allclose(remainders(moved), remainders(start), atol=1e-9 * np.abs(remainders(start)).max())
+        assert not np.allclose(moved[:, pm.nm + 1 :], start[:, pm.nm + 1 :])
     assert np.max(np.abs(moved[:, 0] - start[:, 0])) > 1e-3
 
     def functionals(path):
@@ -570,11 +583,15 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
         return lp - 0.5 * jnp.sum(r**2 / jnp.diag(pm.R))
 
     prec_ss = -np.asarray(jit(jax.hessian(state_space_density))(c0))
-    np.testing.assert_allclose(prec_ss, prec, rtol=1e-5, atol=1e-6 * np.abs(prec).max())
+    # Matérn-7/2: the state-space form solves with Q_d of condition 2e20 (3e17 at 5/2, 5e12
+    # at 3/2: the force states and the within-step noise are driven by one white noise), so
+    # the two agree to 8e-5 there, not 1e-5
+    rtol = 1e-5 if pm.nfx < 4 else 3e-4
+    np.testing.assert_allclose(prec_ss, prec, rtol=rtol, atol=1e-6 * np.abs(prec).max())
     np.testing.assert_allclose(
         np.linalg.solve(prec_ss, np.asarray(jax.grad(state_space_density)(c0))),
         c_mean,
-        atol=1e-5 * np.sqrt(np.diag(cov)).max(),
+        atol=rtol * np.sqrt(np.diag(cov)).max(),
     )
     J = np.asarray(jit(jax.jacfwd(lambda c: functionals(build(c)[1])))(c0))
     exact_mean = np.asarray(functionals(build(jnp.asarray(c_mean))[1]))

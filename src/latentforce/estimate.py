@@ -293,6 +293,15 @@ def _run_gaussian(
             f"model in {problem.config_path}: check the parameter values and units."
         )
     state_mean, state_sd = _smoothed_moments(problem, params0, sm.means, sm.covs)
+    bad = [n for n in state_mean if not (np.all(np.isfinite(state_mean[n])) and np.all(np.isfinite(state_sd[n])))]
+    if bad:
+        raise LatentForceError(
+            f"The {settings.method.upper()} smoother broke down numerically on {problem.config_path}: "
+            f"its posterior of {', '.join(bad)} is not finite (NaN or inf) although its log-likelihood "
+            f"is. Nothing was written. A smooth force kernel with a short lengthscale against the sample "
+            f"interval makes the smoother's covariances very ill-conditioned: try a lower Matérn order "
+            f'or method = "pgas".'
+        )
     return RunResult(
         method=settings.method,
         state_mean=state_mean,

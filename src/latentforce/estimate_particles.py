@@ -20,6 +20,24 @@ from latentforce.results import RunResult, summarise_parameters
 PGAS_AUTO_ITERATIONS = 50_000
 
 
+#: below this mean ancestor switch rate an unconverged pgas run's warning says why (docs/nonlinear.md:
+#: 0.08 / 0.008 / 0.0002 at Matérn-3/2 / 5/2 / 7/2 on an acceleration-only Duffing record that did
+#: not converge; 0.6 on the paper's Matérn-1/2 case that does)
+LOW_SWITCH_RATE = 0.1
+
+
+def low_switch_advice(switch_rate: float) -> str:
+    """What an unconverged pgas run's warning adds when its sweep hardly renewed the path ("" if not)."""
+    if not switch_rate < LOW_SWITCH_RATE:
+        return ""
+    return (
+        f" The particle sweep hardly renewed the path (ancestor switch rate {switch_rate:.3f}); running "
+        "longer helps little then. This is the known weakness of a smooth force (Matérn-3/2 or "
+        "smoother) on a nonlinear system seen without a displacement channel (docs/nonlinear.md): "
+        "add a displacement sensor if one can be had, or compare with a Matérn-1/2 force model."
+    )
+
+
 def _label_times(record: dict, time: np.ndarray) -> dict:
     """A convergence record with ``name[t=index]`` relabelled ``name[t=time]``."""
     import re
@@ -174,7 +192,8 @@ def _run_pgas(
     record = _label_times(record, np.asarray(dataset.time))
     message = convergence.warning_message(record, "pgas")
     if message:
-        diagnostics.setdefault("warnings", []).append(message)
+        switch = float(np.mean(out.switch_rate)) if np.size(out.switch_rate) else float("nan")
+        diagnostics.setdefault("warnings", []).append(message + low_switch_advice(switch))
     truth = common["truth"]
     if truth:
         from latentforce.results import coverage
