@@ -83,6 +83,7 @@ def test_a_pgas_warning_names_a_sweep_that_hardly_switched():
     from latentforce.estimate_particles import LOW_SWITCH_RATE, low_switch_advice
 
     text = low_switch_advice(0.008)
-    assert "0.008" in text and "displacement" in text and "Matérn-1/2" in text and "\n" not in text
+    assert "0.008" in text and "displacement" in text and "Matérn-1/2" in text and "ukf" in text
+    assert "\n" not in text
     assert low_switch_advice(LOW_SWITCH_RATE) == "" and low_switch_advice(0.6) == ""
     assert low_switch_advice(float("nan")) == ""

@@ -34,7 +34,9 @@ def low_switch_advice(switch_rate: float) -> str:
         f" The particle sweep hardly renewed the path (ancestor switch rate {switch_rate:.3f}); running "
         "longer helps little then. This is the known weakness of a smooth force (Matérn-3/2 or "
         "smoother) on a nonlinear system seen without a displacement channel (docs/nonlinear.md): "
-        "add a displacement sensor if one can be had, or compare with a Matérn-1/2 force model."
+        "add a displacement sensor if one can be had, or compare with a Matérn-1/2 force model; with a "
+        'displacement channel, method = "ukf" gave calibrated bands on our smooth-force Duffing cases '
+        "(benchmarks/results/nonlinear_calibration_orders.md)."
     )
 
 
