@@ -374,8 +374,9 @@ def _value_gains(tr: particle_model.Transition, cols, b, T: int) -> Float[Array,
     x_{f,t-1})_u) + h_t` is then a stable recursion (closed-loop spectral radius
     0.27 / 0.43 / 0.54 for Matérn-3/2 / 5/2 / 7/2 at :math:`\lambda\Delta t \le
     0.2`). The one-step regression on :math:`Q` alone (:math:`P_{t-1}` taken as
-    exact) is not: radius 0.5, 2.1 and 5.9, and a rebuild from round-off exploded
-    to 1e33 over 60 samples. Computed on the correlation scale with a ridge of
+    exact) has radius 0.5, 2.1 and 5.9 on the force values (unstable from 5/2 on);
+    regressed on the values and :math:`w` together it rebuilt an unchanged Matérn-3/2
+    path into 1e33 from round-off over 60 samples. Computed on the correlation scale with a ridge of
     1e-12: any fixed gains give the move a constant Jacobian, so the ridge costs no
     exactness.
     """
