@@ -553,11 +553,12 @@ def test_residual_move_matches_exact_conditional(kernel, acc_only):
     if pm.nfx > 1:
         # and the remainders of the derivative states' innovations after the force prior's
         # filter gains on the force value (ResidualMove), not the derivative states themselves
-        K = np.asarray(path_moves._value_gains(tr, np.array([0]), np.arange(1, pm.nfx), T))
+        K = np.asarray(path_moves._value_gains(tr, pm.latent_layout.force, np.array([0]), np.arange(1, pm.nfx), T))
 
         def remainders(x):
-            xf = np.asarray(pm.latent(x))[:, : pm.nfx]
-            e = np.concatenate([xf[:1], xf[1:] - xf[:-1] @ np.asarray(tr.A)[: pm.nfx, : pm.nfx].T])
+            f = pm.latent_layout.force
+            xf = np.asarray(pm.latent(x))[:, f]
+            e = np.concatenate([xf[:1], xf[1:] - xf[:-1] @ np.asarray(tr.A)[f, f].T])
             return e[:, 1:] - np.einsum("tbu,tu->tb", K, e[:, :1])
 
         np.testing.assert_allclose(remainders(moved), remainders(start), atol=1e-9 * np.abs(remainders(start)).max())

@@ -296,17 +296,19 @@ class ResidualMove:
         # they were slow on CPU)
         to_u = jnp.zeros((nfx, len(cols))).at[cols, jnp.arange(len(cols))].set(1.0)
         to_b = jnp.zeros((nfx, len(b))).at[b, jnp.arange(len(b))].set(1.0)
-        Af = tr.A[:nfx, :nfx]  # the force block's own transition (it does not see w)
-        K = _value_gains(tr, cols, b, path.shape[0])
+        Af = tr.A[lay.force, lay.force]  # the force block's own transition (it does not see w)
+        K = _value_gains(tr, lay.force, cols, b, path.shape[0])
         # at t = 1 the derivatives' regression on the force values *and* the initial offset w_1
         # under the whole initial state's prior (a linear system's joint stationary start
         # correlates them with the mechanical states): one step, no recursion to destabilise
-        a1 = np.concatenate([cols, np.arange(nfx, pm.nl)])
-        K1 = _regression(tr.Pinf, a1, b)
+        idx = np.arange(pm.nl)
+        a1 = np.concatenate([idx[lay.force][cols], idx[lay.noise]])
+        b1 = idx[lay.force][b]
+        K1 = _regression(tr.Pinf, a1, b1)
         # the remainders h_t = e_b,t - K_t e_u,t of the path's force innovations (e_1 = g_1)
         e0 = jnp.concatenate([xf0[:1], xf0[1:] - xf0[:-1] @ Af.T])
         h = e0[:, b] - jnp.einsum("tbu,tu->tb", K, e0[:, cols])
-        h = h.at[0].set(g0[0, b] - K1 @ g0[0, a1]) if len(b) else h
+        h = h.at[0].set(g0[0, b1] - K1 @ g0[0, a1]) if len(b) else h
 
         def _values(mech, target_t):
             # products as broadcast-multiply-sums: XLA fuses them (a dot per step,
@@ -364,9 +366,10 @@ def _regression(S: Float[Array, "n n"], a, b) -> Float[Array, "nb na"]:
     return Gc * d[b][:, None] / d[a][None, :]
 
 
-def _value_gains(tr: particle_model.Transition, cols, b, T: int) -> Float[Array, "T nb nu"]:
+def _value_gains(tr: particle_model.Transition, force: slice, cols, b, T: int) -> Float[Array, "T nb nu"]:
     r"""Gains :math:`K_t` of the force's other states ``b`` on its values ``cols``, :math:`t = 1..T`.
 
+    ``cols`` and ``b`` index the force states (the latent's ``force`` slice).
     The Kalman filter of the force's prior (its block of ``tr``: :math:`x_{f,1}
     \sim N(0, P_\infty)`, :math:`x_{f,t} = A x_{f,t-1} + q_t`) observing the
     force values exactly at every step: :math:`K_t = P_{bu} P_{uu}^{-1}` of its
@@ -380,10 +383,9 @@ def _value_gains(tr: particle_model.Transition, cols, b, T: int) -> Float[Array,
     1e-12: any fixed gains give the move a constant Jacobian, so the ridge costs no
     exactness.
     """
-    nfx = len(cols) + len(b)
     if len(b) == 0:
         return jnp.zeros((T, 0, len(cols)))
-    Af, Qf, P1 = tr.A[:nfx, :nfx], tr.Q[:nfx, :nfx], tr.Pinf[:nfx, :nfx]
+    Af, Qf, P1 = tr.A[force, force], tr.Q[force, force], tr.Pinf[force, force]
     ridge = 1e-12 * jnp.eye(len(cols))
 
     def gain_and_update(P):
