@@ -386,16 +386,12 @@ def _value_gains(tr: particle_model.Transition, force: slice, cols, b, T: int) -
     if len(b) == 0:
         return jnp.zeros((T, 0, len(cols)))
     Af, Qf, P1 = tr.A[force, force], tr.Q[force, force], tr.Pinf[force, force]
-    ridge = 1e-12 * jnp.eye(len(cols))
+    every = np.arange(len(cols) + len(b))
 
     def gain_and_update(P):
-        d = jnp.sqrt(jnp.diagonal(P))
-        d = jnp.where(d > 0.0, d, 1.0)
-        C = P / (d[:, None] * d[None, :])
         # conditioning on the values: the rows of every state on them, then the update
-        Kc = solve(C[np.ix_(cols, cols)] + ridge, C[cols, :]).T * d[:, None] / d[cols][None, :]
-        Pf = symmetrise(P - Kc @ P[cols, :])
-        return Kc[b], Pf
+        Kc = _regression(P, cols, every)
+        return Kc[b], symmetrise(P - Kc @ P[cols, :])
 
     K1, Pf1 = gain_and_update(P1)
 
