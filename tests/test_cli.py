@@ -208,11 +208,11 @@ def test_every_sampling_method_writes_a_result_folder_with_its_verdict(workdir, 
     assert {"max_r_hat", "min_ess_bulk", "min_ess_tail", "worst", "target_ess"} <= set(record)
     assert record["worst"] and record["min_ess_bulk"] < 400
     assert {"mean", "sd", "r_hat", "ess_bulk"} <= set(summary["parameters"]["force_variance"])
-    if method == "pgas":  # a sweep that hardly switched ancestors is named as the likely cause
-        from latentforce.estimate_particles import LOW_SWITCH_RATE
+    if method == "pgas":  # a path that neither the sweep nor the smoother move renewed is named as the cause
+        from latentforce.estimate_particles import LOW_SMOOTHER_ACCEPTANCE, LOW_SWITCH_RATE
 
-        rates = summary["diagnostics"]["switch_rate"]
-        low = sum(rates) / len(rates) < LOW_SWITCH_RATE
+        rates, accepted = summary["diagnostics"]["switch_rate"], summary["diagnostics"]["acceptance_smoother"]
+        low = sum(rates) / len(rates) < LOW_SWITCH_RATE and sum(accepted) / len(accepted) < LOW_SMOOTHER_ACCEPTANCE
         assert ("hardly renewed the path" in " ".join(summary["diagnostics"]["warnings"])) == low
     header = (workdir / "res" / "summary.csv").read_text().splitlines()[0].split(",")
     assert header[:3] == ["time", "displacement_mean", "displacement_sd"] and "force_sd" in header

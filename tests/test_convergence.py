@@ -78,12 +78,17 @@ def test_monitored_times_are_spread_and_unique(T, n):
 
 
 def test_a_pgas_warning_names_a_sweep_that_hardly_switched():
-    """An unconverged pgas run whose ancestor switch rate is below LOW_SWITCH_RATE gets the likely
-    cause and what to do appended to its warning; at or above it (or unknown), nothing."""
-    from latentforce.estimate_particles import LOW_SWITCH_RATE, low_switch_advice
+    """An unconverged pgas run whose ancestor switch rate is below LOW_SWITCH_RATE, and whose smoother
+    move did not renew the path either, gets the likely cause and what to do appended to its warning;
+    otherwise (or with the rate unknown), nothing."""
+    from latentforce.estimate_particles import LOW_SMOOTHER_ACCEPTANCE, LOW_SWITCH_RATE, low_switch_advice
 
-    text = low_switch_advice(0.008)
+    text = low_switch_advice(0.008, 0.0)
     assert "0.008" in text and "displacement" in text and "Matérn-1/2" in text and "ukf" in text
+    assert "smoother move (acceptance 0.000)" in text
     assert "\n" not in text
-    assert low_switch_advice(LOW_SWITCH_RATE) == "" and low_switch_advice(0.6) == ""
+    assert low_switch_advice(LOW_SWITCH_RATE, 0.0) == "" and low_switch_advice(0.6, 0.0) == ""
     assert low_switch_advice(float("nan")) == ""
+    # the smoother move renewed the path: the sweep's low rate is not the cause
+    assert low_switch_advice(0.008, LOW_SMOOTHER_ACCEPTANCE) == "" and low_switch_advice(0.008, 0.9) == ""
+    assert low_switch_advice(0.008) != ""  # acceptance unknown (no move): the advice stands

@@ -8,7 +8,7 @@ from test_smc import linear_problem
 
 import latentforce  # noqa: F401
 from latentforce.compile import jit
-from latentforce.inference import hyper_moves, latent, path_moves, pgas, pgas_start, smc
+from latentforce.inference import hyper_moves, latent, path_moves, pgas, pgas_start, smc, smoother_move
 from latentforce.inference.kalman import kalman_smoother
 from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor
@@ -740,7 +740,7 @@ def _joint_statistics(pm, tr, mask, x, y):
     )
 
 
-@pytest.mark.parametrize("kind", ["sweep", "sweep-bootstrap", "residual", "lowfreq"])
+@pytest.mark.parametrize("kind", ["sweep", "sweep-bootstrap", "residual", "lowfreq", "smoother"])
 def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joint, kind):
     """Geweke's joint-distribution check of each path move on a nonlinear model, where no exact
     posterior is available: if (x, y) is drawn from the model and x' from a kernel that leaves
@@ -748,14 +748,16 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
     E[f(x', y) - f(x, y)] = 0. The paired differences over 2000 independent draws must have
     mean zero within 4.5 standard errors.
 
-    Covered here and nowhere else: the sweep's second-stage weights (the optimal proposal
+    Covered here and nowhere else: the smoother move's weight on a nonlinear model (its centre the
+    extended Kalman smoother, a function of y alone), the sweep's second-stage weights (the optimal proposal
     linearises the stiffness about rest) and its tangent-linear ancestor weights, and the
     residual-preserving rebuild through the cubic stiffness (the move's shape comes from the
     extended Kalman smoother: a function of y alone, so the kernel is a fixed one given y).
     Measured by breaking the code (largest |z|): the ancestor weights without the filter
     weights (the published code's error) 83 on the bootstrap sweep; without the future-data
     term Delta 23 (optimal) and 31 (bootstrap); without the second-stage weights 7 (optimal);
-    the residual and low-frequency moves with their prior term scaled by 0.9, 17 and 9. A 10 %
+    the residual and low-frequency moves with their prior term scaled by 0.9, 17 and 9; the
+    smoother move with the expanded likelihood in its weight scaled by 0.9, 11. A 10 %
     tempering of a move's likelihood is below this test's resolution (|z| < 4).
     """
     pm, tr, mask, xs, ys = duffing_joint
@@ -776,7 +778,9 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
             return x, jnp.mean(switched)  # the ancestor switch rate
         od = latent.observation_density(pm, y, mask)
         eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
-        if kind == "residual":
+        if kind == "smoother":
+            x, acc = smoother_move.smoother_move(key, pm, tr, od, pm.R, eks, x, 5)
+        elif kind == "residual":
             init = path_moves.residual_init(rm, pm, od, tr, eks)
             _, x, acc = path_moves.residual_move(key, init, rm, pm, od, tr, x, 30, adapt=False)
         else:
@@ -871,6 +875,7 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
             jnp.zeros(()),
             jnp.zeros((n_draws + 1, T, pm.n_state)),
             jnp.asarray(sched.thin, jnp.int32),
+            centre=eks,
         )
         return state, pgas.BlockData(y, mask, pm.R, od, jnp.zeros((T, nq)))
 
@@ -891,8 +896,8 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
     # it moves: theta, the path, and every kind of step accepts
     assert np.mean(np.any(np.abs(np.asarray(end.rwm.x - states.rwm.x)) > 0, axis=1)) > 0.8
     assert np.mean(np.any(np.abs(np.asarray(end.reference - states.reference)) > 0, axis=(1, 2))) > 0.9
-    for a in (info.accept, info.accept_noncentred, info.accept_lowfreq, info.accept_residual):
-        rates = (info.accept, info.accept_noncentred, info.accept_lowfreq, info.accept_residual)
+    rates = (info.accept, info.accept_noncentred, info.accept_lowfreq, info.accept_residual, info.accept_smoother)
+    for a in rates:
         assert float(jnp.mean(a)) > 0.1, [float(jnp.mean(a_)) for a_ in rates]
     # the carried transition is the one at the final theta
     tr_end = jax.vmap(lambda x: pm.transition(*hyper.values(x)))(end.rwm.x[:5])

@@ -115,6 +115,7 @@ def test_the_verdict_waits_for_the_noise_levels():
         mon,
         noise,
         np.ones((chains, blocks, 1)),
+        z,
     )
     hyper = Hyper(PARAMS, {"force_variance": (LogNormal(0.0, 1.0), 1.0)})
     pm = SimpleNamespace(ndof=1, nforce=1)
@@ -275,7 +276,7 @@ def test_pgas_with_an_inferred_noise_restored_in_process_draws_the_same(tmp_path
 @pytest.mark.slow
 def test_gibbs_block_with_an_inferred_noise_keeps_the_joint_distribution():
     """Geweke's joint check of the whole Gibbs block (:func:`pgas_block.make_block`: sweep,
-    low-frequency and residual-preserving moves, the noise step) on the stiffening Duffing model
+    smoother, low-frequency and residual-preserving moves, the noise step) on the stiffening Duffing model
     of tests/test_pgas.py with the acceleration noise inferred: (s, x, y) from the joint prior,
     three blocks given y, and the paired differences of statistics of (s, x, y) must have mean
     zero within 4.5 standard errors over 2000 draws. Unbroken: |z| <= 2.3 over the 11 statistics;
@@ -333,6 +334,7 @@ def test_gibbs_block_with_an_inferred_noise_keeps_the_joint_distribution():
             jnp.zeros((sched.n_draws + 1, T, pm.n_state)),
             jnp.asarray(sched.thin, jnp.int32),
             sd**2,
+            eks,  # the smoother move's centre (its noise covariance: the chain's own)
         )
         return state, pgas_block.BlockData(y, mask, pm.R, od, jnp.zeros((T, nq)))
 
@@ -368,6 +370,7 @@ def test_gibbs_block_with_an_inferred_noise_keeps_the_joint_distribution():
 
     d = np.asarray(jax.vmap(stats)(end, data.y) - jax.vmap(stats)(states, data.y))
     assert float(jnp.mean(info.accept_noise)) > 0.5
+    assert float(jnp.mean(info.accept_smoother)) > 0.1  # the smoother move, at the chain's noise, moves
     assert np.all(np.asarray(end.noise_var[:, 0]) == _JOINT_NOISE[0] ** 2)
     assert np.mean(np.asarray(end.noise_var[:, 1]) != np.asarray(states.noise_var[:, 1])) > 0.9
     z = d.mean(0) / (d.std(0, ddof=1) / np.sqrt(d.shape[0]))

@@ -22,21 +22,26 @@ PGAS_AUTO_ITERATIONS = 50_000
 
 #: below this mean ancestor switch rate an unconverged pgas run's warning says why (docs/nonlinear.md:
 #: 0.08 / 0.008 / 0.0002 at Matérn-3/2 / 5/2 / 7/2 on an acceleration-only Duffing record that did
-#: not converge; 0.6 on the paper's Matérn-1/2 case that does)
+#: not converge; 0.6 on the paper's Matérn-1/2 case that does) ...
 LOW_SWITCH_RATE = 0.1
+#: ... unless the smoother move renewed the path instead (acceptance 0.5-1 with a displacement
+#: channel, where 5/2 and 7/2 converge at switch rates of 0.01 and 5e-5; 0 with acceleration alone)
+LOW_SMOOTHER_ACCEPTANCE = 0.05
 
 
-def low_switch_advice(switch_rate: float) -> str:
-    """What an unconverged pgas run's warning adds when its sweep hardly renewed the path ("" if not)."""
-    if not switch_rate < LOW_SWITCH_RATE:
+def low_switch_advice(switch_rate: float, smoother_acceptance: float = float("nan")) -> str:
+    """What an unconverged pgas run's warning adds when neither its sweep nor its smoother move
+    renewed the path ("" if not)."""
+    if not switch_rate < LOW_SWITCH_RATE or smoother_acceptance >= LOW_SMOOTHER_ACCEPTANCE:
         return ""
     return (
-        f" The particle sweep hardly renewed the path (ancestor switch rate {switch_rate:.3f}); running "
-        "longer helps little then. This is the known weakness of a smooth force (Matérn-3/2 or "
-        "smoother) on a nonlinear system seen without a displacement channel (docs/nonlinear.md): "
-        "add a displacement sensor if one can be had, or compare with a Matérn-1/2 force model; with a "
-        'displacement channel, method = "ukf" gave calibrated bands on our smooth-force Duffing cases '
-        "(benchmarks/results/nonlinear_calibration_orders.md)."
+        f" The particle sweep hardly renewed the path (ancestor switch rate {switch_rate:.3f}), nor did "
+        f"the smoother move (acceptance {smoother_acceptance:.3f}); running longer helps little then. "
+        "This is the known weakness of a smooth force (Matérn-3/2 or smoother) on a nonlinear system "
+        "seen without a displacement channel (docs/nonlinear.md): add a displacement sensor if one can "
+        "be had (with one, pgas converged and was calibrated at every Matérn order on our Duffing "
+        "cases, benchmarks/results/nonlinear_calibration_orders.md), or compare with a Matérn-1/2 "
+        'force model and with method = "ukf".'
     )
 
 
@@ -195,7 +200,9 @@ def _run_pgas(
     message = convergence.warning_message(record, "pgas")
     if message:
         switch = float(np.mean(out.switch_rate)) if np.size(out.switch_rate) else float("nan")
-        diagnostics.setdefault("warnings", []).append(message + low_switch_advice(switch))
+        smoother = out.diagnostics.get("acceptance_smoother")
+        smoother = float(np.mean(smoother)) if smoother else float("nan")
+        diagnostics.setdefault("warnings", []).append(message + low_switch_advice(switch, smoother))
     truth = common["truth"]
     if truth:
         from latentforce.results import coverage

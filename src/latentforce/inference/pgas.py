@@ -1,7 +1,8 @@
 r"""Blocked particle Gibbs for joint input-state-hyperparameter estimation (Algorithm 5, Vibration 2020).
 
 Each Gibbs block is one PGAS sweep (:mod:`latentforce.inference.smc`) for the
-trajectory :math:`x_{1:T}` given :math:`\theta`, then ``state_every``
+trajectory :math:`x_{1:T}` given :math:`\theta` (with the smoother,
+low-frequency and residual-preserving path moves after it), then ``state_every``
 iterations of Metropolis-within-Gibbs for the GP hyperparameters
 :math:`\theta \subseteq \{\sigma_f^2, \ell\}` given the trajectory
 (Eq. 23-25), each of ``mh_steps`` random-walk steps. Because the mechanical
@@ -48,7 +49,7 @@ import numpy as np
 from jaxtyping import Array
 
 from latentforce.compile import jit
-from latentforce.inference import convergence, noise_gibbs, particle_model
+from latentforce.inference import convergence, noise_gibbs, particle_model, smoother_move
 from latentforce.inference.hyper_moves import Hyper, init_proposal
 from latentforce.inference.latent import observation_density
 from latentforce.inference.path_moves import (
@@ -145,6 +146,7 @@ def run_pgas(
     lowfreq_steps: int = 5,
     residual_modes: int = 16,
     residual_steps: int = 60,
+    smoother_steps: int = 1,
     channels=None,
     target_ess: float = 400.0,
     max_time: float = 600.0,
@@ -177,7 +179,15 @@ def run_pgas(
     residual-preserving steps (:func:`residual_move`; 0 disables; skipped
     when no channel sees the force) move the ``residual_modes`` slowest
     modes of the mechanical within-step noise, the force following so that
-    the acceleration predictions are kept. ``initial = (mean, sd)`` or ``(mean, cov)`` of
+    the acceleration predictions are kept. Before those, right after the
+    sweep, ``smoother_steps`` independence Metropolis-Hastings steps
+    (:mod:`latentforce.inference.smoother_move`; 0 disables) propose whole
+    paths from the linearised model's smoother about each chain's centre
+    (Gauss-Newton from the extended Kalman smoother, for nonlinear systems
+    re-set from the chain's path where the path moves are re-shaped in the
+    burn-in): exact draws for a linear system, and most proposals accepted
+    where the posterior is close to Gaussian (a displacement channel), which
+    the sweep of a smooth force no longer renews. ``initial = (mean, sd)`` or ``(mean, cov)`` of
     the initial mechanical state, else the default of :class:`particle_model.ParticleModel`
     (linear systems: the joint stationary start at the current hyperparameters). ``progress(done,
     total, accept_rate)`` is called between scan chunks.
@@ -260,6 +270,7 @@ def run_pgas(
         interweave=bool(interweave),
         lowfreq_steps=int(lowfreq_steps),
         residual_steps=int(residual_steps),
+        smoother_steps=int(smoother_steps),
     )
     make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, noise=noise, **block_settings)
     block_static = dict(
@@ -274,8 +285,11 @@ def run_pgas(
         return np.broadcast_to(np.asarray(a), (chains,) + np.shape(a))
 
     lfs, rps = _shapes(pm, rm, basis, od, jax.tree_util.tree_map(per_chain, tr0), per_chain(eks), with_rp=with_rp)
+    with_sm = int(smoother_steps) > 0
+    one = jax.tree_util.tree_map(lambda a: a[None], (tr0, eks))
+    centres = per_chain(_centres(pm, od, R, *one, iterations=_centre_iterations(pm))[0]) if with_sm else None
     states = _init_chains(
-        pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rps, R, chains=int(chains), sched=sched
+        pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rps, R, centres, chains=int(chains), sched=sched
     )
 
     n_blocks = sched.n_blocks
@@ -304,6 +318,10 @@ def run_pgas(
             states = states._replace(
                 rwm_lf=_with_scale_of(lfs, states.rwm_lf), rwm_rp=_with_scale_of(rps, states.rwm_rp)
             )
+            if with_sm:  # the smoother move's centre: Gauss-Newton from each chain's own path
+                states = states._replace(
+                    centre=_centres(pm, od, R, states.tr, states.reference, iterations=_centre_iterations(pm))
+                )
         if auto:
             states = fit_draws(states, end - sched.burn_blocks, sched.n_draws)
         states, info = _run_chunk(
@@ -395,15 +413,28 @@ def _shapes(pm, rm, basis, od, trs, paths, *, with_rp):
     return jax.vmap(lambda tr_, x_: path_move_shapes(pm, rm, basis, od, tr_, x_, with_rp))(trs, paths)
 
 
+def _centre_iterations(pm) -> int:
+    """Gauss-Newton iterations for the smoother move's centre: none for a linear system (its
+    expansion is exact about any path), else :data:`smoother_move.CENTRE_ITERATIONS`."""
+    return 0 if pm.is_linear else smoother_move.CENTRE_ITERATIONS
+
+
+@functools.partial(jit, static_argnames=("iterations",))
+def _centres(pm, od, R, trs, paths, *, iterations):
+    """The smoother move's centres (:func:`smoother_move.iterated_centre`) from ``paths``, one per
+    transition in ``trs`` (leading axis)."""
+    return jax.vmap(lambda tr, x: smoother_move.iterated_centre(pm, tr, od, R, x, iterations))(trs, paths)
+
+
 @functools.partial(jit, static_argnames=("chains", "sched"))
-def _init_chains(pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rps, R, *, chains, sched):
+def _init_chains(pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rps, R, centres, *, chains, sched):
     """Every chain's first :class:`ChainState`, from the smoother's path moved by its own dispersion."""
     frame0 = LowFrequencyFrame(tr0, basis)
     T, nq = eks.shape[0], pm.layout.n_mech + pm.nforce  # displacement, velocity, force columns
     # every chain starts from the configured (initial) noise levels; None: none inferred
     var0 = noise_gibbs.initial_variances(noise, R) if noise.channels else None
 
-    def _init_chain(ck, x, tr, lf, rp):
+    def _init_chain(ck, x, tr, lf, rp, centre):
         k_path, k_run = jax.random.split(ck)
         ref = dispersed_start(k_path, pm, frame0, lf, eks)
         # the log density is set at the first block
@@ -423,9 +454,10 @@ def _init_chains(pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rp
             jnp.zeros((sched.n_draws + 1, T, pm.n_state)),
             jnp.asarray(sched.thin, jnp.int32),
             var0,
+            centre,
         )
 
-    return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps)
+    return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps, centres)
 
 
 @functools.partial(jit, static_argnames=("sched", "tpoints", "mpoints", "settings"))

@@ -11,6 +11,16 @@ Gibbs update of each inferred noise variance (:mod:`latentforce.inference.noise_
 :func:`reshape_chunks` its segments; the driver that vmaps and scans the block is
 :func:`latentforce.inference.pgas.run_pgas`.
 
+**Smoother move.** Right after the sweep, ``smoother_steps`` independence
+Metropolis-Hastings steps whose proposal is the smoother of the model
+linearised about the chain's centre path
+(:mod:`latentforce.inference.smoother_move`): for a smooth force (Matérn-5/2,
+7/2) the sweep's ancestor weights collapse and it hardly renews the path,
+while with a displacement channel this move accepts most of its proposals,
+each a whole new path. Its random numbers come from the chain's key folded
+with :data:`~latentforce.inference.smoother_move.SMOOTHER_STREAM`. A state
+without a centre (``centre=None``) skips it.
+
 **Low-frequency trajectory move.** With acceleration-only data the weakly
 observed direction of the path is a slow, coherent shift of force and
 displacement (:math:`\delta u \approx k\,\delta z` leaves the acceleration
@@ -88,7 +98,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from latentforce.inference import mcmc, noise_gibbs, particle_model, smc
+from latentforce.inference import mcmc, noise_gibbs, particle_model, smc, smoother_move
 from latentforce.inference.hyper_moves import (
     _RESHAPE_AT,
     Hyper,
@@ -134,6 +144,8 @@ class ChainState(NamedTuple):
     # every channel's noise variance (SI): the inferred ones drawn (noise_gibbs), the others as
     # configured; None where no noise level is inferred (then the block uses BlockData.R)
     noise_var: Float[Array, " d"] | None = None
+    # the smoother move's centre path (smoother_move; None: the move is not made)
+    centre: Float[Array, "T n"] | None = None
 
 
 class BlockInfo(NamedTuple):
@@ -152,6 +164,7 @@ class BlockInfo(NamedTuple):
     # previous block's (so they pair with theta as the Gibbs chain's state)
     noise: Float[Array, "k m"]
     accept_noise: Float[Array, " m"]
+    accept_smoother: Float[Array, ""]  # the smoother move's acceptance (zero where it is not made)
 
 
 class BlockData(NamedTuple):
@@ -264,6 +277,7 @@ def make_block(
     interweave: bool = True,
     lowfreq_steps: int = 5,
     residual_steps: int = 60,
+    smoother_steps: int = 1,
     noise: noise_gibbs.NoiseLevels = noise_gibbs.NoiseLevels(),
 ) -> Callable:
     r"""``block(state, b, data) -> (state, BlockInfo)``: Gibbs block ``b`` of one chain (pure, jittable).
@@ -273,7 +287,8 @@ def make_block(
     whose leaves are the numbers), so the closure is rebuilt at each trace and
     the compiled program serves every run of one structure.
 
-    A PGAS sweep at the carried transition; ``lowfreq_steps`` low-frequency
+    A PGAS sweep at the carried transition; ``smoother_steps`` smoother moves
+    about ``state.centre`` (module doc); ``lowfreq_steps`` low-frequency
     moves (``basis``: :func:`lowfreq_basis`) and ``residual_steps``
     residual-preserving moves (``rm``; skipped where it does not apply); the
     post-burn-in running sums and thinned draws; then ``state_every``
@@ -324,6 +339,9 @@ def make_block(
     if n_rp < 0:
         raise ValueError(f"residual_steps must be non-negative, got {residual_steps}")
     n_rp = n_rp if rm.applies else 0
+    n_sm = int(smoother_steps)
+    if n_sm < 0:
+        raise ValueError(f"smoother_steps must be non-negative, got {smoother_steps}")
 
     lf_reshape = jnp.asarray((-1,))
     n_noise = len(noise.channels)
@@ -341,6 +359,12 @@ def make_block(
         sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal, R)
         out = sweep(k_sweep, sc, state.reference)
         path = out.trajectory
+        acc_sm = jnp.zeros(())
+        if n_sm and state.centre is not None:
+            # its own stream (folded in): a run without the move draws what it drew before
+            k_sm = jax.random.fold_in(state.key, smoother_move.SMOOTHER_STREAM)
+            path, accs_sm = smoother_move.smoother_move(k_sm, pm, tr, od, R, state.centre, path, n_sm)
+            acc_sm = jnp.mean(accs_sm.astype(float))
         rwm_lf, acc_lf = state.rwm_lf, jnp.zeros(())
         if n_lf:
             frame = LowFrequencyFrame(tr, basis)
@@ -440,6 +464,7 @@ def make_block(
             draws,
             state.thin,
             noise_var,
+            state.centre,
         )
         info = BlockInfo(
             theta,
@@ -454,6 +479,7 @@ def make_block(
             _summary_quantities(pm, path)[mpoints],
             sds,
             acc_noise,
+            acc_sm,
         )
         return new, info
 
