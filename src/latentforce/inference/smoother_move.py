@@ -143,7 +143,12 @@ def log_weight(pm, lin: Linearisation, od: ObservationDensity, g) -> tuple[Float
     r"""``(log pi(g) - log q(g) + c, path(g))`` (module doc): the exact rebuild's likelihood less the
     expanded one's."""
     path = pm.path(g)
-    return observation_log_likelihood(pm, od, path) - _linear_log_likelihood(pm, lin, od, linear_path(pm, lin, g)), path
+    return _log_weight(pm, lin, od, g, path), path
+
+
+def _log_weight(pm, lin: Linearisation, od: ObservationDensity, g, path) -> Float[Array, ""]:
+    """:func:`log_weight` of ``g`` whose rebuilt path ``path`` is already known."""
+    return observation_log_likelihood(pm, od, path) - _linear_log_likelihood(pm, lin, od, linear_path(pm, lin, g))
 
 
 class _Gains(NamedTuple):
@@ -267,7 +272,7 @@ def smoother_move(
     k_draw, k_acc = jax.random.split(key)
     gs = jax.vmap(lambda k: _draw(k, pm, tr, lin, gains, od, R, eps_hat))(jax.random.split(k_draw, n_steps))
     lw_new, paths = jax.vmap(lambda g: log_weight(pm, lin, od, g))(gs)
-    lw_cur, _ = log_weight(pm, lin, od, pm.latent(path))
+    lw_cur = _log_weight(pm, lin, od, pm.latent(path), path)  # the current path: no rebuild
     logu = jnp.log(jax.random.uniform(k_acc, (n_steps,)))
 
     def _step(carry, inp):
