@@ -135,6 +135,9 @@ class Family:
 
     simulate: Callable
     run: Callable
+    #: names of latent quantities ranked besides the free parameters (their truth comes from the
+    #: third item ``simulate`` may return, ``{state: (T,) path}``; a name is ``state@t``)
+    latent_names: Callable[[int], list] = lambda T: []
 
 
 def psd_root(S: np.ndarray) -> np.ndarray:
@@ -213,7 +216,32 @@ def run_linear(key, sampler: str, problem, y, mask, dt: float, settings: dict) -
     return Posterior(out.draws, out.convergence, info)
 
 
-FAMILIES: dict[str, Family] = {"linear": Family(simulate_linear, run_linear)}
+def _duffing():
+    """The pgas family's module (``calibration_duffing.py`` beside this file), loaded by path so
+    that this file also works when imported by the tests."""
+    import importlib.util
+
+    name = "calibration_duffing"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parent / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+def simulate_duffing(rng, problem, params, T, dt):
+    return _duffing().simulate(rng, problem, params, T, dt)
+
+
+def run_duffing(key, sampler, problem, y, mask, dt, settings) -> Posterior:
+    return Posterior(*_duffing().run(key, sampler, problem, y, mask, dt, settings))
+
+
+FAMILIES: dict[str, Family] = {
+    "linear": Family(simulate_linear, run_linear),
+    "duffing": Family(simulate_duffing, run_duffing, lambda T: _duffing().latent_names(T)),
+}
 
 #: sampler settings (keyword arguments of the runner besides the record), full and quick
 SETTINGS = {
@@ -224,6 +252,10 @@ SETTINGS = {
     "kalman-nuts": {
         "full": dict(chains=4, burn_in=300, target_ess=400, max_time=300),
         "quick": dict(chains=2, burn_in=100, target_ess=100, max_time=30),
+    },
+    "pgas": {
+        "full": dict(chains=4, burn_in=500, target_ess=400, max_time=120),
+        "quick": dict(chains=4, burn_in=200, target_ess=100, max_time=20),
     },
 }
 
@@ -261,6 +293,22 @@ COVERAGE_TRUTH = {"c": 0.5, "k": 158.0, "force_variance": 1.0, "force_lengthscal
 LINEAR_SAMPLERS = ("kalman-mcmc", "kalman-nuts")
 DT = 0.02
 
+#: SBC of pgas: a stiffening Duffing (at the rms displacement 3 k3 z^2 is comparable to k), a smooth
+#: (Matérn-3/2) force, displacement and acceleration channels; the hyperparameters inferred.
+DUFFING_SBC_CONFIG = {
+    "system": {"type": "duffing", "m": 1.0, "c": 0.5, "k": 10.0, "k3": 1000.0},
+    "force": {
+        "kernel": "matern32",
+        "variance": _lognormal(1.0, 0.5, 1.0),
+        "lengthscale": _lognormal(0.5, 0.3, 0.5),
+    },
+    "sensors": [
+        {"column": "disp", "quantity": "displacement", "dof": 0, "noise_std": 0.01},
+        {"column": "acc", "quantity": "acceleration", "dof": 0, "noise_std": 0.05},
+    ],
+    "inference": {"method": "pgas"},
+}
+
 
 def cases() -> list[Case]:
     """Every calibration case, in the order of the table."""
@@ -288,6 +336,19 @@ def cases() -> list[Case]:
             "(σ 1), k 150 (0.5), σ² 1 (2), ℓ 1 (1)",
         ),
         Case("sdof-T20000", "linear", COVERAGE_CONFIG, 20_000, DT, COVERAGE_TRUTH, LINEAR_SAMPLERS, "as sdof-T2000"),
+        Case(
+            "duffing-sbc",
+            "duffing",
+            DUFFING_SBC_CONFIG,
+            65,
+            0.05,
+            None,
+            ("pgas",),
+            "Duffing m = 1, c = 0.5, k = 10, k3 = 1000, Matérn-3/2 force, displacement (noise sd 0.01) and "
+            "acceleration (0.05), dt = 0.05 s; records drawn from pgas's own discrete model (RK4 step and "
+            "within-step noise, `calibration_duffing.py`); priors log-normal: σ² median 1 (0.5), ℓ 0.5 (0.3); "
+            "ranks also of the force at 1/8, 3/8, 5/8, 7/8 of the record",
+        ),
     ]
 
 
@@ -310,12 +371,14 @@ REPLICATIONS = {
         ("SBC", "kalman-nuts"): 200,
         ("coverage", "kalman-mcmc"): 100,
         ("coverage", "kalman-nuts"): 50,
+        ("SBC", "pgas"): 100,
     },
     "quick": {
         ("SBC", "kalman-mcmc"): 20,
         ("SBC", "kalman-nuts"): 2,
         ("coverage", "kalman-mcmc"): 2,
         ("coverage", "kalman-nuts"): 0,
+        ("SBC", "pgas"): 1,
     },
 }
 
@@ -393,7 +456,11 @@ def replicate(study: Study, index: int, seed: int) -> RunRecord:
         truth = {n: float(spec.prior.sample(k)) for k, (n, spec) in zip(keys, problem.free.items())}
     else:
         truth = dict(case.truth)
-    y, mask = family.simulate(rng_data, problem, dict(problem.fixed, **truth), case.T, case.dt)
+    y, mask, *paths = family.simulate(rng_data, problem, dict(problem.fixed, **truth), case.T, case.dt)
+    latent = family.latent_names(case.T)
+    for name in latent:  # "state@t": the simulated path's value
+        state, t = name.split("@")
+        truth[name] = float(paths[0][state][int(t)])
     t0 = time.perf_counter()
     try:
         post = family.run(key_run, study.sampler, problem, y, mask, case.dt, study.settings)
@@ -413,7 +480,7 @@ def replicate(study: Study, index: int, seed: int) -> RunRecord:
         )
     seconds = time.perf_counter() - t0
     thinned, stats = thin_by_ess(post.draws, rng_rank)
-    names = list(problem.free)
+    names = list(problem.free) + latent
     return RunRecord(
         truth=truth,
         u={n: pit(thinned[n], truth[n], rng_rank) for n in names},
@@ -476,14 +543,16 @@ def summarise(study: Study, records: list[RunRecord]) -> dict:
 
 
 def _free_names(case: Case) -> list[str]:
+    """The ranked quantities: the free parameters, then the family's latent ones."""
     from latentforce.io.config import config_from_dict
 
-    return list(config_from_dict(case.config, source=case.name).free)
+    free = list(config_from_dict(case.config, source=case.name).free)
+    return free + FAMILIES[case.family].latent_names(case.T)
 
 
 def _info_summary(records: list[RunRecord]) -> dict:
     out = {}
-    for key in ("acceptance", "steps", "draws_per_chain"):
+    for key in ("acceptance", "steps", "draws_per_chain", "switch_rate", "smoother_acceptance", "joint_acceptance"):
         vals = [r.info[key] for r in records if r.info.get(key) is not None]
         if vals:
             out[key] = float(np.median(vals))
@@ -602,6 +671,12 @@ def notes(summaries: list[dict]) -> list[str]:
             bits.append(f"median integration steps {info['steps']:.1f}")
         if "divergences" in info:
             bits.append(f"{info['divergences']} divergences")
+        if "switch_rate" in info:
+            bits.append(f"median ancestor switch rate {info['switch_rate']:.2f}")
+        if "smoother_acceptance" in info:
+            bits.append(f"median smoother-move acceptance {info['smoother_acceptance']:.2f}")
+        if "joint_acceptance" in info:
+            bits.append(f"median joint-move acceptance {info['joint_acceptance']:.2f}")
         if "draws_per_chain" in info:
             bits.append(f"median draws per chain {info['draws_per_chain']:.0f}")
         if info.get("multimodal"):

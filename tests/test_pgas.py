@@ -813,10 +813,61 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
     assert np.all(np.abs(z) < 4.5), np.round(z, 1)
 
 
+def test_joint_move_keeps_the_joint_distribution_of_a_nonlinear_model():
+    """The joint (theta, path) move alone (:func:`smoother_move.joint_move`), Geweke's check on
+    the stiffening Duffing model with both hyperparameters free: (theta, x, y) from the joint
+    prior, four joint steps at a fixed proposal (centre: the extended Kalman smoother at a fixed
+    theta, a function of y alone), and the paired differences of statistics of (theta, x, y) must
+    have mean zero within 4.5 standard errors over 2000 draws. Measured by breaking the code
+    (largest |z|): the linearised marginal likelihood dropped from the target, 6.0 (the latent's
+    whitened size: the path no longer fits its theta). The weight's part is not resolved here
+    (dropped, the test passes: with a displacement channel the expansion is nearly exact); it
+    is the smoother move's, broken at |z| = 11 in the path-move test below.
+    """
+    free = {"force_variance": (LogNormal(0.0, 0.4), 1.0), "force_lengthscale": (LogNormal(np.log(0.5), 0.3), 0.5)}
+    pm, mask = _joint_model()
+    hyper = hyper_moves.Hyper(_JOINT_PARAMS, free)
+    tr_ref = pm.transition(1.0, 0.5)
+
+    def one(key):
+        k_theta, k_path, k_noise, k_move = jax.random.split(key, 4)
+        x = jnp.array([0.0, np.log(0.5)]) + jnp.array([0.4, 0.3]) * jax.random.normal(k_theta, (2,))
+        tr = pm.transition(*hyper.values(x))
+        path, y = _joint_draw(pm, tr, mask, k_path, k_noise)
+        od = latent.observation_density(pm, y, mask)
+        eks = pgas_start.extended_kalman_smoother(pm, tr_ref, y, mask)
+        rwm = hyper_moves.init_proposal(hyper, lambda x_: jnp.zeros(()), x, proposal_sd=0.3)
+        rwm, path2, tr2, acc = smoother_move.joint_move(
+            k_move,
+            rwm,
+            pm,
+            hyper,
+            od,
+            pm.R,
+            eks,
+            tr,
+            path,
+            4,
+            adapt=False,
+            reshape_steps=jnp.asarray((-1,)),
+            step0=0,
+            target=0.3,
+        )
+        before = jnp.concatenate([x, x**2, _joint_statistics(pm, tr, mask, path, y)])
+        after = jnp.concatenate([rwm.x, rwm.x**2, _joint_statistics(pm, tr2, mask, path2, y)])
+        return after - before, jnp.mean(acc.astype(float))
+
+    d, acc = jit(jax.vmap(one))(jax.random.split(jax.random.key(3), 2000))
+    d = np.asarray(d)
+    assert float(jnp.mean(acc)) > 0.2, float(jnp.mean(acc))
+    z = d.mean(0) / (d.std(0, ddof=1) / np.sqrt(d.shape[0]))
+    assert np.all(np.abs(z) < 4.5), np.round(z, 1)
+
+
 def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
-    """The whole post-burn-in Gibbs block of ``run_pgas`` (:func:`pgas.make_block`: sweep,
-    low-frequency and residual-preserving moves, centred and non-centred hyperparameter
-    steps), Geweke's joint-distribution check on the stiffening Duffing model with both
+    """The whole post-burn-in Gibbs block of ``run_pgas`` (:func:`pgas.make_block`: the joint
+    (theta, path) move, sweep, smoother, low-frequency and residual-preserving moves, centred and
+    non-centred hyperparameter steps), Geweke's joint-distribution check on the stiffening Duffing model with both
     hyperparameters free: (theta, x, y) drawn from the joint prior, three blocks applied given
     y, and the paired differences of statistics of (theta, x, y) must have mean zero within
     4.5 standard errors over 2000 independent draws. The path moves' shapes come from the
@@ -876,6 +927,7 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
             jnp.zeros((n_draws + 1, T, pm.n_state)),
             jnp.asarray(sched.thin, jnp.int32),
             centre=eks,
+            rwm_joint=hyper_moves.init_proposal(hyper, lambda x_: jnp.zeros(()), x, proposal_sd=0.3),
         )
         return state, pgas.BlockData(y, mask, pm.R, od, jnp.zeros((T, nq)))
 
@@ -896,7 +948,14 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
     # it moves: theta, the path, and every kind of step accepts
     assert np.mean(np.any(np.abs(np.asarray(end.rwm.x - states.rwm.x)) > 0, axis=1)) > 0.8
     assert np.mean(np.any(np.abs(np.asarray(end.reference - states.reference)) > 0, axis=(1, 2))) > 0.9
-    rates = (info.accept, info.accept_noncentred, info.accept_lowfreq, info.accept_residual, info.accept_smoother)
+    rates = (
+        info.accept,
+        info.accept_noncentred,
+        info.accept_lowfreq,
+        info.accept_residual,
+        info.accept_smoother,
+        info.accept_joint,
+    )
     for a in rates:
         assert float(jnp.mean(a)) > 0.1, [float(jnp.mean(a_)) for a_ in rates]
     # the carried transition is the one at the final theta

@@ -116,6 +116,7 @@ def test_the_verdict_waits_for_the_noise_levels():
         noise,
         np.ones((chains, blocks, 1)),
         z,
+        z,
     )
     hyper = Hyper(PARAMS, {"force_variance": (LogNormal(0.0, 1.0), 1.0)})
     pm = SimpleNamespace(ndof=1, nforce=1)

@@ -9,7 +9,7 @@ from test_smc import linear_problem
 import latentforce  # noqa: F401
 from latentforce.compile import jit
 from latentforce.inference import latent, pgas_start, smc, smoother_move
-from latentforce.inference.kalman import kalman_smoother
+from latentforce.inference.kalman import kalman_smoother, log_likelihood
 from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor
 from latentforce.systems import Duffing
@@ -49,6 +49,39 @@ def test_linear_proposal_is_the_exact_smoother_and_always_accepted(order):
     # the draws' whitened innovations are of the prior's size (mostly prior-dominated: mean square
     # just under 1); round-off outside the noise's range would whiten into huge values
     assert 0.5 < float(jnp.mean(eps**2)) < 1.05, float(jnp.mean(eps**2))
+
+
+@pytest.mark.parametrize("order", [0, 1, 2, 3])
+def test_joint_target_is_the_exact_marginal_likelihood_on_a_linear_model(order):
+    """The joint (theta, path) move's target is log prior + the linearised model's marginal
+    likelihood + the smoother move's weight. On a linear model (missing samples, several theta)
+    the weight is zero and the marginal likelihood must be the Kalman filter's of the same
+    discrete model (an independent code path), for the current path and for a proposed one;
+    the proposed point's path is a draw at the proposed theta (whitened, of the prior's size)."""
+    prob = linear_problem(T=60, missing=True, kernel=Matern(order))
+    pm = prob["pm"]
+    od = latent.observation_density(pm, prob["y"], prob["mask"])
+    path = pm.path(latent.gp_prior_path(jax.random.key(4), prob["tr"], 60))
+    centre = path + 0.1
+
+    @jit
+    def at(variance, lengthscale):
+        tr = pm.transition(variance, lengthscale)
+        A_d, Q_d, H, m1, P1 = pm.linear_discrete(tr)
+        exact = log_likelihood(A_d, Q_d, H, pm.R, m1, P1, prob["y"], prob["mask"])
+        cur = smoother_move.joint_log_target(None, pm, tr, od, pm.R, centre, 0.7, path=path)
+        new = smoother_move.joint_log_target(jax.random.key(5), pm, tr, od, pm.R, centre, 0.7)
+        return tr, exact, cur, new
+
+    for variance, lengthscale in ((1.0, 0.5), (0.3, 0.8), (3.0, 0.2)):
+        tr, exact, cur, new = at(variance, lengthscale)
+        exact = float(exact)
+        np.testing.assert_allclose(float(cur.log_target), exact + 0.7, rtol=1e-9, atol=1e-7)
+        np.testing.assert_allclose(float(new.log_target), exact + 0.7, rtol=1e-9, atol=1e-7)
+        np.testing.assert_array_equal(np.asarray(cur.path), np.asarray(path))
+        eps = latent.whiten(tr, pm.latent(new.path))
+        assert 0.3 < float(jnp.mean(eps**2)) < 1.2, float(jnp.mean(eps**2))
+        np.testing.assert_allclose(np.asarray(new.tr.Q), np.asarray(tr.Q))
 
 
 def test_the_expansion_passes_through_the_centre_and_is_first_order():

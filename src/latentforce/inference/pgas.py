@@ -147,6 +147,7 @@ def run_pgas(
     residual_modes: int = 16,
     residual_steps: int = 60,
     smoother_steps: int = 1,
+    joint_steps: int = 1,
     channels=None,
     target_ess: float = 400.0,
     max_time: float = 600.0,
@@ -187,10 +188,17 @@ def run_pgas(
     re-set from the chain's path where the path moves are re-shaped in the
     burn-in): exact draws for a linear system, and most proposals accepted
     where the posterior is close to Gaussian (a displacement channel), which
-    the sweep of a smooth force no longer renews. ``initial = (mean, sd)`` or ``(mean, cov)`` of
-    the initial mechanical state, else the default of :class:`particle_model.ParticleModel`
-    (linear systems: the joint stationary start at the current hyperparameters). ``progress(done,
-    total, accept_rate)`` is called between scan chunks.
+    the sweep of a smooth force no longer renews. With free hyperparameters each block starts
+    with ``joint_steps`` joint Metropolis-Hastings steps on :math:`(\theta, \text{path})`
+    (0 disables): a random walk on :math:`\theta` whose path is drawn from the same
+    smoother at the proposed :math:`\theta`, accepted on the linearised marginal likelihood
+    corrected by the smoother move's weights (:mod:`latentforce.inference.smoother_move`,
+    "The joint move"); given a path the hyperparameters are pinned (a smooth force's path
+    fixes :math:`\sigma_f^2/\ell^{2\nu}`), and this move is what lets them mix.
+    ``initial = (mean, sd)`` or ``(mean, cov)`` of the initial mechanical state, else the
+    default of :class:`particle_model.ParticleModel` (linear systems: the joint stationary
+    start at the current hyperparameters). ``progress(done, total, accept_rate)`` is called
+    between scan chunks.
 
     ``iterations=None`` ("auto"): after the burn-in, run in chunks of
     ``chunk_blocks`` blocks (at most ``max_iterations`` iterations) and stop
@@ -271,6 +279,7 @@ def run_pgas(
         lowfreq_steps=int(lowfreq_steps),
         residual_steps=int(residual_steps),
         smoother_steps=int(smoother_steps),
+        joint_steps=int(joint_steps),
     )
     make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, noise=noise, **block_settings)
     block_static = dict(
@@ -455,6 +464,7 @@ def _init_chains(pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rp
             jnp.asarray(sched.thin, jnp.int32),
             var0,
             centre,
+            rwm if hyper.names and centre is not None else None,
         )
 
     return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps, centres)

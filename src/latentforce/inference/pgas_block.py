@@ -21,6 +21,16 @@ each a whole new path. Its random numbers come from the chain's key folded
 with :data:`~latentforce.inference.smoother_move.SMOOTHER_STREAM`. A state
 without a centre (``centre=None``) skips it.
 
+**Joint move.** With free hyperparameters (and a centre), the block starts
+with ``joint_steps`` Metropolis-Hastings steps on :math:`(\theta, \text{path})`
+together (:func:`~latentforce.inference.smoother_move.joint_move`): a random
+walk on :math:`\log\theta` whose path is drawn from the smoother about the
+centre at the proposed :math:`\theta`, accepted on the linearised marginal
+likelihood corrected by the smoother move's weights. Its walk
+(``ChainState.rwm_joint``) adapts like the others in burn-in, re-shaped from
+its own running covariance, i.e. the marginal posterior's; random numbers
+from :data:`~latentforce.inference.smoother_move.JOINT_STREAM`.
+
 **Low-frequency trajectory move.** With acceleration-only data the weakly
 observed direction of the path is a slow, coherent shift of force and
 displacement (:math:`\delta u \approx k\,\delta z` leaves the acceleration
@@ -146,6 +156,8 @@ class ChainState(NamedTuple):
     noise_var: Float[Array, " d"] | None = None
     # the smoother move's centre path (smoother_move; None: the move is not made)
     centre: Float[Array, "T n"] | None = None
+    # the joint (theta, path) move's random walk and its adaptation (None: the move is not made)
+    rwm_joint: mcmc.RWMState | None = None
 
 
 class BlockInfo(NamedTuple):
@@ -165,6 +177,7 @@ class BlockInfo(NamedTuple):
     noise: Float[Array, "k m"]
     accept_noise: Float[Array, " m"]
     accept_smoother: Float[Array, ""]  # the smoother move's acceptance (zero where it is not made)
+    accept_joint: Float[Array, ""]  # the joint (theta, path) move's acceptance (zero where it is not made)
 
 
 class BlockData(NamedTuple):
@@ -278,6 +291,7 @@ def make_block(
     lowfreq_steps: int = 5,
     residual_steps: int = 60,
     smoother_steps: int = 1,
+    joint_steps: int = 1,
     noise: noise_gibbs.NoiseLevels = noise_gibbs.NoiseLevels(),
 ) -> Callable:
     r"""``block(state, b, data) -> (state, BlockInfo)``: Gibbs block ``b`` of one chain (pure, jittable).
@@ -343,6 +357,11 @@ def make_block(
     if n_sm < 0:
         raise ValueError(f"smoother_steps must be non-negative, got {smoother_steps}")
 
+    n_joint = int(joint_steps)
+    if n_joint < 0:
+        raise ValueError(f"joint_steps must be non-negative, got {joint_steps}")
+    joint_reshape = jnp.asarray(adaptation_schedule(sched.burn_blocks * n_joint) or (-1,))
+
     lf_reshape = jnp.asarray((-1,))
     n_noise = len(noise.channels)
     interweave = bool(interweave) and p > 0
@@ -356,8 +375,28 @@ def make_block(
             od = observation_density(pm, data.y, data.mask, R)
         else:
             R, od = data.R, data.od
+        reference, rwm_x, rwm_joint, acc_joint = state.reference, state.rwm.x, state.rwm_joint, jnp.zeros(())
+        if n_joint and p and state.centre is not None and rwm_joint is not None:
+            k_joint = jax.random.fold_in(state.key, smoother_move.JOINT_STREAM)
+            rwm_joint, reference, tr, accs_joint = smoother_move.joint_move(
+                k_joint,
+                rwm_joint._replace(x=state.rwm.x),
+                pm,
+                hyper,
+                od,
+                R,
+                state.centre,
+                state.tr,
+                state.reference,
+                n_joint,
+                adapt=b < burn_blocks,
+                reshape_steps=joint_reshape,
+                step0=b * n_joint,
+                target=target_acc,
+            )
+            rwm_x, acc_joint = rwm_joint.x, jnp.mean(accs_joint.astype(float))
         sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal, R)
-        out = sweep(k_sweep, sc, state.reference)
+        out = sweep(k_sweep, sc, reference)
         path = out.trajectory
         acc_sm = jnp.zeros(())
         if n_sm and state.centre is not None:
@@ -437,7 +476,9 @@ def make_block(
 
         js = b * k_every + jnp.arange(k_every)
         (rwm, rwm_nc, path_end, _, tr_end), (xs, accs, accs_nc) = jax.lax.scan(
-            _mh_iter, (state.rwm, state.rwm_nc, path, pm.latent(path), tr), (jax.random.split(k_mh, k_every), js)
+            _mh_iter,
+            (state.rwm._replace(x=rwm_x), state.rwm_nc, path, pm.latent(path), tr),
+            (jax.random.split(k_mh, k_every), js),
         )
         theta = hyper.to_constrained(xs)
         fp = path[tpoints][:, pm.layout.force]
@@ -465,6 +506,7 @@ def make_block(
             state.thin,
             noise_var,
             state.centre,
+            rwm_joint,
         )
         info = BlockInfo(
             theta,
@@ -480,6 +522,7 @@ def make_block(
             sds,
             acc_noise,
             acc_sm,
+            acc_joint,
         )
         return new, info
 

@@ -58,6 +58,28 @@ extended Kalman smoother at the start and, for nonlinear systems, from each
 chain's own path at the burn-in's re-shaping points
 (:func:`latentforce.inference.pgas_block.reshape_chunks`); after the burn-in
 it is fixed, so the post-burn-in kernel is a fixed one given :math:`\theta`.
+
+The joint move (:func:`joint_move`). Given a path, a smooth force's
+hyperparameters are pinned (the path's derivatives fix
+:math:`\sigma_f^2/\ell^{2\nu}` to a few per cent), so Metropolis-within-Gibbs
+on :math:`\theta` crawls: on a small Duffing record with a displacement
+channel, hyperparameter ESS 9-20 in 2 000 draws. This move updates
+:math:`(\theta, g)` together: :math:`\theta'` from a random walk (in
+:math:`\log\theta`), then :math:`g' \sim q_{\theta'}`, the proposal above at
+:math:`\theta'` (same centre). With :math:`q_\theta(g) = p_\theta(g)\,
+\ell_{\rm lin}(g) / Z(\theta)`, :math:`Z(\theta)` the linearised model's marginal
+likelihood (the filter's prediction-error decomposition, :func:`_log_marginal`),
+the acceptance ratio is
+
+.. math:: \frac{p(\theta')\, Z(\theta')\, w(g')}{p(\theta)\, Z(\theta)\, w(g)},
+          \qquad w = \frac{p(y \mid \mathrm{path}(g))}{\ell_{\rm lin}(g)},
+
+each :math:`w` with its own :math:`\theta`'s expansion: exact for any system.
+For a linear system :math:`w` is constant and :math:`Z` the exact likelihood
+(tested at every order), so the move is the marginal random walk of
+``kalman-mcmc``, carrying an exact draw of the path; where the expansion is
+good (a displacement channel) it mixes nearly as well. Measured on that
+Duffing record: hyperparameter ESS 277-282 in the same 20 s.
 """
 
 from __future__ import annotations
@@ -70,11 +92,14 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from latentforce.inference import particle_model
+from latentforce.inference.hyper_moves import mh_step
 from latentforce.inference.latent import ObservationDensity, colour, observation_log_likelihood
 from latentforce.linalg import cho_solve, cholesky, symmetrise
 
 #: folded into a chain's key for the move's random numbers (its own stream)
 SMOOTHER_STREAM = 0x5300
+#: folded into a chain's key for the joint (theta, path) move's random numbers
+JOINT_STREAM = 0x4A00
 
 #: Gauss-Newton iterations of :func:`iterated_centre` (the Duffing cases converge to 1e-8 in 5-6
 #: from the extended Kalman smoother; the centre need not be the exact mode, only close to it)
@@ -161,6 +186,7 @@ class _Gains(NamedTuple):
     L1: Float[Array, "n nl"]  # x_1 = m_1 + L1 eps_1
     Lq: Float[Array, "n nl"]  # the state's noise is Lq eps_t
     mask: Float[Array, "T d"]  # 1 where a channel is observed
+    logdet: Float[Array, " T"]  # log |S_t| over the observed channels (the marginal likelihood)
 
 
 def _gains(pm, tr, lin: Linearisation, od: ObservationDensity, R) -> _Gains:
@@ -178,24 +204,18 @@ def _gains(pm, tr, lin: Linearisation, od: ObservationDensity, R) -> _Gains:
     def _step(P, inp):
         F_t, H_t, m = inp
         S = symmetrise(H_t @ P @ H_t.T + R) * jnp.outer(m, m) + jnp.diag(1.0 - m)
-        Sinv = cho_solve(cholesky(S), jnp.eye(S.shape[0])) * jnp.outer(m, m)
+        C = cholesky(S)
+        Sinv = cho_solve(C, jnp.eye(S.shape[0])) * jnp.outer(m, m)
         M = P @ H_t.T @ Sinv
         P_f = symmetrise(P - M @ H_t @ P)
-        return symmetrise(F_t @ P_f @ F_t.T + Q), (P, Sinv, M)
+        return symmetrise(F_t @ P_f @ F_t.T + Q), (P, Sinv, M, 2.0 * jnp.sum(jnp.log(jnp.diagonal(C))))
 
-    _, (P, Sinv, M) = jax.lax.scan(_step, symmetrise(L1 @ L1.T), (lin.F, Hm, mf))
-    return _Gains(P, Sinv, M, Hm, L1, Lq, mf)
+    _, (P, Sinv, M, logdet) = jax.lax.scan(_step, symmetrise(L1 @ L1.T), (lin.F, Hm, mf))
+    return _Gains(P, Sinv, M, Hm, L1, Lq, mf, logdet)
 
 
-def _smooth(pm, lin: Linearisation, gains: _Gains, y) -> tuple[Float[Array, "T nl"], Float[Array, "T n"]]:
-    r"""``(eps_hat, x_hat)``: the smoothed mean of the innovations and of the state given ``y``.
-
-    The mean recursion of the filter, then the backward recursion
-    :math:`r_{t-1} = H_t^T S_t^{-1} v_t + L_t^T r_t`, :math:`L_t = F_t(I - M_t H_t)`;
-    :math:`\hatarepsilon_1 = L_1^T r_0`, :math:`\hatarepsilon_{t+1} = L_q^T r_t`,
-    :math:`\hat x_t = a_t + P_t r_{t-1}` (Durbin & Koopman 2012, Sec. 4.4-4.5). The innovations come
-    out as :math:`L^T r`, never through an inverse of the (ill-conditioned) noise covariance.
-    """
+def _filter_means(pm, lin: Linearisation, gains: _Gains, y):
+    """``(a, v)``: the linearised model's predicted means and innovations (zero on missing channels)."""
     m1 = jnp.concatenate([pm.mech0_mean, jnp.zeros(pm.nfx)])
     d = lin.h - jnp.einsum("tij,tj->ti", lin.H, lin.centre)  # y = H x + d + v
     e = lin.f - jnp.einsum("tij,tj->ti", lin.F, lin.centre)  # x_{t+1} = F x_t + e + noise
@@ -207,6 +227,31 @@ def _smooth(pm, lin: Linearisation, gains: _Gains, y) -> tuple[Float[Array, "T n
 
     d, y = d * gains.mask, y * gains.mask
     _, (a, v) = jax.lax.scan(_forward, m1, (y, d, e, lin.F, gains.Hm, gains.M))
+    return a, v
+
+
+def _log_marginal(gains: _Gains, v) -> Float[Array, ""]:
+    r""":math:`\log q(y \mid \theta)`, the linearised model's marginal likelihood, by the prediction-error
+    decomposition :math:`\sum_t -\tfrac12 (\log|2\pi S_t| + v_t^\top S_t^{-1} v_t)` over the observed channels."""
+    quad = jnp.einsum("ti,tij,tj->", v, gains.Sinv, v)
+    return -0.5 * (jnp.sum(gains.logdet) + quad + jnp.sum(gains.mask) * jnp.log(2.0 * jnp.pi))
+
+
+def _smooth(pm, lin: Linearisation, gains: _Gains, y) -> tuple[Float[Array, "T nl"], Float[Array, "T n"]]:
+    r"""``(eps_hat, x_hat)``: the smoothed mean of the innovations and of the state given ``y``.
+
+    The mean recursion of the filter, then the backward recursion
+    :math:`r_{t-1} = H_t^T S_t^{-1} v_t + L_t^T r_t`, :math:`L_t = F_t(I - M_t H_t)`;
+    :math:`\hatarepsilon_1 = L_1^T r_0`, :math:`\hatarepsilon_{t+1} = L_q^T r_t`,
+    :math:`\hat x_t = a_t + P_t r_{t-1}` (Durbin & Koopman 2012, Sec. 4.4-4.5). The innovations come
+    out as :math:`L^T r`, never through an inverse of the (ill-conditioned) noise covariance.
+    """
+    a, v = _filter_means(pm, lin, gains, y)
+    return _smooth_from(pm, lin, gains, a, v)
+
+
+def _smooth_from(pm, lin: Linearisation, gains: _Gains, a, v):
+    """:func:`_smooth` given the filter's predicted means ``a`` and innovations ``v``."""
 
     def _backward(r, inp):
         v_t, F_t, Hm_t, M_t, Sinv_t = inp
@@ -283,3 +328,76 @@ def smoother_move(
 
     (_, out), acc = jax.lax.scan(_step, (lw_cur, path), (lw_new, paths, logu))
     return out, acc
+
+
+class JointProposal(NamedTuple):
+    """What the joint move needs of a point :math:`\\theta`: its log target and, for a proposed one, its path."""
+
+    log_target: Float[Array, ""]  # log p(theta) + log q(y | theta) + log w(g) (sampling coordinates)
+    path: Float[Array, "T n"]
+    tr: particle_model.Transition
+
+
+def joint_log_target(key, pm, tr, od: ObservationDensity, R, centre, log_prior, path=None) -> JointProposal:
+    r"""The joint move's target at the transition ``tr`` (module doc, "The joint move").
+
+    ``path=None``: a proposed point, its path drawn from the proposal about ``centre`` at ``tr``
+    with ``key``; else the current point, whose path is ``path``. ``log_prior`` is the
+    hyperparameters' log prior density in the sampling coordinates at this point.
+    """
+    lin = linearise(pm, tr, centre)
+    gains = _gains(pm, tr, lin, od, R)
+    a, v = _filter_means(pm, lin, gains, od.y)
+    base = log_prior + _log_marginal(gains, v)
+    if path is None:
+        g = _draw(key, pm, tr, lin, gains, od, R, _smooth_from(pm, lin, gains, a, v)[0])
+        lw, path = log_weight(pm, lin, od, g)
+    else:
+        lw = _log_weight(pm, lin, od, pm.latent(path), path)
+    return JointProposal(base + lw, path, tr)
+
+
+def joint_move(
+    key,
+    rwm,
+    pm,
+    hyper,
+    od: ObservationDensity,
+    R,
+    centre,
+    tr,
+    path: Float[Array, "T n"],
+    n_steps: int,
+    *,
+    adapt,
+    reshape_steps,
+    step0,
+    target: float,
+):
+    r"""``n_steps`` joint Metropolis-Hastings steps on :math:`(\theta, \text{path})` (module doc, "The joint move").
+
+    ``rwm`` (:class:`~latentforce.inference.mcmc.RWMState`): the walk on :math:`x = \log\theta`, at
+    the chain's current ``x`` (its log density is refreshed here); ``tr`` the transition there and
+    ``path`` the chain's path. Adapts the walk where ``adapt`` (burn-in), re-shaping it from its
+    running covariance after the steps numbered ``reshape_steps`` (counted from ``step0``).
+    Returns ``(rwm, path, tr, accepted)``.
+    """
+    cur = joint_log_target(None, pm, tr, od, R, centre, hyper.log_prior(rwm.x), path=path)
+    rwm = rwm._replace(logdensity=cur.log_target)
+
+    def _one(carry, s):
+        r, aux = carry
+        k_step, k_draw = jax.random.split(jax.random.fold_in(key, s))
+
+        def _target(x):
+            jp = joint_log_target(k_draw, pm, pm.transition(*hyper.values(x)), od, R, centre, hyper.log_prior(x))
+            return jp.log_target, (jp.path, jp.tr)
+
+        j = step0 + s
+        r, info, aux = mh_step(
+            k_step, r, _target, adapt=adapt, reshape=jnp.any(j == reshape_steps), target=target, aux=aux
+        )
+        return (r, aux), info.accepted
+
+    (rwm, (path, tr)), accepted = jax.lax.scan(_one, (rwm, (path, tr)), jnp.arange(int(n_steps)))
+    return rwm, path, tr, accepted
