@@ -813,6 +813,19 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
     assert np.all(np.abs(z) < 4.5), np.round(z, 1)
 
 
+_JOINT_FREE = {"force_variance": (LogNormal(0.0, 0.4), 1.0), "force_lengthscale": (LogNormal(np.log(0.5), 0.3), 0.5)}
+
+
+def _joint_prior_draw(pm, hyper, mask, tr_ref, k_theta, k_path, k_noise):
+    """``(x, tr, path, y, od, eks)``: log theta from :data:`_JOINT_FREE`'s priors, a path and a record
+    from the model at it, and the extended Kalman smoother at the fixed ``tr_ref`` (a function of y)."""
+    x = jnp.array([0.0, np.log(0.5)]) + jnp.array([0.4, 0.3]) * jax.random.normal(k_theta, (2,))
+    tr = pm.transition(*hyper.values(x))
+    path, y = _joint_draw(pm, tr, mask, k_path, k_noise)
+    od = latent.observation_density(pm, y, mask)
+    return x, tr, path, y, od, pgas_start.extended_kalman_smoother(pm, tr_ref, y, mask)
+
+
 def test_joint_move_keeps_the_joint_distribution_of_a_nonlinear_model():
     """The joint (theta, path) move alone (:func:`smoother_move.joint_move`), Geweke's check on
     the stiffening Duffing model with both hyperparameters free: (theta, x, y) from the joint
@@ -824,18 +837,13 @@ def test_joint_move_keeps_the_joint_distribution_of_a_nonlinear_model():
     (dropped, the test passes: with a displacement channel the expansion is nearly exact); it
     is the smoother move's, broken at |z| = 11 in the path-move test below.
     """
-    free = {"force_variance": (LogNormal(0.0, 0.4), 1.0), "force_lengthscale": (LogNormal(np.log(0.5), 0.3), 0.5)}
     pm, mask = _joint_model()
-    hyper = hyper_moves.Hyper(_JOINT_PARAMS, free)
+    hyper = hyper_moves.Hyper(_JOINT_PARAMS, _JOINT_FREE)
     tr_ref = pm.transition(1.0, 0.5)
 
     def one(key):
         k_theta, k_path, k_noise, k_move = jax.random.split(key, 4)
-        x = jnp.array([0.0, np.log(0.5)]) + jnp.array([0.4, 0.3]) * jax.random.normal(k_theta, (2,))
-        tr = pm.transition(*hyper.values(x))
-        path, y = _joint_draw(pm, tr, mask, k_path, k_noise)
-        od = latent.observation_density(pm, y, mask)
-        eks = pgas_start.extended_kalman_smoother(pm, tr_ref, y, mask)
+        x, tr, path, y, od, eks = _joint_prior_draw(pm, hyper, mask, tr_ref, k_theta, k_path, k_noise)
         rwm = hyper_moves.init_proposal(hyper, lambda x_: jnp.zeros(()), x, proposal_sd=0.3)
         rwm, path2, tr2, acc = smoother_move.joint_move(
             k_move,
@@ -877,9 +885,8 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
     cannot see that one). Unbroken: |z| <= 2.1 over the 14 statistics.
     """
     T = _JOINT_T
-    free = {"force_variance": (LogNormal(0.0, 0.4), 1.0), "force_lengthscale": (LogNormal(np.log(0.5), 0.3), 0.5)}
     pm, mask = _joint_model()
-    hyper = hyper_moves.Hyper(_JOINT_PARAMS, free)
+    hyper = hyper_moves.Hyper(_JOINT_PARAMS, _JOINT_FREE)
     tr_ref = pm.transition(1.0, 0.5)
     basis = path_moves.lowfreq_basis(T, 8)
     rm = path_moves.ResidualMove(pm, T, 8, jnp.sqrt(jnp.diagonal(tr_ref.Q)[pm.nfx :]))
@@ -901,11 +908,7 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model():
 
     def draw(key):
         k_theta, k_path, k_noise, k_chain = jax.random.split(key, 4)
-        x = jnp.array([0.0, np.log(0.5)]) + jnp.array([0.4, 0.3]) * jax.random.normal(k_theta, (2,))
-        tr = pm.transition(*hyper.values(x))
-        path, y = _joint_draw(pm, tr, mask, k_path, k_noise)
-        od = latent.observation_density(pm, y, mask)
-        eks = pgas_start.extended_kalman_smoother(pm, tr_ref, y, mask)
+        x, tr, path, y, od, eks = _joint_prior_draw(pm, hyper, mask, tr_ref, k_theta, k_path, k_noise)
         # fixed proposals: the non-centred step moves the whole path, so it takes smaller steps
         rwm = hyper_moves.init_proposal(hyper, lambda x_: jnp.zeros(()), x, proposal_sd=0.25)
         rwm_nc = hyper_moves.init_proposal(hyper, lambda x_: jnp.zeros(()), x, proposal_sd=0.03)
