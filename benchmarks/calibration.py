@@ -119,6 +119,8 @@ class Case:
     truth: dict | None
     samplers: tuple[str, ...]
     description: str
+    #: run in quick mode too (the order variants of a case run only in full mode)
+    quick: bool = True
 
     @property
     def kind(self) -> str:
@@ -348,6 +350,31 @@ def cases() -> list[Case]:
             "acceleration (0.05), dt = 0.05 s; records drawn from pgas's own discrete model (RK4 step and "
             "within-step noise, `calibration_duffing.py`); priors log-normal: σ² median 1 (0.5), ℓ 0.5 (0.3); "
             "ranks also of the force at 1/8, 3/8, 5/8, 7/8 of the record",
+        ),
+        *(
+            Case(
+                f"duffing-sbc-{name}",
+                "duffing",
+                {**DUFFING_SBC_CONFIG, "force": {**DUFFING_SBC_CONFIG["force"], "kernel": name}},
+                65,
+                0.05,
+                None,
+                ("pgas",),
+                f"as duffing-sbc, Matérn-{order} force",
+                quick=False,
+            )
+            for name, order in (("matern12", "1/2"), ("matern52", "5/2"), ("matern72", "7/2"))
+        ),
+        Case(
+            "duffing-sbc-acc",
+            "duffing",
+            {**DUFFING_SBC_CONFIG, "sensors": DUFFING_SBC_CONFIG["sensors"][1:]},
+            65,
+            0.05,
+            None,
+            ("pgas",),
+            "as duffing-sbc, acceleration only (the smooth-force case without a displacement channel)",
+            quick=False,
         ),
     ]
 
@@ -701,6 +728,8 @@ def report(summaries: list[dict], mode: str, seed: int, total_s: float) -> str:
             if s["study"].case is case
         )
         case_lines.append(f"- **{case.name}** ({case.kind}, T = {case.T:,}): {case.description}. {settings}.")
+    sizes = sorted({len(s["params"]) for s in summaries})
+    group_sizes = " to ".join(str(n) for n in sizes[:: max(1, len(sizes) - 1)])
     lines = [
         f"# Calibration of the samplers ({mode})",
         "",
@@ -717,8 +746,8 @@ def report(summaries: list[dict], mode: str, seed: int, total_s: float) -> str:
         "from the prior, so their coverage is exactly nominal for a correct sampler; coverage rows hold the "
         "truth fixed (nominal only asymptotically). SBC p-values: uniformity of the truth's rank among "
         f"{SBC_DRAWS} ESS-thinned draws, χ² on the binned ranks and Kolmogorov-Smirnov on (r + U)/(L + 1); "
-        f"**bold** below {FLAG_P}. With {len(LABELS)} parameters per row group, one p-value below 0.05 in a "
-        "few groups is expected by chance. Ranks: the histogram of the ranks (left: truth below every draw). "
+        f"**bold** below {FLAG_P}. With {group_sizes} quantities per row group, one p-value below 0.05 in "
+        "a few groups is expected by chance. Ranks: the histogram of the ranks (left: truth below every draw). "
         "Converged: the sampler's own verdict (R-hat ≤ 1.01, bulk ESS ≥ target, tail ESS ≥ target/4). "
         "s/run: median seconds per run after the first (the first, in brackets, compiles).",
         "",
@@ -742,7 +771,7 @@ def studies(
     for case in cases():
         for sampler in case.samplers:
             n = (sbc_n if case.kind == "SBC" else coverage_n) or REPLICATIONS[mode][(case.kind, sampler)]
-            if n == 0:
+            if n == 0 or (mode == "quick" and not case.quick):
                 continue
             study = Study(case, sampler, n, SETTINGS[sampler][mode])
             if only and not any(o in f"{study.label}/{case.kind.lower()}" for o in only):
@@ -801,6 +830,10 @@ def main(argv=None) -> int:
     latentforce.enable_x64()  # float64; XLA's small-loop threshold before JAX starts
 
     started = time.perf_counter()
+    from latentforce.io.config import config_from_dict
+
+    for case in cases():  # every case's config is valid, those this mode does not run too
+        config_from_dict(case.config, source=case.name)
     chosen = studies(mode, args.only, args.sbc_replications, args.coverage_replications)
     summaries = []
     from latentforce.compile import persistent_cache

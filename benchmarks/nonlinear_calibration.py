@@ -273,7 +273,7 @@ def report(rows: list[tuple[Case, str, dict]], args, total_s: float) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="one small case (CI)")
+    parser.add_argument("--quick", action="store_true", help="one small case (minutes)")
     parser.add_argument("--methods", default="pgas,ekf,ukf")
     parser.add_argument("--orders", default=None, help="only these Matérn orders (0..3), comma-separated")
     parser.add_argument(
