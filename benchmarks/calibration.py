@@ -314,6 +314,19 @@ DUFFING_SBC_CONFIG = {
 
 def cases() -> list[Case]:
     """Every calibration case, in the order of the table."""
+    duffing = Case(
+        "duffing-sbc",
+        "duffing",
+        DUFFING_SBC_CONFIG,
+        65,
+        0.05,
+        None,
+        ("pgas",),
+        "Duffing m = 1, c = 0.5, k = 10, k3 = 1000, Matérn-3/2 force, displacement (noise sd 0.01) and "
+        "acceleration (0.05), dt = 0.05 s; records drawn from pgas's own discrete model (RK4 step and "
+        "within-step noise, `calibration_duffing.py`); priors log-normal: σ² median 1 (0.5), ℓ 0.5 (0.3); "
+        "ranks also of the force at 1/8, 3/8, 5/8, 7/8 of the record",
+    )
     return [
         Case(
             "sdof-sbc",
@@ -338,42 +351,22 @@ def cases() -> list[Case]:
             "(σ 1), k 150 (0.5), σ² 1 (2), ℓ 1 (1)",
         ),
         Case("sdof-T20000", "linear", COVERAGE_CONFIG, 20_000, DT, COVERAGE_TRUTH, LINEAR_SAMPLERS, "as sdof-T2000"),
-        Case(
-            "duffing-sbc",
-            "duffing",
-            DUFFING_SBC_CONFIG,
-            65,
-            0.05,
-            None,
-            ("pgas",),
-            "Duffing m = 1, c = 0.5, k = 10, k3 = 1000, Matérn-3/2 force, displacement (noise sd 0.01) and "
-            "acceleration (0.05), dt = 0.05 s; records drawn from pgas's own discrete model (RK4 step and "
-            "within-step noise, `calibration_duffing.py`); priors log-normal: σ² median 1 (0.5), ℓ 0.5 (0.3); "
-            "ranks also of the force at 1/8, 3/8, 5/8, 7/8 of the record",
-        ),
+        duffing,
         *(
-            Case(
-                f"duffing-sbc-{name}",
-                "duffing",
-                {**DUFFING_SBC_CONFIG, "force": {**DUFFING_SBC_CONFIG["force"], "kernel": name}},
-                65,
-                0.05,
-                None,
-                ("pgas",),
-                f"as duffing-sbc, Matérn-{order} force",
+            dataclasses.replace(
+                duffing,
+                name=f"duffing-sbc-{name}",
+                config={**DUFFING_SBC_CONFIG, "force": {**DUFFING_SBC_CONFIG["force"], "kernel": name}},
+                description=f"as duffing-sbc, Matérn-{order} force",
                 quick=False,
             )
             for name, order in (("matern12", "1/2"), ("matern52", "5/2"), ("matern72", "7/2"))
         ),
-        Case(
-            "duffing-sbc-acc",
-            "duffing",
-            {**DUFFING_SBC_CONFIG, "sensors": DUFFING_SBC_CONFIG["sensors"][1:]},
-            65,
-            0.05,
-            None,
-            ("pgas",),
-            "as duffing-sbc, acceleration only (the smooth-force case without a displacement channel)",
+        dataclasses.replace(
+            duffing,
+            name="duffing-sbc-acc",
+            config={**DUFFING_SBC_CONFIG, "sensors": DUFFING_SBC_CONFIG["sensors"][1:]},
+            description="as duffing-sbc, acceleration only (the smooth-force case without a displacement channel)",
             quick=False,
         ),
     ]
