@@ -364,6 +364,21 @@ def cases() -> list[Case]:
         ),
         dataclasses.replace(
             duffing,
+            name="duffing-sbc-params",
+            config={
+                **DUFFING_SBC_CONFIG,
+                "system": {
+                    **DUFFING_SBC_CONFIG["system"],
+                    "c": _lognormal(0.5, 0.3, 0.5),
+                    "k3": _lognormal(1000.0, 0.3, 1000.0),
+                },
+            },
+            description="as duffing-sbc, the damping c and cubic stiffness k3 inferred too (log-normal priors: "
+            "c median 0.5 (σ 0.3), k3 1000 (0.3))",
+            quick=False,
+        ),
+        dataclasses.replace(
+            duffing,
             name="duffing-sbc-acc",
             config={**DUFFING_SBC_CONFIG, "sensors": DUFFING_SBC_CONFIG["sensors"][1:]},
             description="as duffing-sbc, acceleration only (the smooth-force case without a displacement channel)",

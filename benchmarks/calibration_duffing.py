@@ -5,10 +5,11 @@ For ``pgas`` that is its own discrete model (:class:`~latentforce.inference.part
 the force's GP states and the within-step noise of the mechanical states are
 the latent path, the mechanical states follow the RK4 step, and the sensors
 see the path through the model's observation map. A replicate draws the
-hyperparameters from their priors (in :mod:`calibration`), then the latent
-path from its prior at those hyperparameters (the default initial state of a
-nonlinear system included), then the record; the sampler infers the
-hyperparameters and the path. Ranks are taken for the hyperparameters and for
+free parameters (hyperparameters, and system parameters where the case frees
+them) from their priors (in :mod:`calibration`), then the latent path from its
+prior at those values (the initial state from the sampler's prior: the default
+of a nonlinear system at the free parameters' initial values), then the record;
+the sampler infers the parameters and the path. Ranks are taken for the parameters and for
 the force at four times (1/8, 3/8, 5/8 and 7/8 of the record): every one is
 uniform if ``pgas`` samples the joint posterior.
 
@@ -46,7 +47,14 @@ def simulate(rng: np.random.Generator, problem, params: dict, T: int, dt: float)
     from latentforce.inference.particle_model import ParticleModel
 
     model = problem.model
-    pm = ParticleModel(model, params, dt, initial=problem.initial, R=model.noise_covariance(params))
+    # The initial state's prior is the sampler's: the user's, else the default at the free
+    # parameters' initial values (run_pgas builds its model there and keeps that prior while it
+    # samples m, c, k, k3 ...; a nonlinear default depends on c and k)
+    initial = problem.initial
+    if initial is None:
+        init = dict(params, **{n: spec.init for n, spec in problem.free.items()})
+        initial = ParticleModel(model, init, dt, R=model.noise_covariance(init)).initial_mech()
+    pm = ParticleModel(model, params, dt, initial=initial, R=model.noise_covariance(params))
     tr = pm.transition(params["force_variance"], params["force_lengthscale"])
     key = jax.random.key(int(rng.integers(2**31)))
     x = pm.path(latent.gp_prior_path(key, tr, T))

@@ -183,8 +183,11 @@ def _inferred(method: str, extra: str = "") -> str:
     text = CONFIG.format(missing="error").replace(
         "variance = 2.0", 'variance = { prior = "lognormal", mu = 0.7, sigma = 1.0, init = 1.0 }'
     )
-    if method == "pgas":
-        text = text.replace('type = "linear"', 'type = "duffing"').replace("k = 10.0", "k = 10.0\nk3 = 5.0")
+    if method == "pgas":  # the cubic stiffness inferred too
+        k3 = 'k3 = { prior = "lognormal", mu = 1.6, sigma = 0.5, init = 4.0 }'
+        text = text.replace('type = "linear"', 'type = "duffing"').replace("k = 10.0", f"k = 10.0\n{k3}")
+        # a virtual sensor through the equation of motion, k3 included
+        text = text.replace("[inference]", '[[outputs]]\nname = "inertia"\nacceleration = [1.0]\n\n[inference]')
         text = text.replace('method = "kalman"', 'method = "pgas"\nparticles = 16\nstate_every = 2')
     else:
         text = text.replace('method = "kalman"', f'method = "{method}"')
@@ -208,6 +211,9 @@ def test_every_sampling_method_writes_a_result_folder_with_its_verdict(workdir, 
     assert {"max_r_hat", "min_ess_bulk", "min_ess_tail", "worst", "target_ess"} <= set(record)
     assert record["worst"] and record["min_ess_bulk"] < 400
     assert {"mean", "sd", "r_hat", "ess_bulk"} <= set(summary["parameters"]["force_variance"])
+    if method == "pgas":  # k3 is a parameter like the force's, and each draw's k3 makes its accelerations
+        assert {"mean", "sd", "r_hat", "ess_bulk"} <= set(summary["parameters"]["k3"])
+        assert "inertia_mean" in (workdir / "res" / "summary.csv").read_text().splitlines()[0]
     if method == "pgas":  # a path that neither the sweep nor the smoother move renewed is named as the cause
         from latentforce.estimate_particles import LOW_SMOOTHER_ACCEPTANCE, LOW_SWITCH_RATE
 

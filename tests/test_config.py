@@ -129,6 +129,17 @@ def test_duffing_pgas(tmp_path):
     assert p.columns == ["acc", "disp"]
 
 
+def test_duffing_pgas_infers_system_parameters(tmp_path):
+    """Any of a nonlinear system's parameters may be a prior table under pgas (k, k3 here): free,
+    with its prior and init, the others fixed."""
+    d = _edit(DUFFING, ["system", "k3"], {"prior": "lognormal", "mu": 20.7, "sigma": 0.5, "init": 8e8})
+    d = _edit(d, ["system", "k"], {"prior": "normal", "mean": 1e4, "sd": 1e3})
+    p = config_from_dict(d, base_dir=tmp_path)
+    assert set(p.free) == {"force_variance", "force_lengthscale", "k", "k3"}
+    assert p.fixed == {"m": 1.0, "c": 20.0} and p.free["k3"].init == 8e8
+    assert p.inference.method == "pgas"
+
+
 def test_initial_state():
     d = copy.deepcopy(DUFFING)
     d["initial"] = {"mean": [0.0, 0.0, 0.0], "sd": [1e-3, 1e-3, 1.0]}
@@ -236,8 +247,6 @@ def test_prior_table_checks():
 def test_method_consistency():
     _bad(_edit(DUFFING, ["inference", "method"], "kalman"), "[inference].method", "linear", '"pgas"')
     _bad(_edit(DUFFING, ["inference", "method"], "kalman-mcmc"), "[inference].method", "linear")
-    d = _edit(DUFFING, ["system", "k"], {"prior": "normal", "mean": 1e4, "sd": 1e3})
-    _bad(d, "[system].k", "pgas", "force variance and lengthscale")
     d = _edit(MDOF, ["force", "lengthscale"], {"prior": "lognormal", "mu": 0.0, "sigma": 1.0})
     _bad(
         _edit(d, ["inference", "method"], "kalman"), "[inference].method", "fixed", "kalman-mcmc", "[force].lengthscale"

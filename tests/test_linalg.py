@@ -145,17 +145,21 @@ def _lapack_calls(texts):
     return sorted({name for name, text in texts if "lapack" in text})
 
 
-def test_particle_gibbs_programs_call_no_lapack(monkeypatch):
+@pytest.mark.parametrize("system", [False, True], ids=["hyperparameters", "with-k3"])
+def test_particle_gibbs_programs_call_no_lapack(monkeypatch, system):
     """Every program of a nonlinear PGAS run (free hyperparameters, so the theta steps, the
     low-frequency and the residual-preserving moves all run; chains vmapped, which is what
-    batches the factorisations) is free of LAPACK custom calls."""
-    from latentforce.inference import particle_model, pgas
+    batches the factorisations) is free of LAPACK custom calls; ``with-k3``: k3 sampled too (the
+    per-chain model in every program, and the filter's mode search that starts the run)."""
+    from latentforce.inference import laplace, particle_model, pgas
 
     texts = []
-    _recording_programs(monkeypatch, texts, pgas, particle_model)
+    _recording_programs(monkeypatch, texts, pgas, particle_model, laplace)
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
     params = dict(m=1.0, c=0.5, k=10.0, k3=1000.0, force_variance=1.0, force_lengthscale=0.5)
     free = {"force_variance": (LogNormal(0.0, 1.0), 1.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 0.5)}
+    if system:
+        free["k3"] = (LogNormal(np.log(1000.0), 0.5), 800.0)
     y = np.sin(np.arange(32) * 0.3)[:, None]
     out = pgas.run_pgas(
         jax.random.key(0, impl="rbg"),
@@ -173,7 +177,8 @@ def test_particle_gibbs_programs_call_no_lapack(monkeypatch):
     assert np.all(np.isfinite(out.state_mean["force"]))
     names = {name for name, _ in texts}
     expected = {"_run_chunk", "_shapes", "_smooth", "_init_chains", "_start_transitions", "_derived_program"}
-    assert expected <= names, names
+    assert expected | ({"_value_and_grad", "_centres"} if system else set()) <= names, names
+    assert ("k3" in out.theta) == system
     assert _lapack_calls(texts) == [], _lapack_calls(texts)
 
 

@@ -296,6 +296,23 @@ def test_path_outputs_equal_output_matrix_for_linear_systems():
     np.testing.assert_allclose(got, x @ G.T, rtol=1e-10, atol=1e-10)
 
 
+def test_path_outputs_use_each_draws_own_system_parameters():
+    """With sampled system parameters (pgas inferring c and k3 of a Duffing system) every path's
+    acceleration comes from its own draw's equation of motion, by hand."""
+    from latentforce.systems import Duffing
+
+    model = LatentForceModel(Duffing(), Matern(1), [Sensor("acceleration", 0, 0.1)])
+    spec = [OutputSpec("inertia", "N", acceleration=(1.0,))]
+    params = dict(m=2.0, c=0.5, k=10.0, k3=100.0, force_variance=1.0, force_lengthscale=0.5)
+    z, v, u = (np.asarray(jax.random.normal(jax.random.key(i), (3, 4, 6, 1))) for i in range(3))
+    c, k3 = np.linspace(0.1, 1.2, 12).reshape(3, 4), np.linspace(50.0, 400.0, 12).reshape(3, 4)
+    got = path_outputs(model, spec, params, z, v, u, draw_params={"c": c, "k3": k3})
+    by_hand = (u - c[..., None, None] * v - 10.0 * z - k3[..., None, None] * z**3) / 2.0
+    np.testing.assert_allclose(got, by_hand, rtol=1e-12, atol=1e-12)
+    fixed = path_outputs(model, spec, params, z, v, u)
+    np.testing.assert_allclose(fixed, (u - 0.5 * v - 10.0 * z - 100.0 * z**3) / 2.0, rtol=1e-12, atol=1e-12)
+
+
 def test_mass_warning_without_a_force_channel():
     from latentforce.results import RunResult
 

@@ -169,3 +169,60 @@ def test_duffing_with_a_displacement_channel_accepts_most_proposals(order):
     (path, acc), centre, eks = run(jax.random.key(0))
     assert float(jnp.mean(acc)) > 0.5, float(jnp.mean(acc))
     assert float(jnp.max(jnp.abs(path - centre))) > 0.0
+
+
+def test_model_at_other_system_parameters_is_the_model_built_there():
+    """:meth:`ParticleModel.with_params` (the per-chain model of a run that samples m, c, k, k3) is
+    the model built afresh at those values (transition, map, sensors, initial state), for a linear
+    system with its stationary start and for a Duffing system with a given start, also traced."""
+    lin = linear_problem(T=5, kernel=Matern(1))
+    pm_lin = smc.ParticleModel(lin["model"], lin["params"], lin["dt"])  # stationary start
+    pm_duf = _duffing(1, T=5)[0]
+    x = jnp.array([0.01, -0.2, 0.7, 0.3])
+    for pm, new in ((pm_lin, dict(m=1.3, c=0.7, k=14.0)), (pm_duf, dict(c=0.9, k3=500.0))):
+        fresh = smc.ParticleModel(
+            pm.model, {**pm.params, **new}, pm.dt, initial=None if pm.stationary_start else (0.0, 0.05)
+        )
+        for moved in (pm.with_params(new), jit(lambda v: pm.with_params(v))(new)):
+            assert jax.tree_util.tree_structure(moved) == jax.tree_util.tree_structure(pm)
+            for a, b in zip(moved.transition(0.8, 0.4), fresh.transition(0.8, 0.4)):
+                np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
+            np.testing.assert_allclose(moved.phi(x[:2], x[2:]), fresh.phi(x[:2], x[2:]), rtol=1e-12)
+            np.testing.assert_allclose(moved.readout(x), fresh.readout(x), rtol=1e-12)
+            np.testing.assert_allclose(moved.mech0_cov, fresh.mech0_cov, rtol=1e-12)
+        assert not np.allclose(np.asarray(pm.phi(x[:2], x[2:])), np.asarray(fresh.phi(x[:2], x[2:])))
+
+
+def test_joint_target_at_other_system_parameters_is_the_exact_marginal_likelihood():
+    """With system parameters sampled, the joint move's target at a point (m, c, k) is the log prior
+    plus the exact (Kalman) marginal likelihood of the linear model built at that point, for the
+    current path and for a proposed one (the move rebuilds the model at each point)."""
+    from latentforce.inference.hyper_moves import Hyper
+    from latentforce.priors import LogNormal
+
+    prob = linear_problem(T=60, missing=True, kernel=Matern(1))
+    pm = prob["pm"]
+    od = latent.observation_density(pm, prob["y"], prob["mask"])
+    free = {n: (LogNormal(np.log(prob["params"][n]), 0.5), prob["params"][n]) for n in ("m", "c", "k")}
+    free["force_variance"] = (LogNormal(0.0, 1.0), 1.0)
+    hyper = Hyper(prob["params"], free, ("m", "c", "k"))
+    assert hyper.joint_names == ("force_variance", "m", "c", "k")
+    path = pm.path(latent.gp_prior_path(jax.random.key(4), prob["tr"], 60))
+
+    @jit
+    def at(x):
+        pm_x = hyper.model_at(pm, x[1:])
+        tr = pm_x.transition(*hyper.values(x))
+        A_d, Q_d, H, m1, P1 = pm_x.linear_discrete(tr)
+        exact = log_likelihood(A_d, Q_d, H, pm.R, m1, P1, prob["y"], prob["mask"]) + hyper.joint_log_prior(x)
+        cur = smoother_move.joint_log_target(None, pm_x, tr, od, pm.R, path, hyper.joint_log_prior(x), path=path)
+        new = smoother_move.joint_log_target(jax.random.key(5), pm_x, tr, od, pm.R, path, hyper.joint_log_prior(x))
+        return exact, cur.log_target, new.log_target
+
+    values = []
+    for theta in ((1.0, 1.0, 0.4, 10.0), (0.5, 1.2, 0.8, 8.0), (2.0, 0.9, 0.2, 13.0)):
+        exact, cur, new = (float(v) for v in at(jnp.log(jnp.asarray(theta))))
+        np.testing.assert_allclose(cur, exact, rtol=1e-9, atol=1e-7)
+        np.testing.assert_allclose(new, exact, rtol=1e-9, atol=1e-7)
+        values.append(exact)
+    assert np.ptp(values) > 1.0  # the points differ, so the model was rebuilt at each

@@ -144,14 +144,6 @@ def _run_pgas(
     paths = model.layout.quantities(out.trajectories)
     state_mean = {n: np.asarray(v) for n, v in out.state_mean.items()}
     state_sd = {n: np.asarray(v) for n, v in out.state_sd.items()}
-    if problem.outputs:  # from the stored paths, the acceleration from the equation of motion
-        sampled = path_outputs(
-            model, problem.outputs, params0, paths["displacement"], paths["velocity"], paths["force"]
-        )
-        out_mean, out_sd, out_paths = split_outputs(problem.outputs, *sample_moments(sampled), sampled)
-        state_mean.update(out_mean)
-        state_sd.update(out_sd)
-        paths.update(out_paths)
     # Each stored trajectory came from the sweep of one Gibbs block; pair it with the
     # hyperparameters drawn at the end of that block (conditional on that trajectory).
     k = settings.state_every
@@ -161,6 +153,21 @@ def _run_pgas(
     slots = np.arange(out.trajectories.shape[1])
     idx = np.clip((burn_blocks + slots * thin) * k + k - 1 - settings.burn_in, 0, max(iterations - 1, 0))
     param_draws = {n: v[:, idx] for n, v in out.theta.items()}
+    if problem.outputs:  # from the stored paths, the acceleration from the equation of motion
+        # a sampled system parameter (m, c, k, k3 ...): each path's at its own draw
+        sampled = path_outputs(
+            model,
+            problem.outputs,
+            params0,
+            paths["displacement"],
+            paths["velocity"],
+            paths["force"],
+            draw_params={n: param_draws[n] for n in out.names if n in model.system.param_names},
+        )
+        out_mean, out_sd, out_paths = split_outputs(problem.outputs, *sample_moments(sampled), sampled)
+        state_mean.update(out_mean)
+        state_sd.update(out_sd)
+        paths.update(out_paths)
     pooled = {n: v.reshape(-1) for n, v in out.theta.items()}
     point = {f"{n}_mean": float(np.mean(v)) for n, v in pooled.items()}
     point.update({f"{n}_median": float(np.median(v)) for n, v in pooled.items()})

@@ -98,9 +98,12 @@ def path_outputs(
     z: Float[Array, "... T nd"],
     v: Float[Array, "... T nd"],
     u: Float[Array, "... T nf"],
+    draw_params: dict | None = None,
 ) -> np.ndarray:
     """The outputs ``(..., T, k)`` of sampled paths of displacement, velocity and force,
-    the acceleration from the system's equation of motion (any system)."""
+    the acceleration from the system's equation of motion (any system). ``draw_params``:
+    sampled parameters, ``name -> (...)`` one value per path (the leading axes of ``z``), which
+    replace those in ``params`` path by path (the equation of motion of each draw's own system)."""
     z, v, u = (jnp.asarray(a, dtype=float) for a in (z, v, u))
     nd, nf = model.ndof, model.nforce
     cz = jnp.asarray(np.stack([_coefficients(s, "displacement", nd) for s in outputs]))
@@ -110,9 +113,18 @@ def path_outputs(
     out = z @ cz.T + v @ cv.T + u @ cu.T
     if np.any(np.asarray(ca)):
         lead = z.shape[:-1]
-        a = _accelerations(
-            numbers(params), z.reshape(-1, nd), v.reshape(-1, nd), u.reshape(-1, nf), system=model.system
-        ).reshape(*lead, nd)
+        if draw_params:  # every time of a path at its draw's parameters
+            per_row = {
+                n: jnp.broadcast_to(jnp.asarray(d, dtype=float)[..., None], lead).reshape(-1)
+                for n, d in draw_params.items()
+            }
+            a = _accelerations_per_row(
+                numbers(params), per_row, z.reshape(-1, nd), v.reshape(-1, nd), u.reshape(-1, nf), system=model.system
+            ).reshape(*lead, nd)
+        else:
+            a = _accelerations(
+                numbers(params), z.reshape(-1, nd), v.reshape(-1, nd), u.reshape(-1, nf), system=model.system
+            ).reshape(*lead, nd)
         out = out + a @ ca.T
     return np.asarray(out)
 
@@ -120,6 +132,11 @@ def path_outputs(
 @functools.partial(jit, static_argnames=("system",))
 def _accelerations(params, z, v, u, *, system):
     return jax.vmap(lambda zz, vv, uu: system.acceleration(params, zz, vv, uu))(z, v, u)
+
+
+@functools.partial(jit, static_argnames=("system",))
+def _accelerations_per_row(params, per_row, z, v, u, *, system):
+    return jax.vmap(lambda pr, zz, vv, uu: system.acceleration({**params, **pr}, zz, vv, uu))(per_row, z, v, u)
 
 
 def sample_moments(paths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

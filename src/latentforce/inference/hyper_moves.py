@@ -36,33 +36,68 @@ def gp_path_log_density(
 
 @jax.tree_util.register_pytree_node_class
 class Hyper:
-    """Which hyperparameters are free, their priors, and the fixed values of the others.
+    r"""Which parameters the Gibbs chain samples besides the noise levels, their priors, and the fixed values.
 
-    The sampling coordinates are :math:`x = \\log\\theta` (module doc). A pytree: the names are
-    static, the priors' numbers, the starting values and the fixed values are leaves (a compiled
-    program that takes it serves every value).
+    ``names``: the free GP hyperparameters (the centred, non-centred and joint moves sample
+    them). ``sys_names``: the free system parameters (``m, c, k, k3`` ..., any of the
+    ``system_names`` the caller allows), moved with the path and the hyperparameters by the
+    joint move only (:func:`latentforce.inference.smoother_move.joint_move`): given a path the
+    within-step noise pins them, and only a move that redraws the path with them mixes. The
+    joint move's coordinates are ``(x, x_sys)``, hyperparameters first.
+
+    The sampling coordinates are :math:`x = \log\theta` (module doc; every prior of
+    :mod:`latentforce.priors` is on the positive reals). A pytree: the names are static, the
+    priors' numbers, the starting values and the fixed values are leaves (a compiled program
+    that takes it serves every value).
     """
 
-    def __init__(self, params: dict, free: dict):
-        bad = [n for n in free if n not in HYPERPARAMETERS]
+    def __init__(self, params: dict, free: dict, system_names: tuple[str, ...] = ()):
+        bad = [n for n in free if n not in HYPERPARAMETERS and n not in system_names]
         if bad:
-            raise ValueError(f"PGAS samples only {HYPERPARAMETERS}; cannot sample {bad}")
+            raise ValueError(f"PGAS samples only {HYPERPARAMETERS + tuple(system_names)}; cannot sample {bad}")
         self.names = tuple(n for n in HYPERPARAMETERS if n in free)
+        self.sys_names = tuple(n for n in system_names if n in free and n not in HYPERPARAMETERS)
         self.priors = tuple(free[n][0] for n in self.names)
+        self.sys_priors = tuple(free[n][0] for n in self.sys_names)
         self.init = np.array([float(free[n][1]) for n in self.names], dtype=float)
-        if not np.all(self.init > 0):
-            raise ValueError(f"initial hyperparameters must be positive, got {dict(zip(self.names, self.init))}")
+        self.sys_init = np.array([float(free[n][1]) for n in self.sys_names], dtype=float)
+        for names, init in ((self.names, self.init), (self.sys_names, self.sys_init)):
+            if not np.all(init > 0):
+                raise ValueError(f"initial values of sampled parameters must be positive, got {dict(zip(names, init))}")
         self.fixed = {n: float(params[n]) for n in HYPERPARAMETERS}
 
     def tree_flatten(self):
-        return (self.priors, self.init, self.fixed), self.names
+        return (self.priors, self.init, self.fixed, self.sys_priors, self.sys_init), (self.names, self.sys_names)
 
     @classmethod
     def tree_unflatten(cls, names, children):
         hyper = object.__new__(cls)
-        hyper.names = names
-        hyper.priors, hyper.init, hyper.fixed = children
+        hyper.names, hyper.sys_names = names
+        hyper.priors, hyper.init, hyper.fixed, hyper.sys_priors, hyper.sys_init = children
         return hyper
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """The joint move's coordinates by name: the hyperparameters, then the system parameters."""
+        return self.names + self.sys_names
+
+    def system_values(self, x_sys: Float[Array, " s"]) -> dict:
+        """The system parameters by name at the unconstrained ``x_sys``."""
+        theta = self.to_constrained(x_sys)
+        return {n: theta[i] for i, n in enumerate(self.sys_names)}
+
+    def model_at(self, pm: particle_model.ParticleModel, x_sys: Float[Array, " s"]) -> particle_model.ParticleModel:
+        """``pm`` at the system parameters ``x_sys`` (``pm`` itself when none is sampled)."""
+        return pm.with_params(self.system_values(x_sys)) if self.sys_names else pm
+
+    def joint_log_prior(self, x: Float[Array, " q"]) -> Float[Array, ""]:
+        """The prior density of the joint move's coordinates ``(x, x_sys)`` (log space, Jacobians included)."""
+        p = len(self.names)
+        lp = self.log_prior(x[:p])
+        theta = self.to_constrained(x[p:])
+        for i, prior in enumerate(self.sys_priors):
+            lp = lp + prior.log_prob(theta[i]) + x[p + i]
+        return lp
 
     @staticmethod
     def to_unconstrained(theta: Float[Array, " p"]) -> Float[Array, " p"]:

@@ -152,6 +152,15 @@ class ParticleModel:
             self, initial
         )
 
+    def with_params(self, new: dict) -> "ParticleModel":
+        """This model with the system parameters in ``new`` replaced (traced values allowed: the
+        sampler's per-chain model when system parameters are inferred). The same structure, so
+        one compiled program serves both: the same noise covariance ``R`` and the same prior of
+        the initial mechanical state (a linear system's stationary start is recomputed at the
+        new parameters, as that start is defined)."""
+        initial = None if self.stationary_start else self._mech0_user
+        return ParticleModel(self.model, {**self.params, **new}, self.dt, self.discretisation, initial, R=self.R)
+
     def _structure(self, model, dt: float, discretisation: str, stationary_start: bool) -> None:
         """The static attributes (the pytree's tree definition): sizes and switches of ``model``."""
         self.model, self.dt, self.discretisation = model, dt, discretisation

@@ -3,6 +3,7 @@ move and the residual-preserving move (their derivation: :mod:`latentforce.infer
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Callable, NamedTuple
 
@@ -21,7 +22,7 @@ from latentforce.inference.latent import (
     predicted_observations,
     whiten,
 )
-from latentforce.linalg import cho_solve, cholesky, solve, symmetrise
+from latentforce.linalg import cho_solve, cholesky, inv, solve, symmetrise
 
 
 def lowfreq_basis(T: int, K: int) -> Float[Array, "T K1"]:
@@ -251,6 +252,15 @@ class ResidualMove:
         self.scale_w = jnp.asarray(noise_sd) * math.sqrt(T)
         self.scale_0 = jnp.sqrt(jnp.diagonal(pm.mech0_cov))
         self.dim = (self.K + 1) * pm.nm
+
+    def at(self, pm: particle_model.ParticleModel) -> "ResidualMove":
+        """This move for ``pm``, a model of the same structure at other system parameters (traced
+        allowed): the inverse force block from ``pm.D`` (the mass enters it), the rest kept."""
+        if not self.applies:
+            return self
+        rm = copy.copy(self)
+        rm.Dinv = inv(pm.D[np.ix_(self.rows, self.cols)])
+        return rm
 
     def tree_flatten(self):
         return (

@@ -178,6 +178,9 @@ class BlockInfo(NamedTuple):
     accept_noise: Float[Array, " m"]
     accept_smoother: Float[Array, ""]  # the smoother move's acceptance (zero where it is not made)
     accept_joint: Float[Array, ""]  # the joint (theta, path) move's acceptance (zero where it is not made)
+    # the sampled system parameters (Hyper.sys_names) after the block's joint move, repeated for its k
+    # MH iterations (they pair with theta as the Gibbs chain's state)
+    system: Float[Array, "k s"]
 
 
 class BlockData(NamedTuple):
@@ -315,8 +318,13 @@ def make_block(
     ``data`` (:class:`BlockData`) may be shared or batched. ``tpoints``: the
     time indices whose force values are recorded.
 
+    System parameters (``hyper.sys_names``) are moved by the joint move alone, which then must
+    run (``joint_steps`` and ``smoother_steps`` positive, the state holding ``centre`` and
+    ``rwm_joint``); the chain's values are ``rwm_joint.x[p:]`` (log space), and every other
+    move of the block runs on the model at them (:meth:`~latentforce.inference.hyper_moves.Hyper.model_at`).
+
     The caller's :class:`ChainState` must hold ``tr``, the transition at
-    ``rwm.x``, and ``draws`` with ``sched.n_draws + 1`` slots (the last is a
+    ``rwm.x`` (and at the system parameters), and ``draws`` with ``sched.n_draws + 1`` slots (the last is a
     discard slot); ``data.ref_q`` centres the running sums (``(T, q)``, see
     :func:`~latentforce.inference.pgas.run_pgas`). The walks' ``logdensity`` fields are refreshed before
     use. ``mpoints``: the time indices whose displacement, velocity and force are
@@ -333,19 +341,25 @@ def make_block(
     :data:`~latentforce.inference.noise_gibbs.NOISE_STREAM` (a run without
     inferred noise draws what it drew before).
     """
-    p = len(hyper.names)
+    p, n_sys = len(hyper.names), len(hyper.sys_names)
     k_every, n_mh, burn_in = sched.state_every, sched.mh_steps, sched.burn_in
     n_blocks, burn_blocks, n_draws = sched.n_blocks, sched.burn_blocks, sched.n_draws
-    sweep = smc.make_sweep(
-        pm,
-        particles,
-        proposal=proposal,
-        resampling=resampling,
-        conditional=True,
-        ancestor_sampling=ancestor_sampling,
-        unroll=unroll,
-    )
+
+    def make_sweep(pm_):
+        return smc.make_sweep(
+            pm_,
+            particles,
+            proposal=proposal,
+            resampling=resampling,
+            conditional=True,
+            ancestor_sampling=ancestor_sampling,
+            unroll=unroll,
+        )
+
+    pm_base, rm_base = pm, rm  # the block's own pm and rm: the chain's, at its system parameters
+    sweep_fixed = make_sweep(pm)
     target_acc = mcmc.target_acceptance(max(p, 1))
+    target_joint = mcmc.target_acceptance(max(p + n_sys, 1))
     reshape_steps = jnp.asarray(adaptation_schedule(burn_in * n_mh) or (-1,))
     n_lf, n_rp = int(lowfreq_steps), int(residual_steps)
     if n_lf < 0:
@@ -361,6 +375,11 @@ def make_block(
     if n_joint < 0:
         raise ValueError(f"joint_steps must be non-negative, got {joint_steps}")
     joint_reshape = jnp.asarray(adaptation_schedule(sched.burn_blocks * n_joint) or (-1,))
+    if n_sys and not (n_joint and n_sm):
+        raise ValueError(
+            f"system parameters {hyper.sys_names} are sampled by the joint move only: "
+            f"joint_steps and smoother_steps must be positive, got {joint_steps} and {smoother_steps}"
+        )
 
     lf_reshape = jnp.asarray((-1,))
     n_noise = len(noise.channels)
@@ -372,16 +391,17 @@ def make_block(
         tr = state.tr
         if n_noise:  # the chain's own noise levels
             R = jnp.diag(state.noise_var)
-            od = observation_density(pm, data.y, data.mask, R)
+            od = observation_density(pm_base, data.y, data.mask, R)
         else:
             R, od = data.R, data.od
         reference, rwm_x, rwm_joint, acc_joint = state.reference, state.rwm.x, state.rwm_joint, jnp.zeros(())
-        if n_joint and p and state.centre is not None and rwm_joint is not None:
+        if n_joint and (p or n_sys) and state.centre is not None and rwm_joint is not None:
             k_joint = jax.random.fold_in(state.key, smoother_move.JOINT_STREAM)
+            # the joint walk's x: the hyperparameters (kept in rwm.x), then the system parameters
             rwm_joint, reference, tr, accs_joint = smoother_move.joint_move(
                 k_joint,
-                rwm_joint._replace(x=state.rwm.x),
-                pm,
+                rwm_joint._replace(x=jnp.concatenate([state.rwm.x, rwm_joint.x[p:]])),
+                pm_base,
                 hyper,
                 od,
                 R,
@@ -392,9 +412,14 @@ def make_block(
                 adapt=b < burn_blocks,
                 reshape_steps=joint_reshape,
                 step0=b * n_joint,
-                target=target_acc,
+                target=target_joint,
             )
-            rwm_x, acc_joint = rwm_joint.x, jnp.mean(accs_joint.astype(float))
+            rwm_x, acc_joint = rwm_joint.x[:p], jnp.mean(accs_joint.astype(float))
+        # the chain's model at its system parameters (the block's moves below hold them fixed)
+        x_sys = rwm_joint.x[p:] if n_sys else jnp.zeros(0)
+        pm = hyper.model_at(pm_base, x_sys)
+        rm = rm_base.at(pm) if n_sys else rm_base
+        sweep = make_sweep(pm) if n_sys else sweep_fixed
         sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal, R)
         out = sweep(k_sweep, sc, reference)
         path = out.trajectory
@@ -523,6 +548,7 @@ def make_block(
             acc_noise,
             acc_sm,
             acc_joint,
+            jnp.broadcast_to(hyper.to_constrained(x_sys), (k_every, n_sys)),
         )
         return new, info
 

@@ -43,11 +43,14 @@ class PGASOutput(NamedTuple):
 
 def _parameters(hyper: Hyper, noise_names, info: BlockInfo) -> tuple[tuple, np.ndarray]:
     """``(names, values)``: the inferred parameters' names and their values per MH iteration,
-    ``(chains, blocks * state_every, p + m)`` (hyperparameters, then noise levels)."""
+    ``(chains, blocks * state_every, p + s + m)`` (hyperparameters, system parameters, then noise
+    levels)."""
     chains, blocks = np.shape(info.accept)[:2]
     theta = np.reshape(info.theta, (chains, blocks * np.shape(info.theta)[2], len(hyper.names)))
+    system = np.reshape(info.system, (chains, theta.shape[1], len(hyper.sys_names)))
     noise = np.reshape(info.noise, (chains, theta.shape[1], len(noise_names)))
-    return tuple(hyper.names) + tuple(noise_names), np.concatenate([theta, noise], axis=2)
+    names = tuple(hyper.names) + tuple(hyper.sys_names) + tuple(noise_names)
+    return names, np.concatenate([theta, system, noise], axis=2)
 
 
 def _verdict(

@@ -80,6 +80,16 @@ For a linear system :math:`w` is constant and :math:`Z` the exact likelihood
 ``kalman-mcmc``, carrying an exact draw of the path; where the expansion is
 good (a displacement channel) it mixes nearly as well. Measured on that
 Duffing record: hyperparameter ESS 277-282 in the same 20 s.
+
+System parameters (``m, c, k, k3`` ..., :class:`~latentforce.inference.hyper_moves.Hyper`)
+join :math:`\theta` in this move and in no other: the model (its map :math:`\Phi`, its
+linearisation, the transition's within-step noise) is rebuilt at the proposed values, and
+:math:`g' = (x_f', w')` is mapped to its path by that model. The map from path to latent,
+:math:`w_t = \mathrm{mech}_t - \Phi_\theta(\mathrm{mech}_{t-1}, x_{f,t-1})`, is
+triangular with a unit diagonal, so the densities of path and latent are equal at every
+:math:`\theta` and the ratio above stands unchanged. Given a path the within-step noise
+(sd ~1e-8 m per step) pins a stiffness or damping to a tiny interval, which is why a
+Metropolis-within-Gibbs step on them would not move.
 """
 
 from __future__ import annotations
@@ -378,11 +388,17 @@ def joint_move(
 
     ``rwm`` (:class:`~latentforce.inference.mcmc.RWMState`): the walk on :math:`x = \log\theta`, at
     the chain's current ``x`` (its log density is refreshed here); ``tr`` the transition there and
-    ``path`` the chain's path. Adapts the walk where ``adapt`` (burn-in), re-shaping it from its
+    ``path`` the chain's path. With system parameters sampled (``hyper.sys_names``) ``x`` is
+    ``(x, x_sys)`` (:attr:`~latentforce.inference.hyper_moves.Hyper.joint_names`), ``pm`` the
+    model at any system parameters (it is rebuilt at each point, :meth:`Hyper.model_at`) and
+    ``tr`` the transition at the current point's. Adapts the walk where ``adapt`` (burn-in), re-shaping it from its
     running covariance after the steps numbered ``reshape_steps`` (counted from ``step0``).
     Returns ``(rwm, path, tr, accepted)``.
     """
-    cur = joint_log_target(None, pm, tr, od, R, centre, hyper.log_prior(rwm.x), path=path)
+    p = len(hyper.names)
+    cur = joint_log_target(
+        None, hyper.model_at(pm, rwm.x[p:]), tr, od, R, centre, hyper.joint_log_prior(rwm.x), path=path
+    )
     rwm = rwm._replace(logdensity=cur.log_target)
 
     def _one(carry, s):
@@ -390,7 +406,10 @@ def joint_move(
         k_step, k_draw = jax.random.split(jax.random.fold_in(key, s))
 
         def _target(x):
-            jp = joint_log_target(k_draw, pm, pm.transition(*hyper.values(x)), od, R, centre, hyper.log_prior(x))
+            pm_x = hyper.model_at(pm, x[p:])  # the model at the proposed system parameters
+            jp = joint_log_target(
+                k_draw, pm_x, pm_x.transition(*hyper.values(x)), od, R, centre, hyper.joint_log_prior(x)
+            )
             return jp.log_target, (jp.path, jp.tr)
 
         j = step0 + s

@@ -64,9 +64,10 @@ __all__ = [
 METHODS = ("kalman", "kalman-mcmc", "kalman-nuts", "pgas", "ekf", "ukf")
 # In the interface but without an implementation yet.
 PLANNED_SYSTEM_TYPES = ("bouc-wen",)
-# Parameters PGAS may infer in this version (Algorithm 4, Vibration 2020,
-# with Metropolis-within-Gibbs on the force hyperparameters), besides the sensors'
-# noise levels (an exact Gibbs step each, latentforce.inference.noise_gibbs).
+# Parameters PGAS may infer (Algorithm 4, Vibration 2020, with Metropolis-within-Gibbs on the
+# force hyperparameters), besides the system's own (m, c, k, k3 ..., moved by the joint move of
+# latentforce.inference.smoother_move) and the sensors' noise levels (an exact Gibbs step each,
+# latentforce.inference.noise_gibbs).
 PGAS_FREE_OK = ("force_variance", "force_lengthscale")
 #: warm-up iterations per chain when [inference].burn_in is not given: the Kalman
 #: samplers start at the posterior's modes (Laplace), so a short warm-up adapts them
@@ -392,14 +393,12 @@ def config_from_dict(
         )
     if method == "pgas":
         for name in free:
-            if name not in PGAS_FREE_OK and name not in noise_names:
+            if name not in PGAS_FREE_OK and name not in noise_names and name not in system.param_names:
                 raise fail(
                     _free_key(name),
-                    f'method "pgas" can infer only the force variance and '
-                    f"lengthscale and the sensors' noise_std in this version; "
-                    f"give {name} as a number, or "
-                    f'use method = "kalman-mcmc" for a linear system, or '
-                    f'"ekf" / "ukf" (Gaussian approximations) for any system.',
+                    f'method "pgas" can infer the system\'s parameters, the force variance and '
+                    f"lengthscale and the sensors' noise_std; {name} is none of them: "
+                    f"give it as a number.",
                 )
     settings = InferenceSettings(
         method=method,
