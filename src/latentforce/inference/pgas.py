@@ -250,19 +250,20 @@ def run_pgas(
     d = len(hyper.joint_names)
     start_record, spread, joint_chol = None, 0.5 * np.eye(d), 0.05 * np.eye(d)
     x0 = hyper.to_unconstrained(np.concatenate([hyper.init, hyper.sys_init])) if d else jnp.zeros(0)
-    if hyper.sys_names:  # start at the filter's posterior mode (pgas_mode)
-        R0 = model.noise_covariance(params)
-        R0 = jnp.diag(noise_gibbs.initial_variances(noise, R0)) if noise.channels else R0
-        x0, cov, start_record = pgas_mode.mode_start(
-            _unnamed(model), hyper, params, y, mask, R0, dt, discretisation, initial
-        )
-        spread, joint_chol = 2.0 * np.linalg.cholesky(cov), 2.38 / np.sqrt(d) * np.linalg.cholesky(cov)
-        params = {**params, **{n: float(np.exp(v)) for n, v in zip(hyper.sys_names, x0[len(hyper.names) :])}}
-    # the model at the system parameters' start (the smoother's; each chain then carries its own,
-    # Hyper.model_at)
+    # the model at the system parameters' initial values: its initial-state prior (a nonlinear
+    # system's default depends on c and k) is kept while they are sampled (ParticleModel.with_params)
     pm = particle_model.ParticleModel(
         _unnamed(model), params, dt, discretisation, initial, R=model.noise_covariance(params)
     )
+    if hyper.sys_names:  # start at the filter's posterior mode (pgas_mode), with the same prior
+        R0 = jnp.diag(noise_gibbs.initial_variances(noise, pm.R)) if noise.channels else pm.R
+        kept = None if pm.stationary_start else (pm.mech0_mean, pm.mech0_cov)
+        x0, cov, start_record = pgas_mode.mode_start(
+            _unnamed(model), hyper, params, y, mask, R0, dt, discretisation, kept
+        )
+        spread, joint_chol = 2.0 * np.linalg.cholesky(cov), 2.38 / np.sqrt(d) * np.linalg.cholesky(cov)
+        # the smoother's start and the shapes at the mode; each chain then carries its own (Hyper.model_at)
+        pm = pm.with_params({n: float(np.exp(v)) for n, v in zip(hyper.sys_names, x0[len(hyper.names) :])})
     T = y.shape[0]
     t_start = time.perf_counter()
     auto = iterations is None
