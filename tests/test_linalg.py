@@ -145,7 +145,10 @@ def _lapack_calls(texts):
     return sorted({name for name, text in texts if "lapack" in text})
 
 
-@pytest.mark.parametrize("system", [False, True], ids=["hyperparameters", "with-k3"])
+# with-k3 slow-marked for CI's time (its programs use the same linalg as the others; 60-120 s)
+@pytest.mark.parametrize(
+    "system", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["hyperparameters", "with-k3"]
+)
 def test_particle_gibbs_programs_call_no_lapack(monkeypatch, system):
     """Every program of a nonlinear PGAS run (free hyperparameters, so the theta steps, the
     low-frequency and the residual-preserving moves all run; chains vmapped, which is what
