@@ -29,10 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from latentforce.demos.common import fmt, preload_modules, table, write_case
+from latentforce.demos.nonlinear import FS, SYSTEM, _simulate
 from latentforce.results import FIGURE_LOCK, check_out_dir, coverage, nmse
 
-SYSTEM = {"type": "duffing", "m": 1.0, "c": 20.0, "k": 1.0e4, "k3": 1.0e9}
-FS, DURATION = 2048.0, 0.5
 TRUE_VARIANCE, TRUE_LENGTHSCALE = 400.0, 0.1
 #: the unknown system parameters' priors (log-normal, medians off the truth) and initial values
 PRIORS = {
@@ -43,30 +42,8 @@ TRUE = {"c": 20.0, "k3": 1.0e9, "force_variance": TRUE_VARIANCE, "force_lengthsc
 
 
 def simulate(seed: int) -> tuple[dict, float, float]:
-    """``(columns, acc_sd, disp_sd)``: the record (noisy channels and the true states)."""
-    import jax
-
-    from latentforce.kernels import Matern
-    from latentforce.models import LatentForceModel, Sensor
-    from latentforce.simulate import simulate as run
-    from latentforce.systems import Duffing
-
-    n = int(round(DURATION * FS))
-    model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 1.0)])
-    params = dict({k: v for k, v in SYSTEM.items() if k != "type"}, force_variance=TRUE_VARIANCE)
-    params["force_lengthscale"] = TRUE_LENGTHSCALE
-    sim = run(jax.random.key(seed), model, params, n, 1.0 / FS, substeps=8)
-    rng = np.random.default_rng(seed + 1)
-    acc, disp = sim.acceleration[:, 0], sim.displacement[:, 0]
-    acc_sd, disp_sd = 0.01 * np.sqrt(np.mean(acc**2)), 0.01 * np.sqrt(np.mean(disp**2))
-    columns = {
-        "time": sim.time,
-        "acc": acc + acc_sd * rng.normal(size=n),
-        "disp": disp + disp_sd * rng.normal(size=n),
-        "displacement": disp,
-        "velocity": sim.velocity[:, 0],
-        "force": sim.force[:, 0],
-    }
+    """``(columns, acc_sd, disp_sd)``: ``demo duffing``'s record at this demo's force variance."""
+    columns, acc_sd, disp_sd, _ = _simulate(seed, "gp", TRUE_VARIANCE)
     return columns, float(acc_sd), float(disp_sd)
 
 

@@ -50,7 +50,8 @@ DURATION = 0.5
 TRUE_VARIANCE, TRUE_LENGTHSCALE = 20.0, 0.1
 
 
-def _simulate(seed: int, force: str):
+def _simulate(seed: int, force: str, variance: float = TRUE_VARIANCE):
+    """The record of ``seed``: a GP force of ``variance`` (``force="gp"``) or the sine; 1 % RMS noise."""
     import jax
 
     from latentforce.kernels import Matern
@@ -62,7 +63,7 @@ def _simulate(seed: int, force: str):
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 1.0)])
     params = dict(
         {k: v for k, v in SYSTEM.items() if k != "type"},
-        force_variance=TRUE_VARIANCE,
+        force_variance=variance,
         force_lengthscale=TRUE_LENGTHSCALE,
     )
     fn = (lambda t: 10.0 * np.sin(100.0 * t)) if force == "sine" else None
