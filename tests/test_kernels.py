@@ -157,3 +157,23 @@ def test_duffing_has_no_linear_form_but_a_linear_part():
     assert float(F[1, 0]) == -1e4
     x = jnp.array([1e-3, 0.0, 0.0])
     assert np.isclose(float(model.drift(p, x)[1]), -(1e4 * 1e-3 + 1e9 * 1e-9))
+
+
+@pytest.mark.parametrize("order", [2, 3])
+def test_van_loan_of_a_forceful_smooth_kernel_is_finite_and_exact(order):
+    """A Matérn-5/2 or 7/2 force of variance 2500 N^2 and lengthscale 0.01 s at 750 Hz (the Bouc-Wen
+    benchmark's scales): the driving noise's density is ~1e16, the Van Loan block's norm was 1.5e11,
+    beyond the squarings expm allows, and Q was NaN until W was scaled to F's size (Q is linear in
+    W). Against SciPy's expm of the same block in float64."""
+    import scipy.linalg
+
+    ss = Matern(order).state_space(KernelParams(jnp.asarray(2500.0), jnp.asarray(0.01)))
+    W = np.asarray(ss.L @ ss.Qc @ ss.L.T)
+    dt = 1.0 / 750.0
+    A, Q = van_loan(ss.F, jnp.asarray(W), dt)
+    n = W.shape[0]
+    F = np.asarray(ss.F)
+    E = scipy.linalg.expm(np.block([[F, W], [np.zeros_like(F), -F.T]]) * dt)
+    Q_ref = E[:n, n:] @ E[:n, :n].T
+    assert np.all(np.isfinite(np.asarray(Q)))
+    np.testing.assert_allclose(np.asarray(Q), 0.5 * (Q_ref + Q_ref.T), rtol=1e-6, atol=1e-9 * np.max(np.abs(Q_ref)))

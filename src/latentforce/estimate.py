@@ -27,13 +27,12 @@ from latentforce.outputs import units as output_units
 from latentforce.results import RunResult, summarise_parameters
 from latentforce.spectrum import force_spectrum
 
-STATES = ("displacement", "velocity", "force")
-
 
 def _truth(model, dataset: Dataset) -> dict[str, np.ndarray]:
     """Truth columns of the data file as ``(T, width)`` arrays, where complete."""
     out = {}
-    for name, width in (("displacement", model.ndof), ("velocity", model.ndof), ("force", model.nforce)):
+    for name in model.layout.states:
+        width = len(model.layout.index(name))
         keys = [name] if width == 1 else [f"{name}_{j}" for j in range(width)]
         if all(k in dataset.truth for k in keys):
             out[name] = np.stack([np.asarray(dataset.truth[k], dtype=float) for k in keys], axis=1)
@@ -46,9 +45,12 @@ def _check_stable(problem: Problem, params: dict) -> None:
     model = problem.model
     if problem.initial is not None:
         return
-    F, _ = model.continuous(params, linear_part=True)
-    mech = model.layout.mech
-    eig = np.linalg.eigvals(np.asarray(F)[mech, mech])
+    # the linear part's (z, zdot) dynamics (internal states follow r = R_z z there, models.py)
+    M, C, K = (np.asarray(a, dtype=float) for a in model.system.linear_part(numbers(params)))
+    n = M.shape[0]
+    Minv = np.linalg.inv(M)
+    F = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
+    eig = np.linalg.eigvals(F)
     if np.max(eig.real) >= 0:
         what = "linear system" if model.system.is_linear else "system, linearised about rest,"
         raise LatentForceError(
@@ -437,7 +439,9 @@ def _run_kalman_sampler(
     record = dict(out.convergence)
     # The states are exact given the parameters: their stored paths' R-hat is information only.
     states = convergence.state_quantities(
-        {k: mix.paths[k] for k in STATES}, convergence.monitored_times(len(dataset.time)), np.asarray(dataset.time)
+        {k: mix.paths[k] for k in problem.model.layout.states},
+        convergence.monitored_times(len(dataset.time)),
+        np.asarray(dataset.time),
     )
     if mix.paths["force"].shape[1] >= 4 and settings.chains >= 2:
         record["states"] = convergence.diagnose({}, states, states_decide=False)["states"]

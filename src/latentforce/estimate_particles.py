@@ -163,6 +163,7 @@ def _run_pgas(
             paths["velocity"],
             paths["force"],
             draw_params={n: param_draws[n] for n in out.names if n in model.system.param_names},
+            r=paths.get("hysteretic_force"),
         )
         out_mean, out_sd, out_paths = split_outputs(problem.outputs, *sample_moments(sampled), sampled)
         state_mean.update(out_mean)

@@ -2,7 +2,10 @@ r"""The latent force model: a system, a GP force kernel and sensors joined.
 
 State vector (column convention, ``x_next = A @ x``)::
 
-    x = [ z (ndof) | zdot (ndof) | force states of force 0 | force 1 | ... ]
+    x = [ z (ndof) | zdot (ndof) | r (internal) | force states of force 0 | force 1 | ... ]
+
+(``r``: the hysteretic forces of a system with internal states, e.g. Bouc-Wen;
+absent otherwise, :mod:`latentforce.systems`.)
 
 Each latent force :math:`u_j = H_k x^{(j)}_f` is an independent GP with the
 same kernel family and hyperparameters (``force_variance``,
@@ -78,7 +81,8 @@ class Sensor(NamedTuple):
 class StateLayout(NamedTuple):
     """Where each quantity sits in the state vector (module doc): the one place that knows.
 
-    ``x = [z (ndof) | zdot (ndof) | force 0's kdim states | force 1's | ...]``; each force
+    ``x = [z (ndof) | zdot (ndof) | r (n_internal) | force 0's kdim states | force 1's | ...]``
+    (``r``: the system's internal, hysteretic states, if any); each force
     ``u_j`` is the first state of its block (``u_j = x[force[j]]``, Matérn; a composite kernel's
     force is ``H_f`` of its block, :meth:`LatentForceModel.force_matrix`). The particle methods'
     latent ``(x_f, w)`` of the mechanical noise uses the same blocks.
@@ -87,10 +91,32 @@ class StateLayout(NamedTuple):
     ndof: int
     nforce: int
     kdim: int
+    n_internal: int = 0
 
     @property
     def n_mech(self) -> int:
-        return 2 * self.ndof
+        return 2 * self.ndof + self.n_internal
+
+    @property
+    def internal(self) -> slice:
+        """The internal (hysteretic) states, named ``"hysteretic_force"`` in results."""
+        return slice(2 * self.ndof, self.n_mech)
+
+    @property
+    def states(self) -> tuple[str, ...]:
+        """The state quantities a result reports, in the state's order."""
+        inner = ("hysteretic_force",) if self.n_internal else ()
+        return ("displacement", "velocity") + inner + ("force",)
+
+    def summary_columns(self) -> dict:
+        """Each of :attr:`states`'s columns in the samplers' summary ``[mech | u]`` (``T, n_mech +
+        nforce``): the mechanical state, then the force values."""
+        return {
+            q: (np.arange(self.n_mech)[self.internal] if q == "hysteretic_force" else self.index(q))
+            if q != "force"
+            else self.n_mech + np.arange(self.nforce)
+            for q in self.states
+        }
 
     @property
     def n_force_states(self) -> int:
@@ -106,7 +132,7 @@ class StateLayout(NamedTuple):
 
     @property
     def velocity(self) -> slice:
-        return slice(self.ndof, self.n_mech)
+        return slice(self.ndof, 2 * self.ndof)
 
     @property
     def mech(self) -> slice:
@@ -122,18 +148,25 @@ class StateLayout(NamedTuple):
         return self.n_mech + self.kdim * np.arange(self.nforce)
 
     def index(self, quantity: str) -> np.ndarray:
-        """State indices of ``"displacement"``, ``"velocity"`` or ``"force"`` (one per DOF or force)."""
+        """State indices of ``"displacement"``, ``"velocity"``, ``"hysteretic_force"`` or ``"force"``
+        (one per DOF, internal state or force)."""
         if quantity == "force":
             return self.force
+        if quantity == "hysteretic_force":
+            return np.arange(self.n_state)[self.internal]
         return np.arange(self.n_state)[getattr(self, quantity)]
 
     def split(self, x) -> tuple:
         """``(z, zdot, x_f)`` of states ``x`` (``(..., n_state)``)."""
         return x[..., self.displacement], x[..., self.velocity], x[..., self.force_states]
 
+    def split_mech(self, mech) -> tuple:
+        """``(z, zdot, r)`` of mechanical states ``mech`` (``(..., n_mech)``)."""
+        return mech[..., self.displacement], mech[..., self.velocity], mech[..., self.internal]
+
     def quantities(self, x) -> dict:
-        """``{"displacement", "velocity", "force"}`` columns of states ``x`` (``(..., n_state)``)."""
-        return {q: x[..., self.index(q)] for q in ("displacement", "velocity", "force")}
+        """The :attr:`states` columns of states ``x`` (``(..., n_state)``)."""
+        return {q: x[..., self.index(q)] for q in self.states}
 
 
 class LatentLayout(NamedTuple):
@@ -182,7 +215,7 @@ class LatentForceModel:
                     f"force sensor {s.name!r} at DOF {s.dof}: no latent force acts there "
                     f"(force_dofs = {list(system.force_dofs)})"
                 )
-        self.layout = StateLayout(system.ndof, system.nforce, kernel.dim)
+        self.layout = StateLayout(system.ndof, system.nforce, kernel.dim, system.n_internal)
         self.latent_layout = LatentLayout(self.layout.n_force_states, self.layout.n_mech)
         self.ndof = system.ndof
         self.nforce = system.nforce
@@ -251,19 +284,28 @@ class LatentForceModel:
         r"""Continuous ``(F, W)`` with ``W = L Qc L^T`` of the augmented system.
 
         Exact for linear systems; for nonlinear ones pass ``linear_part=True``
-        to get the system linearised about rest.
+        to get the system linearised about rest (internal states included:
+        :math:`\dot r = R_z \dot z` and :math:`h = \ldots + S r`, :mod:`latentforce.systems`).
         """
         if not (self.system.is_linear or linear_part):
             raise TypeError(f"{self.system!r} is nonlinear: it has no linear state-space form")
         M, C, K = self.system.linear_part(params)
+        S, Rz = self.system.internal_linear(params)
+        return self._augmented(params, M, C, K - S @ Rz, S, Rz, self.layout)
+
+    def _augmented(self, params, M, C, K, S, Rz, L):
+        """``(F, W)`` of the mechanical ODE ``M z'' + C z' + K z + S r = B u``, ``r' = Rz z'``,
+        stacked on the force GP, in layout ``L``."""
         Ff, Wf, Hf, _ = self.force_state_space(params)
-        n, nd, L = self.n_state, self.ndof, self.layout
+        n, nd = L.n_state, self.ndof
         Minv = inv(M)
         B = self.system.input_matrix()
         F = jnp.zeros((n, n))
         F = F.at[L.displacement, L.velocity].set(jnp.eye(nd))
         F = F.at[L.velocity, L.displacement].set(-Minv @ K)
         F = F.at[L.velocity, L.velocity].set(-Minv @ C)
+        F = F.at[L.velocity, L.internal].set(-Minv @ S)
+        F = F.at[L.internal, L.velocity].set(Rz)
         F = F.at[L.velocity, L.force_states].set(Minv @ B @ Hf)
         F = F.at[L.force_states, L.force_states].set(Ff)
         W = jnp.zeros((n, n)).at[L.force_states, L.force_states].set(Wf)
@@ -310,23 +352,43 @@ class LatentForceModel:
         return jnp.diag(jnp.stack(sd) ** 2)
 
     def stationary_initial(self, params, linear_part: bool = False):
-        """Zero mean and the stationary covariance solving ``F P + P F^T + W = 0``."""
-        F, W = self.continuous(params, linear_part)
-        return jnp.zeros(self.n_state), solve_lyapunov(F, W)
+        """Zero mean and the stationary covariance solving ``F P + P F^T + W = 0``.
+
+        With internal states (linear part only) :math:`r - R_z z` is conserved, so there is no
+        stationary distribution of the whole state: that of ``(z, zdot, x_f)`` under the linear
+        part's stiffness, with :math:`r = R_z z` (the virgin state's relation about rest)."""
+        if not self.layout.n_internal:
+            F, W = self.continuous(params, linear_part)
+            return jnp.zeros(self.n_state), solve_lyapunov(F, W)
+        if not linear_part:
+            raise TypeError(f"{self.system!r} is nonlinear: it has no stationary distribution")
+        M, C, K = self.system.linear_part(params)
+        S, Rz = self.system.internal_linear(params)
+        Lr = self.layout._replace(n_internal=0)
+        F, W = self._augmented(params, M, C, K, S[:, :0], Rz[:0], Lr)
+        P = solve_lyapunov(F, W)
+        # embed: r = Rz z
+        J = np.zeros((self.n_state, Lr.n_state))
+        keep = np.r_[np.arange(Lr.n_mech), self.layout.n_mech + np.arange(Lr.n_force_states)]
+        J[keep, np.arange(Lr.n_state)] = 1.0
+        J = jnp.asarray(J).at[self.layout.internal, Lr.displacement].set(Rz)
+        return jnp.zeros(self.n_state), symmetrise(J @ P @ J.T)
 
     # ----- general (nonlinear) model ---------------------------------------
     def drift(self, params, x):
         r"""Deterministic drift :math:`f(x)` of the augmented SDE, one state ``x``."""
         Ff, _, Hf, _ = self.force_state_space(params)
-        z, v, xf = self.layout.split(x)
-        a = self.system.acceleration(params, z, v, Hf @ xf)
-        return jnp.concatenate([v, a, Ff @ xf])
+        L = self.layout
+        (z, v, r), xf = L.split_mech(x[L.mech]), x[L.force_states]
+        a = self.system.acceleration(params, z, v, Hf @ xf, r)
+        return jnp.concatenate([v, a, self.system.internal_rate(params, z, v, r), Ff @ xf])
 
     def observe(self, params, x):
         """Noise-free measurement vector for one state ``x`` (any system)."""
         _, _, Hf, _ = self.force_state_space(params)
-        z, v, xf = self.layout.split(x)
-        return self.sensor_readout(z, v, lambda: self.system.acceleration(params, z, v, Hf @ xf), lambda: Hf @ xf)
+        L = self.layout
+        (z, v, r), xf = L.split_mech(x[L.mech]), x[L.force_states]
+        return self.sensor_readout(z, v, lambda: self.system.acceleration(params, z, v, Hf @ xf, r), lambda: Hf @ xf)
 
     def sensor_readout(self, z, v, acceleration, force=None):
         """The sensors' noise-free values from displacement ``z``, velocity ``v``,
@@ -359,11 +421,19 @@ class LatentForceModel:
         Nonlinear systems: zero mean, force states at their stationary GP
         distribution and small variances on the mechanical states: the
         stationary variances of the system linearised about rest, scaled by
-        1e-2, which keeps the start near rest without pinning it.
+        1e-2, which keeps the start near rest without pinning it. Internal
+        (hysteretic) states follow :math:`r = R_z z` of the linear part
+        (:meth:`stationary_initial`) plus an independent part of
+        :math:`\kappa^2` times that variance, the system's relative tangent
+        deviation (``system.tangent_deviation``; zero without hysteresis,
+        where the start is then exactly the linear system's).
         """
         if self.system.is_linear:
             return self.stationary_initial(params)
         _, P = self.stationary_initial(params, linear_part=True)
-        mech = self.layout.mech
+        mech, inner = self.layout.mech, self.layout.internal
         P = P.at[mech, :].multiply(0.1).at[:, mech].multiply(0.1)
+        idx = np.arange(self.n_state)[inner]
+        kappa = self.system.tangent_deviation(params, jnp.sqrt(jnp.clip(jnp.diagonal(P)[idx], 0.0)) / 0.1)
+        P = P.at[idx, idx].multiply(1.0 + kappa**2)
         return jnp.zeros(self.n_state), symmetrise(P)

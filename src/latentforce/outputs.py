@@ -99,13 +99,16 @@ def path_outputs(
     v: Float[Array, "... T nd"],
     u: Float[Array, "... T nf"],
     draw_params: dict | None = None,
+    r: Float[Array, "... T ni"] | None = None,
 ) -> np.ndarray:
     """The outputs ``(..., T, k)`` of sampled paths of displacement, velocity and force,
     the acceleration from the system's equation of motion (any system). ``draw_params``:
     sampled parameters, ``name -> (...)`` one value per path (the leading axes of ``z``), which
-    replace those in ``params`` path by path (the equation of motion of each draw's own system)."""
+    replace those in ``params`` path by path (the equation of motion of each draw's own system).
+    ``r``: the paths of the system's internal states (a Bouc-Wen system's hysteretic force)."""
     z, v, u = (jnp.asarray(a, dtype=float) for a in (z, v, u))
-    nd, nf = model.ndof, model.nforce
+    nd, nf, ni = model.ndof, model.nforce, model.layout.n_internal
+    r = jnp.zeros((*z.shape[:-1], ni)) if r is None else jnp.asarray(r, dtype=float)
     cz = jnp.asarray(np.stack([_coefficients(s, "displacement", nd) for s in outputs]))
     cv = jnp.asarray(np.stack([_coefficients(s, "velocity", nd) for s in outputs]))
     ca = jnp.asarray(np.stack([_coefficients(s, "acceleration", nd) for s in outputs]))
@@ -113,30 +116,30 @@ def path_outputs(
     out = z @ cz.T + v @ cv.T + u @ cu.T
     if np.any(np.asarray(ca)):
         lead = z.shape[:-1]
+        n_rows = int(np.prod(lead))
+        rows = (z.reshape(n_rows, nd), v.reshape(n_rows, nd), u.reshape(n_rows, nf), r.reshape(n_rows, ni))
         if draw_params:  # every time of a path at its draw's parameters
             per_row = {
                 n: jnp.broadcast_to(jnp.asarray(d, dtype=float)[..., None], lead).reshape(-1)
                 for n, d in draw_params.items()
             }
-            a = _accelerations_per_row(
-                numbers(params), per_row, z.reshape(-1, nd), v.reshape(-1, nd), u.reshape(-1, nf), system=model.system
-            ).reshape(*lead, nd)
+            a = _accelerations_per_row(numbers(params), per_row, *rows, system=model.system).reshape(*lead, nd)
         else:
-            a = _accelerations(
-                numbers(params), z.reshape(-1, nd), v.reshape(-1, nd), u.reshape(-1, nf), system=model.system
-            ).reshape(*lead, nd)
+            a = _accelerations(numbers(params), *rows, system=model.system).reshape(*lead, nd)
         out = out + a @ ca.T
     return np.asarray(out)
 
 
 @functools.partial(jit, static_argnames=("system",))
-def _accelerations(params, z, v, u, *, system):
-    return jax.vmap(lambda zz, vv, uu: system.acceleration(params, zz, vv, uu))(z, v, u)
+def _accelerations(params, z, v, u, r, *, system):
+    return jax.vmap(lambda zz, vv, uu, rr: system.acceleration(params, zz, vv, uu, rr))(z, v, u, r)
 
 
 @functools.partial(jit, static_argnames=("system",))
-def _accelerations_per_row(params, per_row, z, v, u, *, system):
-    return jax.vmap(lambda pr, zz, vv, uu: system.acceleration({**params, **pr}, zz, vv, uu))(per_row, z, v, u)
+def _accelerations_per_row(params, per_row, z, v, u, r, *, system):
+    return jax.vmap(lambda pr, zz, vv, uu, rr: system.acceleration({**params, **pr}, zz, vv, uu, rr))(
+        per_row, z, v, u, r
+    )
 
 
 def sample_moments(paths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -4,6 +4,9 @@
 * ``displacement.png``, ``velocity.png``, ``force.png`` -- posterior mean with
   shaded 1, 2 and 3 sd bands and the truth in red when known, one subplot
   per DOF / force;
+* ``hysteretic_force.png``, ``hysteresis.png`` -- a hysteretic system's
+  (Bouc-Wen) internal force against time like a state, and against the
+  displacement: the hysteresis loop, with sampled loops and the 90 % band;
 * ``output_NAME.png`` -- each virtual sensor (``[[outputs]]``) like a state;
 * ``force_psd.png`` -- the posterior force's PSD (mean, 5-95 % band) with the
   GP prior's density at the posterior hyperparameters (and the truth's);
@@ -41,6 +44,7 @@ __all__ = [
     "draw_figures",
     "plot_measured",
     "plot_state",
+    "plot_hysteresis",
     "plot_paths",
     "plot_traces",
     "plot_histograms",
@@ -53,6 +57,8 @@ FIGURE_NAMES: tuple[str, ...] = (
     "displacement.png",
     "velocity.png",
     "force.png",
+    "hysteretic_force.png",
+    "hysteresis.png",
     "paths.png",
     "traces.png",
     "histograms.png",
@@ -61,8 +67,8 @@ FIGURE_NAMES: tuple[str, ...] = (
 )
 
 DPI = 110
-_STATES = ("displacement", "velocity", "force")
-_STATE_UNITS = {"displacement": "m", "velocity": "m/s", "force": "N"}
+_STATES = ("displacement", "velocity", "hysteretic_force", "force")
+_STATE_UNITS = {"displacement": "m", "velocity": "m/s", "hysteretic_force": "N", "force": "N"}
 _QUANTITY_UNITS = {
     "displacement": "m",
     "velocity": "m/s",
@@ -91,6 +97,8 @@ def draw_figures(result: RunResult, fig_dir: Path) -> list[Path]:
     for state in _STATES:
         if state in result.state_mean:
             written.append(plot_state(result, state, fig_dir / f"{state}.png"))
+    if "hysteretic_force" in result.state_mean and "displacement" in result.state_mean:
+        written.append(plot_hysteresis(result, fig_dir / "hysteresis.png"))
     for name in result.outputs:
         if name in result.state_mean:
             written.append(plot_state(result, name, fig_dir / f"output_{name}.png"))
@@ -156,10 +164,11 @@ def _columns(array: np.ndarray) -> np.ndarray:
 def _component_title(state: str, i: int, width: int) -> str:
     if state not in _STATES:  # a virtual sensor: its own name
         return state
+    name = state.replace("_", " ").capitalize()
     if width == 1:
-        return state.capitalize()
-    where = "DOF" if state in ("displacement", "velocity") else "force"
-    return f"{state.capitalize()}, {where} {i}"
+        return name
+    where = {"displacement": "DOF", "velocity": "DOF", "hysteretic_force": "element"}.get(state, "force")
+    return f"{name}, {where} {i}"
 
 
 def _state_label(state: str, result: RunResult | None = None) -> str:
@@ -234,6 +243,46 @@ def plot_state(result: RunResult, state: str, path: Path) -> Path:
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize="small", ncol=5)
     axes[-1].set_xlabel("time [s]")
+    return _save(fig, path, result)
+
+
+def plot_hysteresis(result: RunResult, path: Path, max_paths: int = 20) -> Path:
+    """The hysteresis loop: the hysteretic force against the displacement (of DOF ``j`` for element
+    ``j`` of a single-DOF system's elements), the posterior mean, up to ``max_paths`` sampled
+    loops, the 90 % band of the force (vertical bars, every few samples) and the truth in red."""
+    from matplotlib.collections import LineCollection
+
+    r_mean, r_sd = _columns(result.state_mean["hysteretic_force"]), _columns(result.state_sd["hysteretic_force"])
+    z_mean = _columns(result.state_mean["displacement"])
+    width = r_mean.shape[1]
+    fig = Figure(figsize=(6.5, 5.0 * width))
+    axes = fig.subplots(width, 1, squeeze=False)[:, 0]
+    draws_r = result.path_draws.get("hysteretic_force")
+    draws_z = result.path_draws.get("displacement")
+    for j, ax in enumerate(axes):
+        zc = min(j, z_mean.shape[1] - 1)
+        if draws_r is not None and draws_z is not None:
+            dr = np.asarray(draws_r, dtype=float).reshape(-1, np.shape(draws_r)[2], width)[..., j]
+            dz = np.asarray(draws_z, dtype=float).reshape(-1, np.shape(draws_z)[2], z_mean.shape[1])[..., zc]
+            pick = np.unique(np.linspace(0, dr.shape[0] - 1, min(max_paths, dr.shape[0])).astype(int))
+            for k in pick:
+                ax.plot(dz[k], dr[k], color="0.55", lw=0.4, alpha=0.4)
+            ax.plot([], [], color="0.55", lw=0.8, label=f"{len(pick)} sampled loops")
+        every = max(1, len(r_mean) // 150)
+        z, r, s = z_mean[::every, zc], r_mean[::every, j], 1.645 * r_sd[::every, j]
+        bars = LineCollection(np.stack([np.c_[z, r - s], np.c_[z, r + s]], axis=1), colors=_MEAN_COLOUR, alpha=0.35)
+        ax.add_collection(bars)
+        ax.plot([], [], color=_MEAN_COLOUR, alpha=0.35, label="90 % band")
+        ax.plot(z_mean[:, zc], r_mean[:, j], color=_MEAN_COLOUR, lw=1.0, label="posterior mean")
+        if "hysteretic_force" in result.truth and "displacement" in result.truth:
+            tz, tr = _columns(result.truth["displacement"])[:, zc], _columns(result.truth["hysteretic_force"])[:, j]
+            ax.plot(tz, tr, color=_TRUTH_COLOUR, lw=0.8, ls="--", label="truth")
+        ax.set_xlabel(_state_label("displacement", result))
+        ax.set_ylabel(_state_label("hysteretic_force", result))
+        title = "Hysteresis loop" if width == 1 else f"Hysteresis loop, element {j}"
+        ax.set_title(f"{title}: posterior ({result.method})")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", fontsize="small")
     return _save(fig, path, result)
 
 

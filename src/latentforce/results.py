@@ -31,7 +31,7 @@ __all__ = [
 ]
 
 #: The mechanical and force states, in the order the summaries list them.
-STATE_NAMES: tuple[str, ...] = ("displacement", "velocity", "force")
+STATE_NAMES: tuple[str, ...] = ("displacement", "velocity", "hysteretic_force", "force")
 
 #: The files in a result folder that ``write_results`` owns (besides
 #: ``figures/``); with ``overwrite`` only these are replaced.
@@ -39,7 +39,7 @@ RESULT_FILES: tuple[str, ...] = ("posterior.nc", "summary.csv", "summary.json", 
 
 _ENGINE = "h5netcdf"
 _PATH_DRAW = "path_draw"
-_UNITS = {"displacement": "m", "velocity": "m/s", "force": "N"}
+_UNITS = {"displacement": "m", "velocity": "m/s", "hysteretic_force": "N", "force": "N"}
 
 
 @dataclass

@@ -33,6 +33,8 @@ class Simulation(NamedTuple):
     acceleration: np.ndarray
     force: np.ndarray
     force_dofs: tuple[int, ...] = (0,)  # the DOF each latent force acts on (load cells read there)
+    #: ``(T, n_internal)`` internal states (a Bouc-Wen system's hysteretic force), else ``(T, 0)``
+    hysteretic_force: np.ndarray | None = None
 
 
 def gp_force(key, model: LatentForceModel, params: dict, n: int, dt: float) -> jnp.ndarray:
@@ -56,17 +58,20 @@ def gp_force(key, model: LatentForceModel, params: dict, n: int, dt: float) -> j
     return jnp.concatenate([x0[None, :, 0], u], axis=0)
 
 
-def integrate(model: LatentForceModel, params: dict, force_fine, dt_fine: float, z0=None, v0=None):
-    """RK4 over a fine force grid ``(n, nforce)``; returns ``z, v, a`` at every fine point."""
-    system = model.system
+def integrate(model: LatentForceModel, params: dict, force_fine, dt_fine: float, z0=None, v0=None, r0=None):
+    """RK4 over a fine force grid ``(n, nforce)``; returns ``z, v, a, r`` at every fine point
+    (``r``: the internal states, ``(n, 0)`` for a system without; they start at ``r0`` or 0, the
+    virgin state)."""
+    system, L = model.system, model.layout
     nd = model.ndof
     z0 = jnp.zeros(nd) if z0 is None else jnp.asarray(z0, dtype=float)
     v0 = jnp.zeros(nd) if v0 is None else jnp.asarray(v0, dtype=float)
+    r0 = jnp.zeros(L.n_internal) if r0 is None else jnp.asarray(r0, dtype=float)
     force_fine = jnp.asarray(force_fine, dtype=float)
 
     def deriv(state, u):
-        z, v = state[model.layout.displacement], state[model.layout.velocity]
-        return jnp.concatenate([v, system.acceleration(params, z, v, u)])
+        z, v, r = L.split_mech(state)
+        return jnp.concatenate([v, system.acceleration(params, z, v, u, r), system.internal_rate(params, z, v, r)])
 
     def _step(state, inputs):
         u0, u1 = inputs
@@ -78,12 +83,12 @@ def integrate(model: LatentForceModel, params: dict, force_fine, dt_fine: float,
         new = state + dt_fine / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
         return new, new
 
-    s0 = jnp.concatenate([z0, v0])
+    s0 = jnp.concatenate([z0, v0, r0])
     _, states = jax.lax.scan(_step, s0, (force_fine[:-1], force_fine[1:]))
     states = jnp.concatenate([s0[None], states], axis=0)
-    z, v = states[:, model.layout.displacement], states[:, model.layout.velocity]
-    a = jax.vmap(lambda zz, vv, uu: system.acceleration(params, zz, vv, uu))(z, v, force_fine)
-    return z, v, a
+    z, v, r = L.split_mech(states)
+    a = jax.vmap(lambda zz, vv, uu, rr: system.acceleration(params, zz, vv, uu, rr))(z, v, force_fine, r)
+    return z, v, a, r
 
 
 # one compiled program each per model structure and length, the numbers as arguments
@@ -122,10 +127,10 @@ def simulate(
     else:
         u_fine = jnp.reshape(jnp.asarray(force(t_fine), dtype=float), (n_fine, model.nforce))
     start = None if z0 is None and v0 is None else (z0, v0)
-    z, v, a = _integrate(numbers(params), u_fine, start, model=model, dt=float(dt_fine))
+    z, v, a, r = _integrate(numbers(params), u_fine, start, model=model, dt=float(dt_fine))
     pick = lambda x: np.asarray(x[::substeps])
     return Simulation(
-        np.arange(n_samples) * dt, pick(z), pick(v), pick(a), pick(u_fine), tuple(model.system.force_dofs)
+        np.arange(n_samples) * dt, pick(z), pick(v), pick(a), pick(u_fine), tuple(model.system.force_dofs), pick(r)
     )
 
 
@@ -150,8 +155,10 @@ def measure(key, sim: Simulation, sensors) -> np.ndarray:
 def truth_columns(sim: Simulation) -> dict[str, np.ndarray]:
     """Truth columns named as in the summary (``displacement``, ``force_0`` ...)."""
     out = {}
-    for name in ("displacement", "velocity", "force"):
+    for name in ("displacement", "velocity", "hysteretic_force", "force"):
         arr = getattr(sim, name)
+        if arr is None or arr.shape[1] == 0:
+            continue
         if arr.shape[1] == 1:
             out[name] = arr[:, 0]
         else:

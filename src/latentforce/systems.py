@@ -14,6 +14,15 @@ Every system provides
 * ``linear_part(params)``: ``(M, C, K)`` of the system linearised about rest,
   exact for linear systems; the nonlinear sampler uses it for the transition
   covariance (see :mod:`latentforce.inference.pgas`).
+
+Internal states. A hysteretic element carries a state of its own, the
+hysteretic force :math:`r` of the Bouc-Wen model, with its own ODE
+:math:`\dot r = g(z, \dot z, r)`: a system declares ``n_internal`` such states,
+``restoring(params, z, v, r)`` and ``internal_rate(params, z, v, r)`` read them,
+and ``internal_linear(params)`` gives their linearisation about rest,
+``(S, R_z)``: :math:`h = \ldots + S r` and :math:`r \approx R_z z` (the linear
+part then has the stiffness :math:`K + S R_z`). The mechanical state is
+``(z, zdot, r)`` (:class:`latentforce.models.StateLayout`).
 """
 
 from __future__ import annotations
@@ -38,6 +47,11 @@ class System:
     type_name: str = ""
     #: names of the scalar or matrix parameters this system reads from ``params``
     param_names: tuple[str, ...] = ()
+    #: internal (hysteretic) states beyond z, zdot (module doc)
+    n_internal: int = 0
+    #: integration steps of the mechanical ODE per sample in the samplers' model
+    #: (:meth:`latentforce.inference.particle_model.ParticleModel.phi`)
+    substeps: int = 1
 
     @property
     def nforce(self) -> int:
@@ -63,15 +77,30 @@ class System:
     def mass(self, params: Params):  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def restoring(self, params: Params, z, v):  # pragma: no cover - abstract
+    def restoring(self, params: Params, z, v, r=None):  # pragma: no cover - abstract
         raise NotImplementedError
 
     def linear_part(self, params: Params):  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def acceleration(self, params: Params, z, v, u):
-        r""":math:`\ddot z = M^{-1}(B u - h(z, \dot z))` for one state (no batch dims)."""
-        rhs = self.input_matrix() @ u - self.restoring(params, z, v)
+    def internal_rate(self, params: Params, z, v, r):
+        r""":math:`\dot r = g(z, \dot z, r)` of the internal states (none by default)."""
+        return jnp.zeros(0)
+
+    def internal_linear(self, params: Params):
+        """``(S, R_z)`` of the internal states about rest (module doc): ``(ndof, 0)``, ``(0, ndof)``
+        when there are none."""
+        return jnp.zeros((self.ndof, 0)), jnp.zeros((0, self.ndof))
+
+    def tangent_deviation(self, params: Params, r_sd):
+        r"""Per internal state, the relative deviation of :math:`\partial\dot r/\partial\dot z` from its
+        value at rest at :math:`|r| = 2\,` ``r_sd``, capped at 1 (the independent within-step noise
+        of :func:`latentforce.inference.particle_model.internal_noise`)."""
+        return jnp.zeros(0)
+
+    def acceleration(self, params: Params, z, v, u, r=None):
+        r""":math:`\ddot z = M^{-1}(B u - h(z, \dot z, r))` for one state (no batch dims)."""
+        rhs = self.input_matrix() @ u - self.restoring(params, z, v, r)
         return solve(self.mass(params), rhs)
 
 
@@ -106,7 +135,7 @@ class LinearSystem(System):
     def mass(self, params):
         return self.matrices(params)[0]
 
-    def restoring(self, params, z, v):
+    def restoring(self, params, z, v, r=None):
         _, C, K = self.matrices(params)
         return C @ v + K @ z
 
@@ -154,17 +183,18 @@ class Duffing(System):
     type_name = "duffing"
     param_names = ("m", "c", "k", "k3")
 
-    def __init__(self):
+    def __init__(self, substeps: int = 1):
         self.ndof = 1
         self.force_dofs = (0,)
+        self.substeps = int(substeps)
 
     def __repr__(self) -> str:
-        return "Duffing()"
+        return "Duffing()" if self.substeps == 1 else f"Duffing(substeps={self.substeps})"
 
     def mass(self, params):
         return jnp.reshape(jnp.asarray(params["m"], dtype=float), (1, 1))
 
-    def restoring(self, params, z, v):
+    def restoring(self, params, z, v, r=None):
         return params["c"] * v + params["k"] * z + params["k3"] * z**3
 
     def linear_part(self, params):
@@ -192,7 +222,7 @@ class NonlinearSDOF(System):
     def mass(self, params):
         return jnp.reshape(jnp.asarray(params["m"], dtype=float), (1, 1))
 
-    def restoring(self, params, z, v):
+    def restoring(self, params, z, v, r=None):
         return jnp.reshape(self.h(z, v, params), (1,))
 
     def linear_part(self, params):
@@ -202,4 +232,70 @@ class NonlinearSDOF(System):
         return self.mass(params), jnp.reshape(C, (1, 1)), jnp.reshape(K, (1, 1))
 
 
-SYSTEM_TYPES = ("linear", "duffing")
+def signed_power(r, nu):
+    r""":math:`|r|^{\nu - 1} r` and :math:`|r|^\nu`, with finite derivatives in ``r`` and ``nu`` at
+    :math:`r = 0` for :math:`\nu \ge 1` (``jnp.abs(r) ** nu`` differentiated in ``nu`` at 0 gives
+    ``0 * log 0 = nan``: the mode search differentiates the filter at rest)."""
+    a = jnp.abs(r)
+    nz = a > 0
+    p = jnp.where(nz, jnp.exp(nu * jnp.log(jnp.where(nz, a, 1.0))), 0.0)
+    return jnp.sign(r) * p, p
+
+
+#: RK4 substeps per sample of a Bouc-Wen system's mechanical step (measured: tests/test_bouc_wen.py)
+DEFAULT_BOUC_WEN_SUBSTEPS = 4
+
+
+class BoucWen(System):
+    r"""Bouc-Wen hysteretic oscillator, in the form of the nonlinear system identification
+    benchmark of Noël & Schoukens (2016):
+
+    .. math:: m \ddot z + c \dot z + k z + r = u, \qquad
+              \dot r = \alpha \dot z - \beta |\dot z| |r|^{\nu-1} r - \gamma \dot z |r|^\nu
+
+    (the benchmark's :math:`\beta\gamma` and :math:`\beta\delta` are ``beta`` and ``gamma``;
+    its values: ``m = 2, c = 10, k = 5e4, alpha = 5e4, beta = 1e3 * 0.8, gamma = 1e3 * -1.1,
+    nu = 1``). The hysteretic force :math:`r` is an internal state (module doc); about rest
+    :math:`\dot r = \alpha \dot z`, so from a virgin state :math:`r \approx \alpha z` and the linear part
+    has the stiffness :math:`k + \alpha`. ``nu >= 1`` (below 1 the rate is not Lipschitz at
+    :math:`r = 0`).
+    """
+
+    type_name = "bouc-wen"
+    param_names = ("m", "c", "k", "alpha", "beta", "gamma", "nu")
+    n_internal = 1
+
+    def __init__(self, substeps: int = DEFAULT_BOUC_WEN_SUBSTEPS):
+        self.ndof = 1
+        self.force_dofs = (0,)
+        self.substeps = int(substeps)
+
+    def __repr__(self) -> str:
+        return f"BoucWen(substeps={self.substeps})"
+
+    def mass(self, params):
+        return jnp.reshape(jnp.asarray(params["m"], dtype=float), (1, 1))
+
+    def restoring(self, params, z, v, r=None):
+        return params["c"] * v + params["k"] * z + r
+
+    def internal_rate(self, params, z, v, r):
+        sp, p = signed_power(r, params["nu"])
+        return params["alpha"] * v - params["beta"] * jnp.abs(v) * sp - params["gamma"] * v * p
+
+    def internal_linear(self, params):
+        return jnp.ones((1, 1)), jnp.reshape(jnp.asarray(params["alpha"], dtype=float), (1, 1))
+
+    def tangent_deviation(self, params, r_sd):
+        # d(rdot)/d(zdot) = alpha - (beta sign(zdot r) + gamma) |r|^nu: off alpha by at most
+        # (|beta| + |gamma|) |r|^nu
+        _, p = signed_power(2.0 * r_sd, params["nu"])
+        dev = (jnp.abs(params["beta"]) + jnp.abs(params["gamma"])) * p / jnp.maximum(jnp.abs(params["alpha"]), 1e-300)
+        return jnp.minimum(dev, 1.0)
+
+    def linear_part(self, params):
+        r = lambda x: jnp.reshape(jnp.asarray(x, dtype=float), (1, 1))
+        return r(params["m"]), r(params["c"]), r(params["k"] + params["alpha"])
+
+
+SYSTEM_TYPES = ("linear", "duffing", "bouc-wen")

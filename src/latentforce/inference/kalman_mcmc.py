@@ -105,10 +105,11 @@ def _smooth(params: dict, y, mask, initial, *, model: LatentForceModel, dt: floa
 
 
 def state_moments(model: LatentForceModel, means, covs):
-    """Split smoothed moments into displacement / velocity / force (mean, sd) arrays."""
+    """Split smoothed moments into displacement / velocity (/ hysteretic force) / force (mean, sd)
+    arrays."""
     var = jnp.diagonal(covs, axis1=-2, axis2=-1)
     out = {}
-    for name in ("displacement", "velocity", "force"):
+    for name in model.layout.states:
         idx = model.layout.index(name)
         out[name] = (means[..., idx], jnp.sqrt(jnp.clip(var[..., idx], 0.0)))
     return out

@@ -39,7 +39,6 @@ from latentforce.models import LatentForceModel
 PATH_BUDGET_BYTES = 256 * 2**20
 #: bytes of one batch's filter and smoother arrays at most
 BATCH_BUDGET_BYTES = 32 * 2**20
-STATES = ("displacement", "velocity", "force")
 
 
 class Mixture(NamedTuple):
@@ -150,9 +149,9 @@ def mixture_posterior(
     outputs = tuple(outputs)
     chains, n_iter = next(iter(draws.values())).shape
     T, n = np.shape(y)[0], model.n_state
-    index = {q: model.layout.index(q) for q in STATES}
+    index = {q: model.layout.index(q) for q in model.layout.states}
     index.update({o.name: np.array([n + i]) for i, o in enumerate(outputs)})
-    states = STATES + tuple(o.name for o in outputs)
+    states = model.layout.states + tuple(o.name for o in outputs)
     width = sum(len(ix) for ix in index.values())
     per_chain, n_paths = mixture_size(T, chains, n_iter, thin_draws, width)
     idx = np.linspace(0, n_iter - 1, per_chain).round().astype(int)

@@ -69,8 +69,7 @@ def _verdict(
     theta = values[:, sched.burn_in : sched.total]
     params = {n: theta[:, :, i] for i, n in enumerate(names)}
     mon = info.monitored[:, sched.burn_blocks :]  # (chains, sweeps, M, q)
-    nd, nf = pm.ndof, pm.nforce
-    columns = {"displacement": range(0, nd), "velocity": range(nd, 2 * nd), "force": range(2 * nd, 2 * nd + nf)}
+    columns = pm.layout.summary_columns()
     states = {}
     for name, cols in columns.items():
         for j, k in enumerate(cols):
@@ -98,8 +97,7 @@ def _assemble(
     var = np.maximum(s2.sum(0) / n_all - mean_c**2, 0.0)
     mean = mean_c + np.asarray(ref_q)
     sd = np.sqrt(var)
-    nd, nf = pm.ndof, pm.nforce
-    sl = {"displacement": slice(0, nd), "velocity": slice(nd, 2 * nd), "force": slice(2 * nd, 2 * nd + nf)}
+    sl = pm.layout.summary_columns()
     state_mean = {k: mean[:, v] for k, v in sl.items()}
     state_sd = {k: sd[:, v] for k, v in sl.items()}
     cov = np.asarray(jax.vmap(proposal_covariance)(states.rwm))

@@ -48,7 +48,7 @@ from latentforce.io.schema import (
 from latentforce.io.sensor_checks import check_sensor, validate_outputs
 from latentforce.kernels import KERNELS, kernel_from_name
 from latentforce.models import LatentForceModel, Sensor
-from latentforce.systems import SYSTEM_TYPES, Duffing, LinearSystem, ShearFrame
+from latentforce.systems import DEFAULT_BOUC_WEN_SUBSTEPS, SYSTEM_TYPES, BoucWen, Duffing, LinearSystem, ShearFrame
 
 __all__ = [
     "DataSettings",
@@ -63,12 +63,25 @@ __all__ = [
 
 METHODS = ("kalman", "kalman-mcmc", "kalman-nuts", "pgas", "ekf", "ukf")
 # In the interface but without an implementation yet.
-PLANNED_SYSTEM_TYPES = ("bouc-wen",)
+PLANNED_SYSTEM_TYPES: tuple[str, ...] = ()
 # Parameters PGAS may infer (Algorithm 4, Vibration 2020, with Metropolis-within-Gibbs on the
 # force hyperparameters), besides the system's own (m, c, k, k3 ..., moved by the joint move of
 # latentforce.inference.smoother_move) and the sensors' noise levels (an exact Gibbs step each,
 # latentforce.inference.noise_gibbs).
 PGAS_FREE_OK = ("force_variance", "force_lengthscale")
+BOUC_WEN_KEYS = ("alpha", "beta", "gamma", "nu")
+#: what a fixed value of each scalar system key must be (io/params._scalar); a prior is on the
+#: positive reals (latentforce.priors), so an inferred k3 or gamma is positive
+SCALAR_RULES = {
+    "m": "positive",
+    "c": "nonnegative",
+    "k": "positive",
+    "k3": "any",
+    "alpha": "nonnegative",
+    "beta": "any",
+    "gamma": "any",
+    "nu": "exponent",
+}
 #: warm-up iterations per chain when [inference].burn_in is not given: the Kalman
 #: samplers start at the posterior's modes (Laplace), so a short warm-up adapts them
 DEFAULT_BURN_IN = {"kalman": 0, "kalman-mcmc": 500, "kalman-nuts": 300, "pgas": 1000, "ekf": 500, "ukf": 500}
@@ -145,6 +158,8 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
     given = {
         n
         for n in ("m", "c", "k", "k3", "M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs")
+        + BOUC_WEN_KEYS
+        + ("substeps",)
         if getattr(s, n) is not None
     }
 
@@ -159,20 +174,30 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
                 raise fail(f"[system].{n}", why)
 
     def scalars(names):
-        rules = {"m": "positive", "c": "nonnegative", "k": "positive", "k3": "any"}
         for n in names:
-            _split(fail, f"[system].{n}", n, getattr(s, n), rules[n], fixed, free)
+            _split(fail, f"[system].{n}", n, getattr(s, n), SCALAR_RULES[n], fixed, free)
+        if "nu" in free and not free["nu"].init >= 1:
+            raise fail("[system].nu", f"init must be at least 1 (the Bouc-Wen exponent), got {free['nu'].init!r}.")
 
+    matrix_keys = ("M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs")
     if s.type == "duffing":
-        refuse(
-            ("M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs"),
-            "a duffing system is single-DOF: give m, c, k and k3.",
-        )
+        refuse(matrix_keys, "a duffing system is single-DOF: give m, c, k and k3.")
+        refuse(BOUC_WEN_KEYS, 'alpha, beta, gamma and nu belong to a bouc-wen system; use type = "bouc-wen".')
         require(("m", "c", "k", "k3"))
         scalars(("m", "c", "k", "k3"))
-        return Duffing()
+        return Duffing(substeps=s.substeps or 1)
+    if s.type == "bouc-wen":
+        refuse(matrix_keys, "a bouc-wen system is single-DOF: give m, c, k, alpha, beta, gamma and nu.")
+        refuse(("k3",), 'k3 (cubic stiffness) belongs to a duffing system; use type = "duffing".')
+        require(("m", "c", "k") + BOUC_WEN_KEYS)
+        scalars(("m", "c", "k") + BOUC_WEN_KEYS)
+        return BoucWen(substeps=s.substeps or DEFAULT_BOUC_WEN_SUBSTEPS)
 
     refuse(("k3",), 'k3 (cubic stiffness) belongs to a duffing system; use type = "duffing".')
+    refuse(BOUC_WEN_KEYS, 'alpha, beta, gamma and nu belong to a bouc-wen system; use type = "bouc-wen".')
+    refuse(
+        ("substeps",), "substeps applies to nonlinear systems (duffing, bouc-wen); a linear one is discretised exactly."
+    )
     frame = given & {"masses", "dampings", "stiffnesses"}
     if frame:
         return _shear_frame(fail, s, given, fixed, free, refuse, require)

@@ -34,7 +34,7 @@ SUPPORTED_EXTENSIONS = (".csv", ".h5", ".hdf5", ".mat", ".nc", ".uff", ".unv", "
 # Vendor formats (io/vendor.py): each channel carries its own time axis and unit.
 _VENDOR_EXTENSIONS = (".uff", ".unv", ".tdms")
 TRUTH_NAMES = ("displacement", "velocity", "force")
-_TRUTH_PATTERN = re.compile(r"^(displacement|velocity|force)(_\d+)?$")
+_TRUTH_PATTERN = re.compile(r"^(displacement|velocity|hysteretic_force|force)(_\d+)?$")
 # Relative tolerance on the spread of the time steps: tighter than any
 # sensible acquisition jitter, looser than float64 round-off of t = i * dt.
 _UNEVEN_RTOL = 1e-6

@@ -102,6 +102,7 @@ def _scalar(fail: _Fail, key: str, value: float, rule: str) -> float:
         "m": "mass",
         "c": "damping",
         "k": "stiffness",
+        "alpha": "Bouc-Wen stiffness alpha",
         "variance": "force variance",
         "lengthscale": "force lengthscale",
     }
@@ -110,6 +111,12 @@ def _scalar(fail: _Fail, key: str, value: float, rule: str) -> float:
         raise fail(key, f"the {what} must be positive, got {value!r}.")
     if rule == "nonnegative" and not value >= 0:
         raise fail(key, f"the {what} must be non-negative, got {value!r}.")
+    if rule == "exponent" and not value >= 1:
+        raise fail(
+            key,
+            f"the Bouc-Wen exponent nu must be at least 1, got {value!r}: below 1 the hysteretic "
+            "force's rate |r|^(nu-1) r is not Lipschitz at r = 0 (its solution need not be unique).",
+        )
     return float(value)
 
 

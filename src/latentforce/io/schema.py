@@ -56,6 +56,11 @@ class _SystemSection(_Strict):
     c: _Param | None = None
     k: _Param | None = None
     k3: _Param | None = None
+    alpha: _Param | None = None
+    beta: _Param | None = None
+    gamma: _Param | None = None
+    nu: _Param | None = None
+    substeps: int | None = Field(default=None, ge=1, le=64)
     M: list[list[float]] | None = None
     C: list[list[float]] | None = None
     K: list[list[float]] | None = None
