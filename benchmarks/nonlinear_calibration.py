@@ -1,4 +1,4 @@
-r"""Calibration of the nonlinear methods on Duffing records: are the bands honest, and how fast?
+r"""Calibration of the nonlinear methods on Duffing and Bouc-Wen records: are the bands honest, and how fast?
 
 For each case a Duffing record is simulated from the continuous model (RK4
 substeps, a GP force of the case's Matérn order), measured with the case's
@@ -31,6 +31,12 @@ Usage::
     python benchmarks/nonlinear_calibration.py --quick --orders 0,1,2,3   # the small case at every order
     python benchmarks/nonlinear_calibration.py --quick --orders 0,1,2,3 --sensors acc   # ... acceleration only
     python benchmarks/nonlinear_calibration.py --quick --orders 2 --sensors acc,vel --start moving --wide-initial
+    python benchmarks/nonlinear_calibration.py --quick --system bouc-wen --orders 0,1   # the benchmark oscillator
+
+``--system bouc-wen``: the Bouc-Wen oscillator of the Noël & Schoukens benchmark
+(``latentforce demo bouc-wen``'s system and force scale, 750 Hz, 450 samples, acceleration and
+displacement); the hysteretic force's coverage is reported beside the force's and the
+displacement's, and the nonlinear share is rms(r - alpha z) / rms(k z + r).
 """
 
 from __future__ import annotations
@@ -52,6 +58,9 @@ RESULTS_DIR = Path(__file__).resolve().parent / "results"
 DT = 1.0 / 100.0
 SYSTEM = dict(m=1.0, c=2.0, k=400.0)  # f_n = 3.2 Hz, 8 % damping
 FORCE_VARIANCE = 100.0
+#: the Bouc-Wen benchmark (Noël & Schoukens 2016) at its sample rate, with demo bouc-wen's force scale
+BW_SYSTEM = dict(m=2.0, c=10.0, k=5.0e4, alpha=5.0e4, beta=800.0, gamma=-1100.0, nu=1.0)
+BW_DT, BW_VARIANCE = 1.0 / 750.0, 2500.0
 NOMINAL = {1: 68.27, 2: 95.45, 3: 99.73}
 
 
@@ -63,9 +72,19 @@ class Case(NamedTuple):
     start: str  # "rest" or "moving"
     T: int
     lengthscale: float = 0.05
+    system: str = "duffing"
+
+    @property
+    def dt(self) -> float:
+        return BW_DT if self.system == "bouc-wen" else DT
 
     @property
     def label(self) -> str:
+        if self.system == "bouc-wen":
+            return (
+                f"Bouc-Wen, Matérn-{2 * self.order + 1}/2, {self.sensors}, {100 * self.noise:g} % noise, "
+                f"{self.start}, T={self.T}"
+            )
         return (
             f"Matérn-{2 * self.order + 1}/2, k3={self.k3:g}, {self.sensors}, {100 * self.noise:g} % noise, "
             f"{self.start}, T={self.T}"
@@ -73,6 +92,9 @@ class Case(NamedTuple):
 
 
 QUICK = [Case(order=1, k3=4e5, sensors="acc,disp", noise=0.01, start="rest", T=256)]
+QUICK_BOUC_WEN = [
+    Case(order=0, k3=0.0, sensors="acc,disp", noise=0.01, start="rest", T=450, lengthscale=0.01, system="bouc-wen")
+]
 
 
 def grid() -> list[Case]:
@@ -95,12 +117,13 @@ def case_config(case: Case, method: str, max_time: float) -> dict:
     inference = {"method": method}
     if method == "pgas":
         inference["max_time"] = float(max_time)
+    bw = case.system == "bouc-wen"
     return {
-        "data": {"sample_rate": 1.0 / DT},
-        "system": {"type": "duffing", **SYSTEM, "k3": case.k3},
+        "data": {"sample_rate": 1.0 / case.dt},
+        "system": {"type": "bouc-wen", **BW_SYSTEM} if bw else {"type": "duffing", **SYSTEM, "k3": case.k3},
         "force": {
             "kernel": f"matern{2 * case.order + 1}2",
-            "variance": FORCE_VARIANCE,
+            "variance": BW_VARIANCE if bw else FORCE_VARIANCE,
             "lengthscale": case.lengthscale,
         },
         "sensors": sensors,
@@ -119,15 +142,21 @@ def simulate(case: Case, seed: int):
     problem = config_from_dict(case_config(case, "pgas", 1.0))
     model = problem.model
     lead = 500 if case.start == "moving" else 0
-    sim = run_sim(jax.random.key(seed), model, dict(problem.fixed), case.T + lead, DT)
+    sim = run_sim(jax.random.key(seed), model, dict(problem.fixed), case.T + lead, case.dt, substeps=16)
     z = sim.displacement[lead:, 0]
     clean = np.stack([clean_signal(sim, s)[lead:] for s in model.sensors], axis=1)
     noise_sd = case.noise * clean.std(axis=0)
     rng = np.random.default_rng(seed + 1)
     y = clean + rng.standard_normal(clean.shape) * noise_sd
+    truth = {"displacement": z, "force": sim.force[lead:, 0]}
+    if case.system == "bouc-wen":
+        r = sim.hysteretic_force[lead:, 0]
+        truth["hysteretic_force"] = r
+        share = float(np.std(r - BW_SYSTEM["alpha"] * z) / np.std(BW_SYSTEM["k"] * z + r))
+        return y, truth, noise_sd, share
     cubic, linear = case.k3 * z**3, SYSTEM["k"] * z
     share = float(np.std(cubic) / np.std(linear + cubic))
-    return y, {"displacement": z, "force": sim.force[lead:, 0]}, noise_sd, share
+    return y, truth, noise_sd, share
 
 
 def worker(job_path: str, out_path: str) -> None:
@@ -152,8 +181,8 @@ def worker(job_path: str, out_path: str) -> None:
         problem = config_from_dict(cfg, source=f"<{case.label} {job['method']}>")
     T = y.shape[0]
     dataset = Dataset(
-        time=np.arange(T) * DT,
-        dt=DT,
+        time=np.arange(T) * case.dt,
+        dt=case.dt,
         values=y,
         mask=np.ones_like(y, dtype=bool),
         columns=list(problem.columns),
@@ -162,7 +191,7 @@ def worker(job_path: str, out_path: str) -> None:
     with persistent_cache(job["cache"]):
         result, _ = estimate.run(problem, dataset, seed=job["seed"])
     out = {"share": share, "wall_s": float(result.wall_time_s)}
-    for state in ("force", "displacement"):
+    for state in truth:
         mean, sd = result.state_mean[state][:, 0], result.state_sd[state][:, 0]
         err = np.abs(truth[state] - mean)
         out[f"{state}_coverage"] = {k: float(100 * np.mean(err <= k * sd)) for k in (1, 2, 3)}
@@ -232,29 +261,38 @@ def cov_cell(c: dict) -> str:
 def report(rows: list[tuple[Case, str, dict]], args, total_s: float) -> str:
     load = os.getloadavg()
     lines = [
-        f"# Calibration of the nonlinear methods on Duffing records ({'quick' if args.quick else 'full'})",
+        f"# Calibration of the nonlinear methods on {'Bouc-Wen' if args.system == 'bouc-wen' else 'Duffing'} "
+        f"records ({'quick' if args.quick else 'full'})",
         "",
         f"{time.strftime('%Y-%m-%dT%H:%M:%S')}; {platform.machine()}, {os.cpu_count()} cores, load average "
-        f"{load[0]:.2f} at the end; seed {args.seed}; pgas max_time {args.max_time:g} s. Duffing m = 1, "
-        f"c = 2, k = 400 (3.2 Hz, 8 % damping), force variance {FORCE_VARIANCE:g}, hyperparameters fixed "
-        "at the truth; noise sd as a fraction of each channel's rms; initial state: "
+        f"{load[0]:.2f} at the end; seed {args.seed}; pgas max_time {args.max_time:g} s. "
+        + (
+            "Bouc-Wen benchmark oscillator (m = 2, c = 10, k = 5e4, alpha = 5e4, beta = 800, gamma = -1100, "
+            f"nu = 1) at 750 Hz, force variance {BW_VARIANCE:g}"
+            if args.system == "bouc-wen"
+            else f"Duffing m = 1, c = 2, k = 400 (3.2 Hz, 8 % damping), force variance {FORCE_VARIANCE:g}"
+        )
+        + ", hyperparameters fixed at the truth; noise sd as a fraction of each channel's rms; initial state: "
         + (
             "the linearised system's stationary covariance (`--wide-initial`)."
             if args.wide_initial
             else "the default (near rest)."
         ),
         "",
-        "| case | nonlinear share | method | force ±1/±2/±3 sd % | displacement ±1/±2/±3 sd % | force NMSE % "
+        "| case | nonlinear share | method | force ±1/±2/±3 sd % | displacement ±1/±2/±3 sd % "
+        "| hysteretic force ±1/±2/±3 sd % | force NMSE % "
         "| converged | max R-hat | min bulk ESS | switch rate | smoother move acceptance | s |",
-        "|---|---:|---|---|---|---:|---|---:|---:|---:|---:|---:|",
+        "|---|---:|---|---|---|---|---:|---|---:|---:|---:|---:|---:|",
     ]
     for case, method, res in rows:
         if "error" in res:
-            lines.append(f"| {case.label} | – | {method} | {res['error']} | | | | | | | | |")
+            lines.append(f"| {case.label} | – | {method} | {res['error']} | | | | | | | | | |")
             continue
         lines.append(
             f"| {case.label} | {100 * res['share']:.0f} % | {method} | {cov_cell(res['force_coverage'])} | "
-            f"{cov_cell(res['displacement_coverage'])} | {fmt(res['force_nmse'])} | "
+            f"{cov_cell(res['displacement_coverage'])} | "
+            f"{cov_cell(res['hysteretic_force_coverage']) if 'hysteretic_force_coverage' in res else '–'} | "
+            f"{fmt(res['force_nmse'])} | "
             f"{'yes' if res['converged'] else '**no**'} | {fmt(res['max_r_hat'], 4)} | {fmt(res['min_ess'])} | "
             f"{fmt(res['switch_rate'], 2)} | {fmt(res.get('smoother_acceptance'), 2)} | {res['wall_s']:.0f} |"
         )
@@ -287,6 +325,7 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--max-time", type=float, default=None, help="pgas max_time (default 180; quick 60)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--system", default="duffing", choices=("duffing", "bouc-wen"), help="quick mode's system")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -294,12 +333,15 @@ def main(argv=None) -> int:
         worker(*args.worker)
         return 0
     args.max_time = args.max_time or (60.0 if args.quick else 180.0)
-    cases = QUICK if args.quick else grid()
+    if args.system == "bouc-wen" and not args.quick:
+        parser.error("--system bouc-wen applies to --quick (the full grid is Duffing's)")
+    quick = QUICK_BOUC_WEN if args.system == "bouc-wen" else QUICK
+    cases = quick if args.quick else grid()
     if args.orders:
         keep = sorted({int(o) for o in args.orders.split(",")})
         # quick: its small case at each order asked for; the grid: the grid's cases of those orders
         cases = (
-            [c._replace(order=o) for o in keep for c in QUICK] if args.quick else [c for c in cases if c.order in keep]
+            [c._replace(order=o) for o in keep for c in quick] if args.quick else [c for c in cases if c.order in keep]
         )
     if args.sensors:
         if not args.quick:
@@ -326,7 +368,8 @@ def main(argv=None) -> int:
                     flush=True,
                 )
     text = report(rows, args, time.perf_counter() - t0)
-    out = args.out or RESULTS_DIR / ("nonlinear_calibration_quick.md" if args.quick else "nonlinear_calibration.md")
+    name = "nonlinear_calibration_bouc_wen" if args.system == "bouc-wen" else "nonlinear_calibration"
+    out = args.out or RESULTS_DIR / (f"{name}_quick.md" if args.quick and args.system != "bouc-wen" else f"{name}.md")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
     print(text)

@@ -210,7 +210,8 @@ def test_bad_values_name_the_key():
 
 
 def test_system_types():
-    _bad(_edit(DUFFING, ["system", "type"], "bouc-wen"), "[system].type", "not available yet", "linear, duffing")
+    _bad(_edit(DUFFING, ["system", "type"], "bouc-wen"), "[system].k3", 'use type = "duffing"')
+    _bad(_edit(DUFFING, ["system", "type"], "hysteretic"), "[system].type", "linear, duffing, bouc-wen")
     _bad(_edit(DUFFING, ["system", "type"], "dufing"), "[system].type", "did you mean 'duffing'?")
 
 

@@ -10,7 +10,13 @@ from typer.testing import CliRunner
 from latentforce.cli import app
 
 #: the subfolders each demo writes beside its main case (INTERFACE.md, `demo`)
-VARIANTS = {"oma": ["known-system"], "duffing": ["with-displacement"], "duffing-params": [], "sine": []}
+VARIANTS = {
+    "oma": ["known-system"],
+    "duffing": ["with-displacement"],
+    "duffing-params": [],
+    "bouc-wen": [],
+    "sine": [],
+}
 
 
 @pytest.mark.parametrize("name", sorted(VARIANTS))

@@ -218,3 +218,23 @@ def test_independence_steps_carry_a_well_fitted_posterior():
     _, xs_rw, _ = jit(jax.vmap(lambda k, s: mcmc.run_chain(k, s, logdensity, 1000, adapt=False)))(keys[4:], states)
     ess_rw = min(float(az.ess(np.asarray(xs_rw)[..., i])) for i in range(p))
     assert ess > 4 * ess_rw, (ess, ess_rw)
+
+
+def test_a_prior_covariance_keeps_a_direction_the_chain_has_not_explored():
+    """A chain whose running covariance collapsed in one direction before the re-shape (few accepted
+    moves) keeps a proposal there when its state carries a prior guess ``cov0``; without one the
+    re-shaped proposal's sd in that direction is ~0 and the chain freezes (a Bouc-Wen pgas chain
+    froze so, docs/nonlinear.md)."""
+    logdensity = lambda x: jnp.where(jnp.all(x == 0.0), 0.0, -jnp.inf)  # rejects every move: x stays
+    base = mcmc.init(jnp.zeros(2), logdensity, jnp.ones(2))
+    # the chain so far moved only along the first coordinate
+    collapsed = base._replace(cov=jnp.diag(jnp.array([1.0, 1e-14])), count=jnp.asarray(3.0))
+    key = jax.random.key(0)
+    on = jnp.asarray(True)
+    without, _ = mcmc.step(key, collapsed, logdensity, on, on, 0.44)
+    with_prior, _ = mcmc.step(key, collapsed._replace(cov0=jnp.eye(2)), logdensity, on, on, 0.44)
+    sd = lambda s: np.sqrt(np.diag(np.asarray(s.chol @ s.chol.T)))
+    assert sd(without)[1] < 1e-5
+    # 3 draws against 12 pseudo-draws of the identity: about sqrt(12/15) of it, times 2.38/sqrt(2)
+    assert sd(with_prior)[1] > 0.5
+    assert with_prior.cov0 is not None

@@ -295,14 +295,14 @@ def simulate(
     write_data(out, columns)
     typer.echo(
         f"wrote {n} samples at {rate:g} Hz to {out} "
-        f"(channels: {', '.join(problem.columns)}; truth: displacement, velocity, force)"
+        f"(channels: {', '.join(problem.columns)}; truth: {', '.join(problem.model.layout.states)})"
     )
 
 
 @app.command()
 @handle_errors
 def demo(
-    name: str = typer.Argument(..., help="oma | duffing | duffing-params | sine | silverbox"),
+    name: str = typer.Argument(..., help="oma | duffing | duffing-params | bouc-wen | sine | silverbox"),
     out: Optional[Path] = typer.Option(None, "--out", help="Result folder (default: demo-NAME)."),
     quick: bool = typer.Option(False, "--quick", help="A short run (under a minute)."),
     seed: int = typer.Option(0, "--seed", help="Random seed."),

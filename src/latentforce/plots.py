@@ -249,41 +249,57 @@ def plot_state(result: RunResult, state: str, path: Path) -> Path:
 def plot_hysteresis(result: RunResult, path: Path, max_paths: int = 20) -> Path:
     """The hysteresis loop: the hysteretic force against the displacement (of DOF ``j`` for element
     ``j`` of a single-DOF system's elements), the posterior mean, up to ``max_paths`` sampled
-    loops, the 90 % band of the force (vertical bars, every few samples) and the truth in red."""
-    from matplotlib.collections import LineCollection
-
+    loops, the 90 % band of the force (vertical bars) and the truth in red; on the right a zoom
+    on the samples around the largest force, where the band is visible."""
     r_mean, r_sd = _columns(result.state_mean["hysteretic_force"]), _columns(result.state_sd["hysteretic_force"])
     z_mean = _columns(result.state_mean["displacement"])
-    width = r_mean.shape[1]
-    fig = Figure(figsize=(6.5, 5.0 * width))
-    axes = fig.subplots(width, 1, squeeze=False)[:, 0]
+    width, T = r_mean.shape[1], r_mean.shape[0]
+    fig = Figure(figsize=(11, 4.8 * width))
+    axes = fig.subplots(width, 2, squeeze=False)
     draws_r = result.path_draws.get("hysteretic_force")
     draws_z = result.path_draws.get("displacement")
-    for j, ax in enumerate(axes):
+    for j in range(width):
         zc = min(j, z_mean.shape[1] - 1)
-        if draws_r is not None and draws_z is not None:
-            dr = np.asarray(draws_r, dtype=float).reshape(-1, np.shape(draws_r)[2], width)[..., j]
-            dz = np.asarray(draws_z, dtype=float).reshape(-1, np.shape(draws_z)[2], z_mean.shape[1])[..., zc]
-            pick = np.unique(np.linspace(0, dr.shape[0] - 1, min(max_paths, dr.shape[0])).astype(int))
-            for k in pick:
-                ax.plot(dz[k], dr[k], color="0.55", lw=0.4, alpha=0.4)
-            ax.plot([], [], color="0.55", lw=0.8, label=f"{len(pick)} sampled loops")
-        every = max(1, len(r_mean) // 150)
-        z, r, s = z_mean[::every, zc], r_mean[::every, j], 1.645 * r_sd[::every, j]
-        bars = LineCollection(np.stack([np.c_[z, r - s], np.c_[z, r + s]], axis=1), colors=_MEAN_COLOUR, alpha=0.35)
-        ax.add_collection(bars)
-        ax.plot([], [], color=_MEAN_COLOUR, alpha=0.35, label="90 % band")
-        ax.plot(z_mean[:, zc], r_mean[:, j], color=_MEAN_COLOUR, lw=1.0, label="posterior mean")
-        if "hysteretic_force" in result.truth and "displacement" in result.truth:
-            tz, tr = _columns(result.truth["displacement"])[:, zc], _columns(result.truth["hysteretic_force"])[:, j]
-            ax.plot(tz, tr, color=_TRUTH_COLOUR, lw=0.8, ls="--", label="truth")
-        ax.set_xlabel(_state_label("displacement", result))
-        ax.set_ylabel(_state_label("hysteretic_force", result))
+        peak = int(np.argmax(np.abs(r_mean[:, j])))
+        zoom = slice(max(0, peak - 12), min(T, peak + 13))
+        for ax, window, every in ((axes[j, 0], slice(0, T), max(1, T // 150)), (axes[j, 1], zoom, 1)):
+            _draw_loop(ax, result, window, every, j, zc, r_mean, r_sd, z_mean, draws_r, draws_z, max_paths)
         title = "Hysteresis loop" if width == 1 else f"Hysteresis loop, element {j}"
-        ax.set_title(f"{title}: posterior ({result.method})")
-        ax.grid(alpha=0.3)
-        ax.legend(loc="upper left", fontsize="small")
+        axes[j, 0].set_title(f"{title}: posterior ({result.method})")
+        # the zoom: a box around the peak a few bands high, so that the band shows
+        z_span = np.ptp(z_mean[:, zc]) or 1.0
+        r_half = max(8.0 * 1.645 * float(r_sd[peak, j]), 0.01 * (np.ptp(r_mean[:, j]) or 1.0))
+        axes[j, 1].set_xlim(z_mean[peak, zc] - 0.03 * z_span, z_mean[peak, zc] + 0.03 * z_span)
+        axes[j, 1].set_ylim(r_mean[peak, j] - r_half, r_mean[peak, j] + r_half)
+        axes[j, 1].set_title(f"zoom on the largest force (t = {float(result.time[peak]):.4g} s)")
+        axes[j, 0].legend(loc="upper left", fontsize="small")
     return _save(fig, path, result)
+
+
+def _draw_loop(ax, result, window, every, j, zc, r_mean, r_sd, z_mean, draws_r, draws_z, max_paths) -> None:
+    from matplotlib.collections import LineCollection
+
+    width = r_mean.shape[1]
+    if draws_r is not None and draws_z is not None:
+        dr = np.asarray(draws_r, dtype=float).reshape(-1, np.shape(draws_r)[2], width)[:, window, j]
+        dz = np.asarray(draws_z, dtype=float).reshape(-1, np.shape(draws_z)[2], z_mean.shape[1])[:, window, zc]
+        pick = np.unique(np.linspace(0, dr.shape[0] - 1, min(max_paths, dr.shape[0])).astype(int))
+        for k in pick:
+            ax.plot(dz[k], dr[k], color="0.55", lw=0.4, alpha=0.4)
+        ax.plot([], [], color="0.55", lw=0.8, label=f"{len(pick)} sampled loops")
+    z, r, s = z_mean[window, zc][::every], r_mean[window, j][::every], 1.645 * r_sd[window, j][::every]
+    ax.add_collection(
+        LineCollection(np.stack([np.c_[z, r - s], np.c_[z, r + s]], axis=1), colors=_MEAN_COLOUR, alpha=0.4)
+    )
+    ax.plot([], [], color=_MEAN_COLOUR, alpha=0.4, label="90 % band")
+    ax.plot(z_mean[window, zc], r_mean[window, j], color=_MEAN_COLOUR, lw=1.0, label="posterior mean")
+    if "hysteretic_force" in result.truth and "displacement" in result.truth:
+        tz = _columns(result.truth["displacement"])[window, zc]
+        tr = _columns(result.truth["hysteretic_force"])[window, j]
+        ax.plot(tz, tr, color=_TRUTH_COLOUR, lw=0.8, ls="--", label="truth")
+    ax.set_xlabel(_state_label("displacement", result))
+    ax.set_ylabel(_state_label("hysteretic_force", result))
+    ax.grid(alpha=0.3)
 
 
 def plot_paths(result: RunResult, path: Path, max_paths: int = 30) -> Path:

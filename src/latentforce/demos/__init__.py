@@ -1,5 +1,6 @@
 """Built-in end-to-end cases (``latentforce demo NAME``)."""
 
+from latentforce.demos.bouc_wen import run_bouc_wen
 from latentforce.demos.duffing_params import run_duffing_params
 from latentforce.demos.nonlinear import run_duffing, run_sine
 from latentforce.demos.oma import run_oma
@@ -9,6 +10,7 @@ DEMOS = {
     "oma": run_oma,
     "duffing": run_duffing,
     "duffing-params": run_duffing_params,
+    "bouc-wen": run_bouc_wen,
     "sine": run_sine,
     "silverbox": run_silverbox,
 }

@@ -11,7 +11,8 @@ mechanical states and its linearisation (:meth:`ParticleModel.linear_discrete`).
 The model (re-parametrised so that it has no degenerate transition)
 -------------------------------------------------------------------
 The state is :math:`x_t = (\mathrm{mech}_t, x_{f,t})` with
-:math:`\mathrm{mech} = (z, \dot z)` (``2 ndof``) and the force states
+:math:`\mathrm{mech} = (z, \dot z, r)` (``2 ndof`` plus the system's internal, hysteretic
+states :math:`r` if any: their within-step noise is :func:`internal_noise`) and the force states
 :math:`x_f` (``nforce * kernel.dim``). In the model of Rogers et al.
 (Vibration 2020, Eq. 18-20) discretised by Euler-Maruyama the mechanical
 states get no process noise, so the transition density of :math:`x_t` is
@@ -391,9 +392,9 @@ def internal_noise(model, params: dict, Q_zz):
     leaves that direction by :math:`(\partial \dot r/\partial \dot z - R_z)\, w_z`. The
     independent part is that deviation's variance, :math:`\kappa^2 R_z Q_{zz} R_z^T`, with
     :math:`\kappa` the system's relative tangent deviation at twice the stationary sd of
-    :math:`r` under the linear part (``system.tangent_deviation``, capped at 1): zero without
-    hysteresis, so that the model is then exactly the linear system's (tested against the
-    Kalman smoother). At jitter size on the benchmark the smoother move accepted no proposal."""
+    :math:`r` under the linear part (``system.tangent_deviation``, capped at
+    ``systems.TANGENT_DEVIATION_CAP``): zero without hysteresis, so that the model is then exactly
+    the linear system's (tested against the Kalman smoother)."""
     S, Rz = model.system.internal_linear(params)
     _, P = model.stationary_initial(params, linear_part=True)
     r_sd = jnp.sqrt(jnp.clip(jnp.diagonal(P)[model.layout.internal], 0.0))

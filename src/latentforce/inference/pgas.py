@@ -522,7 +522,10 @@ def _init_chains(
         # the log density is set at the first block
         rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x[: len(hyper.names)])
         joint = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
-        joint = joint._replace(chol=joint_chol, cov=joint_chol @ joint_chol.T)
+        # the first proposal's covariance, 2.38^2/d times the guess of the posterior's (a Laplace
+        # fit where system parameters are inferred): the guess stays in every reshape (mcmc)
+        joint_cov = joint_chol @ joint_chol.T
+        joint = joint._replace(chol=joint_chol, cov=joint_cov, cov0=joint_cov * (x.shape[0] / 2.38**2))
         return ChainState(
             k_run,
             ref,
