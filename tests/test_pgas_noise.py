@@ -20,7 +20,7 @@ from latentforce.inference.kalman import kalman_smoother
 from latentforce.io.config import config_from_dict
 from latentforce.io.data import Dataset
 from latentforce.kernels import Matern
-from latentforce.models import LatentForceModel, Sensor
+from latentforce.models import LatentForceModel, Sensor, StateLayout
 from latentforce.priors import HalfNormal, LogNormal
 from latentforce.systems import LinearSystem
 
@@ -120,7 +120,7 @@ def test_the_verdict_waits_for_the_noise_levels():
         np.zeros((chains, blocks, k, 0)),  # no system parameter sampled
     )
     hyper = Hyper(PARAMS, {"force_variance": (LogNormal(0.0, 1.0), 1.0)})
-    pm = SimpleNamespace(ndof=1, nforce=1)
+    pm = SimpleNamespace(ndof=1, nforce=1, layout=StateLayout(1, 1, 1))
     sched = pgas_block.schedule(0, blocks * k, state_every=k)
     names, values = pgas_output._parameters(hyper, ("noise_std_acc",), info)
     assert names == ("force_variance", "noise_std_acc") and values.shape == (chains, blocks * k, 2)
