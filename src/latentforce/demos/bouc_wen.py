@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from latentforce.demos.common import fmt, preload_modules, table, write_case
-from latentforce.results import check_out_dir, coverage, nmse
+from latentforce.demos.common import echo_truth_report, noisy_record, preload_modules, write_case
+from latentforce.results import check_out_dir
 
 SYSTEM = {
     "type": "bouc-wen",
@@ -65,20 +65,7 @@ def simulate(seed: int) -> tuple[dict, float, float]:
         force_lengthscale=TRUE_LENGTHSCALE,
     )
     sim = simulate_fn(jax.random.key(seed), model, params, n, 1.0 / FS, substeps=16)
-    rng = np.random.default_rng(seed + 1)
-    acc, disp = sim.acceleration[:, 0], sim.displacement[:, 0]
-    acc_sd = 0.01 * float(np.sqrt(np.mean(acc**2)))
-    disp_sd = 0.01 * float(np.sqrt(np.mean(disp**2)))
-    columns = {
-        "time": sim.time,
-        "acc": acc + acc_sd * rng.normal(size=n),
-        "disp": disp + disp_sd * rng.normal(size=n),
-        "displacement": disp,
-        "velocity": sim.velocity[:, 0],
-        "hysteretic_force": sim.hysteretic_force[:, 0],
-        "force": sim.force[:, 0],
-    }
-    return columns, acc_sd, disp_sd
+    return noisy_record(sim, seed)
 
 
 def config(acc_sd: float, disp_sd: float, quick: bool, seed: int) -> dict:
@@ -119,22 +106,4 @@ def run_bouc_wen(out: Path, quick: bool = False, seed: int = 0, overwrite: bool 
     _, _, result, _ = write_case(
         out, config(acc_sd, disp_sd, quick, seed), columns, overwrite=True, seed=seed, diagnostics={"true_params": TRUE}
     )
-    rows = []
-    for state in ("displacement", "velocity", "hysteretic_force", "force"):
-        x, m, s = result.truth[state][:, 0], result.state_mean[state][:, 0], result.state_sd[state][:, 0]
-        rows.append([state, f"{nmse(x, m):.3f}", f"{100 * coverage(x, m, s, 3.0):.1f}%"])
-    echo(table(rows, ["state", "NMSE %", "truth within 3 sd"]))
-    prow = []
-    for n, s in (result.param_summary or {}).items():
-        inside = s["q05"] <= TRUE[n] <= s["q95"]
-        prow.append(
-            [n, fmt(TRUE[n]), fmt(s["median"]), f"[{fmt(s['q05'])}, {fmt(s['q95'])}]", "yes" if inside else "NO"]
-        )
-        prow[-1] += [f"{s['r_hat']:.3f}", f"{s['ess_bulk']:.0f}"]
-    echo(table(prow, ["parameter", "true", "median", "90% interval", "holds truth", "R-hat", "ESS"]))
-    conv = result.convergence or {}
-    echo(
-        f"{'converged' if conv.get('converged') else 'NOT CONVERGED'}: max R-hat {conv.get('max_r_hat', np.nan):.3f}, "
-        f"min bulk ESS {conv.get('min_ess_bulk', np.nan):.0f}"
-    )
-    echo(f"done in {time.perf_counter() - t0:.1f} s; results in {out}/ (figures/hysteresis.png: the loop)")
+    echo_truth_report(result, TRUE, echo, t0, out, " (figures/hysteresis.png: the loop)")

@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from latentforce.demos.common import fmt, preload_modules, table, write_case
+from latentforce.demos.common import echo_truth_report, preload_modules, write_case
 from latentforce.demos.nonlinear import FS, SYSTEM, _simulate
-from latentforce.results import FIGURE_LOCK, check_out_dir, coverage, nmse
+from latentforce.results import FIGURE_LOCK, check_out_dir
 
 TRUE_VARIANCE, TRUE_LENGTHSCALE = 400.0, 0.1
 #: the unknown system parameters' priors (log-normal, medians off the truth) and initial values
@@ -88,25 +88,7 @@ def run_duffing_params(
         out, config(acc_sd, disp_sd, quick, seed), columns, overwrite=True, seed=seed, diagnostics={"true_params": TRUE}
     )
     _restoring_figure(result, columns, out / "figures" / "restoring_force.png")
-    rows = []
-    for state in ("displacement", "velocity", "force"):
-        x, m, s = result.truth[state][:, 0], result.state_mean[state][:, 0], result.state_sd[state][:, 0]
-        rows.append([state, f"{nmse(x, m):.3f}", f"{100 * coverage(x, m, s, 3.0):.1f}%"])
-    echo(table(rows, ["state", "NMSE %", "truth within 3 sd"]))
-    prow = []
-    for n, s in (result.param_summary or {}).items():
-        inside = s["q05"] <= TRUE[n] <= s["q95"]
-        prow.append(
-            [n, fmt(TRUE[n]), fmt(s["median"]), f"[{fmt(s['q05'])}, {fmt(s['q95'])}]", "yes" if inside else "NO"]
-        )
-        prow[-1] += [f"{s['r_hat']:.3f}", f"{s['ess_bulk']:.0f}"]
-    echo(table(prow, ["parameter", "true", "median", "90% interval", "holds truth", "R-hat", "ESS"]))
-    conv = result.convergence or {}
-    echo(
-        f"{'converged' if conv.get('converged') else 'NOT CONVERGED'}: max R-hat {conv.get('max_r_hat', np.nan):.3f}, "
-        f"min bulk ESS {conv.get('min_ess_bulk', np.nan):.0f}"
-    )
-    echo(f"done in {time.perf_counter() - t0:.1f} s; results in {out}/")
+    echo_truth_report(result, TRUE, echo, t0, out, "")
 
 
 def _restoring_figure(result, columns: dict, path: Path) -> None:

@@ -37,6 +37,7 @@ import numpy as np
 from latentforce.demos.common import (
     figure_process,
     fmt,
+    noisy_record,
     preload_modules,
     run_cases_concurrently,
     table,
@@ -68,18 +69,7 @@ def _simulate(seed: int, force: str, variance: float = TRUE_VARIANCE):
     )
     fn = (lambda t: 10.0 * np.sin(100.0 * t)) if force == "sine" else None
     sim = simulate(jax.random.key(seed), model, params, n, 1.0 / FS, force=fn, substeps=8)
-    rng = np.random.default_rng(seed + 1)
-    acc, disp = sim.acceleration[:, 0], sim.displacement[:, 0]
-    acc_sd = 0.01 * np.sqrt(np.mean(acc**2))
-    disp_sd = 0.01 * np.sqrt(np.mean(disp**2))
-    columns = {
-        "time": sim.time,
-        "acc": acc + acc_sd * rng.normal(size=n),
-        "disp": disp + disp_sd * rng.normal(size=n),
-        "displacement": disp,
-        "velocity": sim.velocity[:, 0],
-        "force": sim.force[:, 0],
-    }
+    columns, acc_sd, disp_sd = noisy_record(sim, seed)
     return columns, acc_sd, disp_sd, sim
 
 
