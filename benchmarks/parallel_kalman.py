@@ -269,7 +269,9 @@ def main(argv=None) -> None:
     )
     args = parser.parse_args(argv)
 
-    import latentforce  # noqa: F401  (float64)
+    import latentforce
+
+    latentforce.enable_x64()  # float64 (importing the package no longer switches it on)
 
     T_list = (
         [int(float(t)) for t in args.T.split(",")]

@@ -15,6 +15,7 @@ VARIANTS = {
     "duffing": ["with-displacement"],
     "duffing-params": [],
     "bouc-wen": [],
+    "frame": [],
     "sine": [],
 }
 
@@ -27,7 +28,8 @@ def test_a_quick_demo_writes_its_result_folders(tmp_path, monkeypatch, name):
     assert (tmp_path / "d" / "data.csv").is_file()
     for folder in [tmp_path / "d"] + [tmp_path / "d" / v for v in VARIANTS[name]]:
         summary = json.loads((folder / "summary.json").read_text())
-        assert set(summary["nmse"]) >= {"displacement", "force"}, folder
+        # an MDOF structure reports each floor's displacement (displacement_0, ...)
+        assert "force" in summary["nmse"] and any(k.startswith("displacement") for k in summary["nmse"]), folder
         assert isinstance(summary["converged"], bool), folder
         assert (folder / "figures" / "force.png").stat().st_size > 1000, folder
         assert (folder / "posterior.nc").is_file() and (folder / "summary.csv").is_file(), folder

@@ -302,7 +302,7 @@ def simulate(
 @app.command()
 @handle_errors
 def demo(
-    name: str = typer.Argument(..., help="oma | duffing | duffing-params | bouc-wen | sine | silverbox"),
+    name: str = typer.Argument(..., help="oma | duffing | duffing-params | bouc-wen | frame | sine | silverbox"),
     out: Optional[Path] = typer.Option(None, "--out", help="Result folder (default: demo-NAME)."),
     quick: bool = typer.Option(False, "--quick", help="A short run (under a minute)."),
     seed: int = typer.Option(0, "--seed", help="Random seed."),

@@ -204,7 +204,9 @@ class Bound:
     module-level function (a fresh closure is a new key every time).
     """
 
-    __slots__ = ("fn", "static", "numbers")
+    # __weakref__: JAX 0.11 keeps a weak reference to a function it jits (jax.jit(bound) raised
+    # "cannot create weak reference to 'Bound' object" there; 0.10 did not need it)
+    __slots__ = ("fn", "static", "numbers", "__weakref__")
 
     def __init__(self, fn: Callable, static: Any, numbers: Any):
         self.fn, self.static, self.numbers = fn, static, numbers

@@ -89,6 +89,9 @@ def run(
     """
     require_x64("latentforce.estimate.run")
     result, extras = _run(problem, dataset, seed, progress, channels, checkpoint)
+    elements = getattr(problem.model.system, "elements", ())
+    if elements:  # an MDOF structure's nonlinear elements, in order (the hysteresis figure reads them)
+        result.diagnostics["elements"] = [{"type": e.kind, "dofs": list(e.dofs)} for e in elements]
     if problem.carried:
         result.diagnostics["carried_priors"] = problem.carried
         for key, c in problem.carried.items():

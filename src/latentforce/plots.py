@@ -246,58 +246,87 @@ def plot_state(result: RunResult, state: str, path: Path) -> Path:
     return _save(fig, path, result)
 
 
+def _loop_abscissae(result: RunResult, width: int):
+    """Per hysteretic element, how its displacement is read off the DOFs' displacements: the
+    element's DOFs ``(i,)`` or ``(i, j)`` (relative displacement ``z_i - z_j``) from
+    ``diagnostics["elements"]`` (MDOF structures), else DOF ``min(e, ndof - 1)``."""
+    elements = [e for e in result.diagnostics.get("elements", []) if e["type"] == "bouc-wen"]
+    if len(elements) == width:
+        return [tuple(e["dofs"]) for e in elements]
+    return [(min(e, result.ndof - 1),) for e in range(width)]
+
+
+def _relative(x: np.ndarray, dofs: tuple) -> np.ndarray:
+    """``x[..., i] - x[..., j]`` (or ``x[..., i]``) of an array whose last axis is the DOF."""
+    return x[..., dofs[0]] - (x[..., dofs[1]] if len(dofs) > 1 else 0.0)
+
+
 def plot_hysteresis(result: RunResult, path: Path, max_paths: int = 20) -> Path:
-    """The hysteresis loop: the hysteretic force against the displacement (of DOF ``j`` for element
-    ``j`` of a single-DOF system's elements), the posterior mean, up to ``max_paths`` sampled
-    loops, the 90 % band of the force (vertical bars) and the truth in red; on the right a zoom
-    on the samples around the largest force, where the band is visible."""
+    """The hysteresis loop of each hysteretic element: its force against its displacement (the
+    relative displacement of its two DOFs), the posterior mean, up to ``max_paths`` sampled loops,
+    the 90 % band of the force (vertical bars) and the truth in red; on the right a zoom on the
+    samples around the largest force, where the band is visible."""
     r_mean, r_sd = _columns(result.state_mean["hysteretic_force"]), _columns(result.state_sd["hysteretic_force"])
-    z_mean = _columns(result.state_mean["displacement"])
+    z_all = _columns(result.state_mean["displacement"])
     width, T = r_mean.shape[1], r_mean.shape[0]
     fig = Figure(figsize=(11, 4.8 * width))
     axes = fig.subplots(width, 2, squeeze=False)
     draws_r = result.path_draws.get("hysteretic_force")
     draws_z = result.path_draws.get("displacement")
-    for j in range(width):
-        zc = min(j, z_mean.shape[1] - 1)
-        peak = int(np.argmax(np.abs(r_mean[:, j])))
+    if draws_r is not None and draws_z is not None:
+        draws_r = np.asarray(draws_r, dtype=float).reshape(-1, np.shape(draws_r)[2], width)
+        draws_z = np.asarray(draws_z, dtype=float).reshape(-1, np.shape(draws_z)[2], z_all.shape[1])
+    truth_z = _columns(result.truth["displacement"]) if "displacement" in result.truth else None
+    truth_r = _columns(result.truth["hysteretic_force"]) if "hysteretic_force" in result.truth else None
+    for j, dofs in enumerate(_loop_abscissae(result, width)):
+        loop = dict(
+            r=r_mean[:, j],
+            s=r_sd[:, j],
+            z=_relative(z_all, dofs),
+            draws=None if draws_z is None else (_relative(draws_z, dofs), draws_r[:, :, j]),
+            truth=None if truth_z is None or truth_r is None else (_relative(truth_z, dofs), truth_r[:, j]),
+            xlabel=_state_label("displacement", result)
+            if len(dofs) == 1 and result.ndof == 1
+            else f"displacement {_dofs_name(dofs)}".rstrip() + f" [{_STATE_UNITS['displacement']}]",
+        )
+        peak = int(np.argmax(np.abs(loop["r"])))
         zoom = slice(max(0, peak - 12), min(T, peak + 13))
         for ax, window, every in ((axes[j, 0], slice(0, T), max(1, T // 150)), (axes[j, 1], zoom, 1)):
-            _draw_loop(ax, result, window, every, j, zc, r_mean, r_sd, z_mean, draws_r, draws_z, max_paths)
-        title = "Hysteresis loop" if width == 1 else f"Hysteresis loop, element {j}"
+            _draw_loop(ax, result, loop, window, every, max_paths)
+        title = "Hysteresis loop" if width == 1 else f"Hysteresis loop, element on DOFs {_dofs_name(dofs)}"
         axes[j, 0].set_title(f"{title}: posterior ({result.method})")
         # the zoom: a box around the peak a few bands high, so that the band shows
-        z_span = np.ptp(z_mean[:, zc]) or 1.0
-        r_half = max(8.0 * 1.645 * float(r_sd[peak, j]), 0.01 * (np.ptp(r_mean[:, j]) or 1.0))
-        axes[j, 1].set_xlim(z_mean[peak, zc] - 0.03 * z_span, z_mean[peak, zc] + 0.03 * z_span)
-        axes[j, 1].set_ylim(r_mean[peak, j] - r_half, r_mean[peak, j] + r_half)
+        z_span = np.ptp(loop["z"]) or 1.0
+        r_half = max(8.0 * 1.645 * float(loop["s"][peak]), 0.01 * (np.ptp(loop["r"]) or 1.0))
+        axes[j, 1].set_xlim(loop["z"][peak] - 0.03 * z_span, loop["z"][peak] + 0.03 * z_span)
+        axes[j, 1].set_ylim(loop["r"][peak] - r_half, loop["r"][peak] + r_half)
         axes[j, 1].set_title(f"zoom on the largest force (t = {float(result.time[peak]):.4g} s)")
         axes[j, 0].legend(loc="upper left", fontsize="small")
     return _save(fig, path, result)
 
 
-def _draw_loop(ax, result, window, every, j, zc, r_mean, r_sd, z_mean, draws_r, draws_z, max_paths) -> None:
+def _dofs_name(dofs: tuple) -> str:
+    return f"z{dofs[0]} - z{dofs[1]}" if len(dofs) > 1 else f"z{dofs[0]}"
+
+
+def _draw_loop(ax, result, loop: dict, window, every, max_paths) -> None:
     from matplotlib.collections import LineCollection
 
-    width = r_mean.shape[1]
-    if draws_r is not None and draws_z is not None:
-        dr = np.asarray(draws_r, dtype=float).reshape(-1, np.shape(draws_r)[2], width)[:, window, j]
-        dz = np.asarray(draws_z, dtype=float).reshape(-1, np.shape(draws_z)[2], z_mean.shape[1])[:, window, zc]
+    if loop["draws"] is not None:
+        dz, dr = (a[:, window] for a in loop["draws"])
         pick = np.unique(np.linspace(0, dr.shape[0] - 1, min(max_paths, dr.shape[0])).astype(int))
         for k in pick:
             ax.plot(dz[k], dr[k], color="0.55", lw=0.4, alpha=0.4)
         ax.plot([], [], color="0.55", lw=0.8, label=f"{len(pick)} sampled loops")
-    z, r, s = z_mean[window, zc][::every], r_mean[window, j][::every], 1.645 * r_sd[window, j][::every]
+    z, r, s = loop["z"][window][::every], loop["r"][window][::every], 1.645 * loop["s"][window][::every]
     ax.add_collection(
         LineCollection(np.stack([np.c_[z, r - s], np.c_[z, r + s]], axis=1), colors=_MEAN_COLOUR, alpha=0.4)
     )
     ax.plot([], [], color=_MEAN_COLOUR, alpha=0.4, label="90 % band")
-    ax.plot(z_mean[window, zc], r_mean[window, j], color=_MEAN_COLOUR, lw=1.0, label="posterior mean")
-    if "hysteretic_force" in result.truth and "displacement" in result.truth:
-        tz = _columns(result.truth["displacement"])[window, zc]
-        tr = _columns(result.truth["hysteretic_force"])[window, j]
-        ax.plot(tz, tr, color=_TRUTH_COLOUR, lw=0.8, ls="--", label="truth")
-    ax.set_xlabel(_state_label("displacement", result))
+    ax.plot(loop["z"][window], loop["r"][window], color=_MEAN_COLOUR, lw=1.0, label="posterior mean")
+    if loop["truth"] is not None:
+        ax.plot(loop["truth"][0][window], loop["truth"][1][window], color=_TRUTH_COLOUR, lw=0.8, ls="--", label="truth")
+    ax.set_xlabel(loop["xlabel"])
     ax.set_ylabel(_state_label("hysteretic_force", result))
     ax.grid(alpha=0.3)
 

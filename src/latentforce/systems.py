@@ -27,7 +27,7 @@ part then has the stiffness :math:`K + S R_z`). The mechanical state is
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -303,6 +303,117 @@ class BoucWen(System):
     def linear_part(self, params):
         r = lambda x: jnp.reshape(jnp.asarray(x, dtype=float), (1, 1))
         return r(params["m"]), r(params["c"]), r(params["k"] + params["alpha"])
+
+
+#: the kinds of nonlinear element a ``[[system.elements]]`` table may give, with their keys
+ELEMENT_KEYS = {"cubic": ("k3",), "bouc-wen": ("alpha", "beta", "gamma", "nu")}
+
+
+def element_param(index: int, key: str) -> str:
+    """The parameter name of an element's key: ``element0_k3``, ``element1_alpha``."""
+    return f"element{index}_{key}"
+
+
+class Element(NamedTuple):
+    r"""A nonlinear element of an MDOF structure: its kind (``"cubic"`` or ``"bouc-wen"``) and its
+    DOFs, ``(i, j)`` between two DOFs or ``(i,)`` to the ground. Its relative displacement is
+    :math:`\delta = z_i - z_j` (:math:`z_i` to the ground), and it pushes DOF ``i`` by
+    :math:`-f` and DOF ``j`` by :math:`+f`: :math:`h \mathrel{+}= d f` with the incidence
+    vector :math:`d = e_i - e_j`."""
+
+    kind: str
+    dofs: tuple[int, ...]
+
+    def incidence(self, ndof: int) -> np.ndarray:
+        d = np.zeros(ndof)
+        d[self.dofs[0]] = 1.0
+        if len(self.dofs) > 1:
+            d[self.dofs[1]] = -1.0
+        return d
+
+
+class NonlinearMDOF(System):
+    r"""A linear structure (``base``: matrices or a shear frame) with nonlinear elements:
+
+    .. math:: M \ddot z + C \dot z + K z
+              + \sum_{e\ \mathrm{cubic}} k_{3,e}\, d_e (d_e^T z)^3 + S r = B u,
+
+    with :math:`S = [d_e]` the incidence vectors of the Bouc-Wen elements and :math:`r_e`
+    their hysteretic forces, internal states with the rate of :class:`BoucWen` on the relative
+    velocity :math:`d_e^T \dot z`. A cubic element is a Duffing spring between two DOFs; a
+    Bouc-Wen element adds its hysteretic force to the stiffness ``K`` already there (so a
+    storey's linear spring stays in ``K``). Parameters: the base's, then each element's keys as
+    ``element<e>_<key>`` (:func:`element_param`). Linear part: :math:`K + S\,
+    \mathrm{diag}(lpha) S^T` (the hysteretic forces about rest, :math:`r = \mathrm{diag}(lpha)
+    S^T z`, as :class:`BoucWen`'s :math:`k + lpha`).
+    """
+
+    type_name = "elements"
+
+    def __init__(self, base: LinearSystem, elements, substeps: int = 1):
+        self.base = base
+        self.ndof = base.ndof
+        self.force_dofs = base.force_dofs
+        self.elements = tuple(Element(e.kind, tuple(int(d) for d in e.dofs)) for e in elements)
+        self.substeps = int(substeps)
+        self.param_names = tuple(base.param_names) + tuple(
+            element_param(i, key) for i, e in enumerate(self.elements) for key in ELEMENT_KEYS[e.kind]
+        )
+        self._cubic = tuple(i for i, e in enumerate(self.elements) if e.kind == "cubic")
+        self._hysteretic = tuple(i for i, e in enumerate(self.elements) if e.kind == "bouc-wen")
+        self.n_internal = len(self._hysteretic)
+
+    def __repr__(self) -> str:
+        return f"NonlinearMDOF({self.base!r}, elements={list(self.elements)}, substeps={self.substeps})"
+
+    def _incidence(self, which) -> jnp.ndarray:
+        """``(ndof, len(which))``: the incidence vectors of elements ``which``, as columns."""
+        cols = [self.elements[i].incidence(self.ndof) for i in which]
+        return jnp.asarray(np.stack(cols, axis=1) if cols else np.zeros((self.ndof, 0)))
+
+    def _values(self, params, which, key):
+        return (
+            jnp.stack([jnp.asarray(params[element_param(i, key)], dtype=float) for i in which])
+            if which
+            else jnp.zeros(0)
+        )
+
+    def mass(self, params):
+        return self.base.mass(params)
+
+    def restoring(self, params, z, v, r=None):
+        h = self.base.restoring(params, z, v)
+        if self._cubic:
+            D = self._incidence(self._cubic)
+            h = h + D @ (self._values(params, self._cubic, "k3") * (D.T @ z) ** 3)
+        if self._hysteretic:
+            h = h + self._incidence(self._hysteretic) @ r
+        return h
+
+    def internal_rate(self, params, z, v, r):
+        if not self._hysteretic:
+            return jnp.zeros(0)
+        dv = self._incidence(self._hysteretic).T @ v
+        get = lambda key: self._values(params, self._hysteretic, key)
+        sp, p = signed_power(r, get("nu"))
+        return get("alpha") * dv - get("beta") * jnp.abs(dv) * sp - get("gamma") * dv * p
+
+    def internal_linear(self, params):
+        S = self._incidence(self._hysteretic)
+        return S, self._values(params, self._hysteretic, "alpha")[:, None] * S.T
+
+    def tangent_deviation(self, params, r_sd):
+        if not self._hysteretic:
+            return jnp.zeros(0)
+        get = lambda key: self._values(params, self._hysteretic, key)
+        _, p = signed_power(2.0 * r_sd, get("nu"))
+        dev = (jnp.abs(get("beta")) + jnp.abs(get("gamma"))) * p / jnp.maximum(jnp.abs(get("alpha")), 1e-300)
+        return jnp.minimum(dev, TANGENT_DEVIATION_CAP)
+
+    def linear_part(self, params):
+        M, C, K = self.base.linear_part(params)
+        S, Rz = self.internal_linear(params)
+        return M, C, K + S @ Rz
 
 
 SYSTEM_TYPES = ("linear", "duffing", "bouc-wen")

@@ -24,14 +24,22 @@ def toml_value(v) -> str:
 
 
 def to_toml(config: dict) -> str:
-    """TOML text for a config dict of our (flat) shape; ``sensors`` is an array of tables."""
+    """TOML text for a config dict of our shape; ``sensors`` is an array of tables, and so is a
+    section's list of tables (``[[system.elements]]``), written after the section's own keys."""
     lines = []
+    nested = lambda v: isinstance(v, list) and v and all(isinstance(x, dict) for x in v)
     for section, body in config.items():
         tables = body if isinstance(body, list) else [body]
         for table in tables:
             lines.append(f"[[{section}]]" if isinstance(body, list) else f"[{section}]")
-            lines.extend(f"{k} = {toml_value(v)}" for k, v in table.items())
+            lines.extend(f"{k} = {toml_value(v)}" for k, v in table.items() if not nested(v))
             lines.append("")
+            for k, v in table.items():
+                if nested(v) and not isinstance(body, list):
+                    for sub in v:
+                        lines.append(f"[[{section}.{k}]]")
+                        lines.extend(f"{kk} = {toml_value(vv)}" for kk, vv in sub.items())
+                        lines.append("")
     return "\n".join(lines)
 
 
@@ -213,8 +221,11 @@ def echo_truth_report(result, true_params: dict, echo, t0: float, out, where: st
 
     rows = []
     for state in result.truth:
-        x, m, s = result.truth[state][:, 0], result.state_mean[state][:, 0], result.state_sd[state][:, 0]
-        rows.append([state, f"{nmse(x, m):.3f}", f"{100 * coverage(x, m, s, 3.0):.1f}%"])
+        width = np.shape(result.truth[state])[1]
+        for i in range(width):  # one row per DOF (per element, per force) where there are several
+            x, m, s = result.truth[state][:, i], result.state_mean[state][:, i], result.state_sd[state][:, i]
+            name = f"{state}_{i}" if width > 1 else state
+            rows.append([name, f"{nmse(x, m):.3f}", f"{100 * coverage(x, m, s, 3.0):.1f}%"])
     echo(table(rows, ["state", "NMSE %", "truth within 3 sd"]))
     prow = []
     for n, s in (result.param_summary or {}).items():

@@ -48,7 +48,18 @@ from latentforce.io.schema import (
 from latentforce.io.sensor_checks import check_sensor, validate_outputs
 from latentforce.kernels import KERNELS, kernel_from_name
 from latentforce.models import LatentForceModel, Sensor
-from latentforce.systems import DEFAULT_BOUC_WEN_SUBSTEPS, SYSTEM_TYPES, BoucWen, Duffing, LinearSystem, ShearFrame
+from latentforce.systems import (
+    DEFAULT_BOUC_WEN_SUBSTEPS,
+    ELEMENT_KEYS,
+    SYSTEM_TYPES,
+    BoucWen,
+    Duffing,
+    Element,
+    LinearSystem,
+    NonlinearMDOF,
+    ShearFrame,
+    element_param,
+)
 
 __all__ = [
     "DataSettings",
@@ -180,6 +191,13 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
             raise fail("[system].nu", f"init must be at least 1 (the Bouc-Wen exponent), got {free['nu'].init!r}.")
 
     matrix_keys = ("M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs")
+    if s.elements is not None and s.type != "linear":
+        raise fail(
+            "[[system.elements]]",
+            'nonlinear elements go with type = "linear": give the structure\'s linear part (M, C, K, or '
+            "masses, dampings and stiffnesses, or m, c, k) and the elements make it nonlinear; a "
+            f"{s.type} system is a single DOF with its own nonlinearity.",
+        )
     if s.type == "duffing":
         refuse(matrix_keys, "a duffing system is single-DOF: give m, c, k and k3.")
         refuse(BOUC_WEN_KEYS, 'alpha, beta, gamma and nu belong to a bouc-wen system; use type = "bouc-wen".')
@@ -195,9 +213,19 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
 
     refuse(("k3",), 'k3 (cubic stiffness) belongs to a duffing system; use type = "duffing".')
     refuse(BOUC_WEN_KEYS, 'alpha, beta, gamma and nu belong to a bouc-wen system; use type = "bouc-wen".')
+    base = _linear_structure(fail, s, given, fixed, free, refuse, require, scalars)
+    if s.elements is not None:
+        return _with_elements(fail, s, base, fixed, free)
     refuse(
-        ("substeps",), "substeps applies to nonlinear systems (duffing, bouc-wen); a linear one is discretised exactly."
+        ("substeps",),
+        "substeps applies to nonlinear systems (duffing, bouc-wen, [[system.elements]]); a linear one is "
+        "discretised exactly.",
     )
+    return base
+
+
+def _linear_structure(fail: _Fail, s: _SystemSection, given: set, fixed: dict, free: dict, refuse, require, scalars):
+    """The linear system of ``[system]``: m, c, k, or matrices M, C, K, or a shear frame's lists."""
     frame = given & {"masses", "dampings", "stiffnesses"}
     if frame:
         return _shear_frame(fail, s, given, fixed, free, refuse, require)
@@ -231,6 +259,53 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
     else:
         fixed.update(M=M, C=C, K=K)
     return LinearSystem(ndof=n, force_dofs=tuple(s.force_dofs if s.force_dofs is not None else [0]))
+
+
+def _with_elements(fail: _Fail, s: _SystemSection, base, fixed: dict, free: dict) -> NonlinearMDOF:
+    """``[[system.elements]]`` on the linear structure ``base``: DOFs inside the structure, each
+    element's keys (a number or a prior, as ``element<e>_<key>``), no element given twice."""
+    n = base.ndof
+    if not s.elements:
+        raise fail("[[system.elements]]", "is empty: give at least one element, or leave the key out.")
+    seen: dict[tuple, int] = {}
+    elements = []
+    for e, el in enumerate(s.elements):
+        where = f"[[system.elements]][{e}]"
+        for d in el.dofs:
+            if d >= n:
+                valid = "only DOF 0" if n == 1 else f"DOFs 0..{n - 1}"
+                raise fail(f"{where}.dofs", f"DOF {d} is outside the structure, which has {valid}.")
+        if len(el.dofs) == 2 and el.dofs[0] == el.dofs[1]:
+            raise fail(
+                f"{where}.dofs",
+                f"joins DOF {el.dofs[0]} to itself: give two different DOFs, or [{el.dofs[0]}] alone for an "
+                "element to the ground.",
+            )
+        pair = (el.type, frozenset(el.dofs))
+        if pair in seen:
+            raise fail(
+                f"{where}.dofs",
+                f"element {seen[pair]} is also a {el.type} element on DOFs {sorted(el.dofs)}: two such elements "
+                "act as one and their parameters cannot be told apart; give one element.",
+            )
+        seen[pair] = e
+        keys = ELEMENT_KEYS[el.type]
+        for kind, other in ELEMENT_KEYS.items():
+            for key in other:
+                if kind != el.type and key not in keys and getattr(el, key) is not None:
+                    raise fail(f"{where}.{key}", f"{key} belongs to a {kind} element; this one is {el.type}.")
+        for key in keys:
+            value = getattr(el, key)
+            if value is None:
+                raise fail(f"{where}.{key}", f"is required for a {el.type} element (keys: {', '.join(keys)}).")
+            name = element_param(e, key)
+            _split(fail, f"{where}.{key}", name, value, SCALAR_RULES[key], fixed, free)
+            if key == "nu" and name in free and not free[name].init >= 1:
+                raise fail(f"{where}.nu", f"init must be at least 1 (the Bouc-Wen exponent), got {free[name].init!r}.")
+        elements.append(Element(el.type, tuple(el.dofs)))
+    hysteretic = any(e.kind == "bouc-wen" for e in elements)
+    substeps = s.substeps or (DEFAULT_BOUC_WEN_SUBSTEPS if hysteretic else 1)
+    return NonlinearMDOF(base, elements, substeps=substeps)
 
 
 def _check_force_dofs(fail: _Fail, force_dofs: list[int] | None, n: int) -> None:
@@ -323,6 +398,8 @@ def _free_key(name: str) -> str:
     if name.startswith("force_"):
         return f"[force].{name.removeprefix('force_')}"
     kind, _, index = name.partition("_")
+    if kind.startswith("element") and kind.removeprefix("element").isdigit():
+        return f"[[system.elements]][{kind.removeprefix('element')}].{index}"
     if index.isdigit() and kind in _FRAME_KEYS:
         return f"[system].{_FRAME_KEYS[kind]}[{index}]"
     return f"[system].{name}"

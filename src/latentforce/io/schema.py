@@ -50,6 +50,18 @@ class _DataSection(_Strict):
     dt: float | None = Field(default=None, gt=0)
 
 
+class _ElementSection(_Strict):
+    """``[[system.elements]]``: a nonlinear element of an MDOF structure."""
+
+    type: Literal["cubic", "bouc-wen"]
+    dofs: list[Annotated[int, Field(ge=0)]] = Field(min_length=1, max_length=2)
+    k3: _Param | None = None
+    alpha: _Param | None = None
+    beta: _Param | None = None
+    gamma: _Param | None = None
+    nu: _Param | None = None
+
+
 class _SystemSection(_Strict):
     type: str
     m: _Param | None = None
@@ -68,6 +80,7 @@ class _SystemSection(_Strict):
     dampings: list[_Param] | None = None
     stiffnesses: list[_Param] | None = None
     force_dofs: list[int] | None = None
+    elements: list[_ElementSection] | None = None
 
 
 class _ForceSection(_Strict):
@@ -147,9 +160,11 @@ def _key(loc: tuple) -> str:
         return "(top level)"
     head, rest = loc[0], list(loc[1:])
     # The discriminated union puts its tag after the parameter name.
-    if head in ("system", "force") and len(rest) >= 2 and rest[1] in _UNION_TAGS:
-        del rest[1]
+    if head in ("system", "force"):
+        rest = [part for part in rest if part not in _UNION_TAGS]
     out = f"[[{head}]]" if head in ("sensors", "outputs") else f"[{head}]"
+    if head == "system" and rest[:1] == ["elements"] and len(rest) > 1:  # [[system.elements]][0].k3
+        out, rest = "[[system.elements]]", rest[1:]
     for part in rest:
         out += f"[{part}]" if isinstance(part, int) else f".{part}"
     return out
@@ -169,7 +184,7 @@ def _unknown_key_message(source: str, loc: tuple) -> str:
             f"unknown section [{name}] in {source}{_did_you_mean(name, valid, '[{}]')} "
             f"Valid sections: {', '.join(valid)}."
         )
-    model = _SECTIONS.get(prefix[0])
+    model = _ElementSection if prefix[:2] == ("system", "elements") else _SECTIONS.get(prefix[0])
     valid = list(model.model_fields) if model is not None else []
     return (
         f"unknown key `{name}` in {_key(prefix)} of {source}{_did_you_mean(name, valid)} "
@@ -196,10 +211,15 @@ def _from_validation_error(source: str, exc: ValidationError) -> LatentForceErro
         return LatentForceError(
             f"{source}: {key} must be an array of tables: write each one under its own {key} header."
         )
+    if kind in ("too_short", "too_long") and loc[:2] == ("system", "elements") and loc[-1] == "dofs":
+        return LatentForceError(
+            f"{source}: {key}: give [i, j] for an element between DOFs i and j, or [i] for one between DOF i "
+            "and the ground."
+        )
     if kind == "too_short" and loc == ("sensors",):
         return LatentForceError(f"{source}: at least one [[sensors]] table is required.")
     shown = "" if isinstance(err.get("input"), (dict, list)) else f" = {err.get('input')!r}"
-    if kind == "float_type" and len(loc) >= 3 and loc[0] in ("system", "force") and loc[2] == "number":
+    if kind == "float_type" and len(loc) >= 3 and loc[0] in ("system", "force") and loc[-1] == "number":
         msg = (
             "must be a number (known and fixed) or a prior table such as "
             '{ prior = "normal", mean = 1.0, sd = 0.1, init = 1.0 } (inferred)'
