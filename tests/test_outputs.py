@@ -418,3 +418,19 @@ def test_a_weakly_identified_parameter_is_named():
     r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, {"k": draws["k"]}, {}, {}, [], 0.0, {})
     estimate._weak_identification_warning(problem, r)
     assert "warnings" not in r.diagnostics
+
+
+def test_chains_stuck_apart_are_not_called_weakly_identified():
+    """Four chains each narrow but far apart (a run that did not converge, which says so) are not
+    'weakly identified': the check reads the spread within chains."""
+    from latentforce.results import RunResult
+
+    d = two_dof_config(method="kalman-mcmc", sensors=[{"column": "a", "quantity": "acceleration", "noise_std": 0.1}])
+    d["system"] = {"type": "linear", "m": 1.0, "c": 0.5, "k": {"prior": "lognormal", "mu": 2.3, "sigma": 1.0}}
+    problem = config_from_dict(d, source="c.toml")
+    rng = np.random.default_rng(1)
+    centres = np.exp(np.array([0.5, 2.0, 3.5, 5.0]))[:, None]
+    draws = {"k": centres * np.exp(0.05 * rng.normal(size=(4, 500)))}
+    r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, draws, {}, {}, [], 0.0, {})
+    estimate._weak_identification_warning(problem, r)
+    assert "warnings" not in r.diagnostics
