@@ -250,10 +250,10 @@ def _loop_abscissae(result: RunResult, width: int):
     """Per hysteretic element, how its displacement is read off the DOFs' displacements: the
     element's DOFs ``(i,)`` or ``(i, j)`` (relative displacement ``z_i - z_j``) from
     ``diagnostics["elements"]`` (MDOF structures), else DOF ``min(e, ndof - 1)``."""
-    elements = [e for e in result.diagnostics.get("elements", []) if e["type"] == "bouc-wen"]
+    elements = [(i, e) for i, e in enumerate(result.diagnostics.get("elements", [])) if e["type"] == "bouc-wen"]
     if len(elements) == width:
-        return [tuple(e["dofs"]) for e in elements]
-    return [(min(e, result.ndof - 1),) for e in range(width)]
+        return [(i, tuple(e["dofs"])) for i, e in elements]
+    return [(None, (min(e, result.ndof - 1),)) for e in range(width)]
 
 
 def _relative(x: np.ndarray, dofs: tuple) -> np.ndarray:
@@ -278,7 +278,7 @@ def plot_hysteresis(result: RunResult, path: Path, max_paths: int = 20) -> Path:
         draws_z = np.asarray(draws_z, dtype=float).reshape(-1, np.shape(draws_z)[2], z_all.shape[1])
     truth_z = _columns(result.truth["displacement"]) if "displacement" in result.truth else None
     truth_r = _columns(result.truth["hysteretic_force"]) if "hysteretic_force" in result.truth else None
-    for j, dofs in enumerate(_loop_abscissae(result, width)):
+    for j, (element, dofs) in enumerate(_loop_abscissae(result, width)):
         loop = dict(
             r=r_mean[:, j],
             s=r_sd[:, j],
@@ -293,7 +293,11 @@ def plot_hysteresis(result: RunResult, path: Path, max_paths: int = 20) -> Path:
         zoom = slice(max(0, peak - 12), min(T, peak + 13))
         for ax, window, every in ((axes[j, 0], slice(0, T), max(1, T // 150)), (axes[j, 1], zoom, 1)):
             _draw_loop(ax, result, loop, window, every, max_paths)
-        title = "Hysteresis loop" if width == 1 else f"Hysteresis loop, element on DOFs {_dofs_name(dofs)}"
+        title = "Hysteresis loop"
+        if element is not None:  # an MDOF structure's element: its place in [[system.elements]] and DOFs
+            title += f", element {element} (DOFs {', '.join(map(str, dofs))})"
+        elif width > 1:
+            title += f", internal state {j}"
         axes[j, 0].set_title(f"{title}: posterior ({result.method})")
         # the zoom: a box around the peak a few bands high, so that the band shows
         z_span = np.ptp(loop["z"]) or 1.0
