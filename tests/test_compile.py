@@ -279,21 +279,3 @@ def test_import_has_no_side_effects_and_float64_is_asked_for(tmp_path):
     assert refuse[1].startswith("REFUSED") and "latentforce.enable_x64()" in refuse[1], refuse
     assert enable[1] == "X64 True True", enable
 
-
-def test_a_bound_function_can_be_weakly_referenced_and_jitted_directly():
-    """JAX 0.11 takes a weak reference to the function it jits: ``jax.jit(bound)`` raised "cannot
-    create weak reference to 'Bound' object" on an H200 machine with JAX 0.11.2 until ``Bound``
-    got a ``__weakref__`` slot (benchmarks/README.md, the GPU run of parallel_kalman.py)."""
-    import weakref
-
-    import jax
-
-    from latentforce.compile import Bound
-
-    b = Bound(_scale, "static", 2.0)
-    assert weakref.ref(b)() is b
-    assert float(jax.jit(b)(3.0)) == 6.0
-
-
-def _scale(static, number, x):
-    return x * number
