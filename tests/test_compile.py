@@ -278,4 +278,3 @@ def test_import_has_no_side_effects_and_float64_is_asked_for(tmp_path):
     assert refuse[0] == "true" and enable[0] == "true", (refuse, enable)
     assert refuse[1].startswith("REFUSED") and "latentforce.enable_x64()" in refuse[1], refuse
     assert enable[1] == "X64 True True", enable
-
