@@ -8,7 +8,8 @@ two stages:
    or inf) check each key on its own;
 2. *meaning*: plain Python checks what depends on several keys (a positive
    mass, matrices of one size, a sensor DOF inside the system, an initial
-   state of the right length, a method that suits the system).
+   state of the right length, a method that suits the system); ``[system]``'s
+   checks and system objects are :mod:`latentforce.io.system_config`'s.
 
 Every problem becomes a one-paragraph
 :class:`~latentforce.errors.LatentForceError` naming the config file and the
@@ -34,7 +35,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from latentforce.errors import LatentForceError
-from latentforce.io.matrices import _check_psd, _initial_state, _matrix
+from latentforce.io.matrices import _initial_state
 from latentforce.io.params import ParamSpec, _prior_spec, _split
 from latentforce.io.schema import (
     _ConfigFile,
@@ -43,23 +44,11 @@ from latentforce.io.schema import (
     _from_validation_error,
     _PriorTable,
     _SensorSection,
-    _SystemSection,
 )
 from latentforce.io.sensor_checks import check_sensor, validate_outputs
+from latentforce.io.system_config import BOUC_WEN_KEYS, PLANNED_SYSTEM_TYPES, SCALAR_RULES, _system  # noqa: F401
 from latentforce.kernels import KERNELS, kernel_from_name
 from latentforce.models import LatentForceModel, Sensor
-from latentforce.systems import (
-    DEFAULT_BOUC_WEN_SUBSTEPS,
-    ELEMENT_KEYS,
-    SYSTEM_TYPES,
-    BoucWen,
-    Duffing,
-    Element,
-    LinearSystem,
-    NonlinearMDOF,
-    ShearFrame,
-    element_param,
-)
 
 __all__ = [
     "DataSettings",
@@ -73,26 +62,11 @@ __all__ = [
 ]
 
 METHODS = ("kalman", "kalman-mcmc", "kalman-nuts", "pgas", "ekf", "ukf")
-# In the interface but without an implementation yet.
-PLANNED_SYSTEM_TYPES: tuple[str, ...] = ()
 # Parameters PGAS may infer (Algorithm 4, Vibration 2020, with Metropolis-within-Gibbs on the
 # force hyperparameters), besides the system's own (m, c, k, k3 ..., moved by the joint move of
 # latentforce.inference.smoother_move) and the sensors' noise levels (an exact Gibbs step each,
 # latentforce.inference.noise_gibbs).
 PGAS_FREE_OK = ("force_variance", "force_lengthscale")
-BOUC_WEN_KEYS = ("alpha", "beta", "gamma", "nu")
-#: what a fixed value of each scalar system key must be (io/params._scalar); a prior is on the
-#: positive reals (latentforce.priors), so an inferred k3 or gamma is positive
-SCALAR_RULES = {
-    "m": "positive",
-    "c": "nonnegative",
-    "k": "positive",
-    "k3": "any",
-    "alpha": "nonnegative",
-    "beta": "any",
-    "gamma": "any",
-    "nu": "exponent",
-}
 #: warm-up iterations per chain when [inference].burn_in is not given: the Kalman
 #: samplers start at the posterior's modes (Laplace), so a short warm-up adapts them
 DEFAULT_BURN_IN = {"kalman": 0, "kalman-mcmc": 500, "kalman-nuts": 300, "pgas": 1000, "ekf": 500, "ukf": 500}
@@ -152,205 +126,6 @@ class Problem(NamedTuple):
 
 
 # ----- stage 2: meaning ------------------------------------------------------
-def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
-    """Build the system object and sort its parameters into fixed and free."""
-    if s.type in PLANNED_SYSTEM_TYPES:
-        raise fail(
-            "[system].type",
-            f"system type {s.type!r} is not available yet; available system types: {', '.join(SYSTEM_TYPES)}.",
-        )
-    if s.type not in SYSTEM_TYPES:
-        raise fail(
-            "[system].type",
-            f"unknown system type {s.type!r}"
-            f"{_did_you_mean(s.type, SYSTEM_TYPES + PLANNED_SYSTEM_TYPES, '{!r}')} "
-            f"Available system types: {', '.join(SYSTEM_TYPES)}.",
-        )
-    given = {
-        n
-        for n in ("m", "c", "k", "k3", "M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs")
-        + BOUC_WEN_KEYS
-        + ("substeps",)
-        if getattr(s, n) is not None
-    }
-
-    def require(names):
-        for n in names:
-            if getattr(s, n) is None:
-                raise fail(f"[system].{n}", f"is required for a {s.type} system.")
-
-    def refuse(names, why):
-        for n in names:
-            if n in given:
-                raise fail(f"[system].{n}", why)
-
-    def scalars(names):
-        for n in names:
-            _split(fail, f"[system].{n}", n, getattr(s, n), SCALAR_RULES[n], fixed, free)
-        if "nu" in free and not free["nu"].init >= 1:
-            raise fail("[system].nu", f"init must be at least 1 (the Bouc-Wen exponent), got {free['nu'].init!r}.")
-
-    matrix_keys = ("M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs")
-    if s.elements is not None and s.type != "linear":
-        raise fail(
-            "[[system.elements]]",
-            'nonlinear elements go with type = "linear": give the structure\'s linear part (M, C, K, or '
-            "masses, dampings and stiffnesses, or m, c, k) and the elements make it nonlinear; a "
-            f"{s.type} system is a single DOF with its own nonlinearity.",
-        )
-    if s.type == "duffing":
-        refuse(matrix_keys, "a duffing system is single-DOF: give m, c, k and k3.")
-        refuse(BOUC_WEN_KEYS, 'alpha, beta, gamma and nu belong to a bouc-wen system; use type = "bouc-wen".')
-        require(("m", "c", "k", "k3"))
-        scalars(("m", "c", "k", "k3"))
-        return Duffing(substeps=s.substeps or 1)
-    if s.type == "bouc-wen":
-        refuse(matrix_keys, "a bouc-wen system is single-DOF: give m, c, k, alpha, beta, gamma and nu.")
-        refuse(("k3",), 'k3 (cubic stiffness) belongs to a duffing system; use type = "duffing".')
-        require(("m", "c", "k") + BOUC_WEN_KEYS)
-        scalars(("m", "c", "k") + BOUC_WEN_KEYS)
-        return BoucWen(substeps=s.substeps or DEFAULT_BOUC_WEN_SUBSTEPS)
-
-    refuse(("k3",), 'k3 (cubic stiffness) belongs to a duffing system; use type = "duffing".')
-    refuse(BOUC_WEN_KEYS, 'alpha, beta, gamma and nu belong to a bouc-wen system; use type = "bouc-wen".')
-    base = _linear_structure(fail, s, given, fixed, free, refuse, require, scalars)
-    if s.elements is not None:
-        return _with_elements(fail, s, base, fixed, free)
-    refuse(
-        ("substeps",),
-        "substeps applies to nonlinear systems (duffing, bouc-wen, [[system.elements]]); a linear one is "
-        "discretised exactly.",
-    )
-    return base
-
-
-def _linear_structure(fail: _Fail, s: _SystemSection, given: set, fixed: dict, free: dict, refuse, require, scalars):
-    """The linear system of ``[system]``: m, c, k, or matrices M, C, K, or a shear frame's lists."""
-    frame = given & {"masses", "dampings", "stiffnesses"}
-    if frame:
-        return _shear_frame(fail, s, given, fixed, free, refuse, require)
-    matrices = given & {"M", "C", "K"}
-    if not matrices:  # linear SDOF
-        require(("m", "c", "k"))
-        if s.force_dofs is not None and s.force_dofs != [0]:
-            raise fail("[system].force_dofs", f"a single-DOF system has only DOF 0, got {s.force_dofs}.")
-        scalars(("m", "c", "k"))
-        return LinearSystem(ndof=1, force_dofs=(0,))
-
-    # Linear MDOF: matrices are fixed numbers in this version.
-    refuse(("m", "c", "k"), "give either scalars m, c, k (one DOF) or matrices M, C, K, not both.")
-    require(("M", "C", "K"))
-    M, C, K = (_matrix(fail, f"[system].{n}", getattr(s, n)) for n in ("M", "C", "K"))
-    n = M.shape[0]
-    for name, A in (("C", C), ("K", K)):
-        if A.shape != M.shape:
-            raise fail(
-                f"[system].{name}",
-                f"is {A.shape[0]}x{A.shape[0]} but M is {n}x{n}; all three matrices must have the same size.",
-            )
-    _check_psd(fail, "[system].M", M, "mass", definite=True)
-    _check_psd(fail, "[system].K", K, "stiffness", definite=False)
-    # Damping need not be symmetric, but it must dissipate energy.
-    _check_psd(fail, "[system].C", 0.5 * (C + C.T), "damping (symmetric part of the)", definite=False)
-    _check_force_dofs(fail, s.force_dofs, n)
-    if n == 1:
-        # One DOF in matrix form: the model reads scalars m, c, k.
-        fixed.update(m=float(M[0, 0]), c=float(C[0, 0]), k=float(K[0, 0]))
-    else:
-        fixed.update(M=M, C=C, K=K)
-    return LinearSystem(ndof=n, force_dofs=tuple(s.force_dofs if s.force_dofs is not None else [0]))
-
-
-def _with_elements(fail: _Fail, s: _SystemSection, base, fixed: dict, free: dict) -> NonlinearMDOF:
-    """``[[system.elements]]`` on the linear structure ``base``: DOFs inside the structure, each
-    element's keys (a number or a prior, as ``element<e>_<key>``), no element given twice."""
-    n = base.ndof
-    if not s.elements:
-        raise fail("[[system.elements]]", "is empty: give at least one element, or leave the key out.")
-    seen: dict[tuple, int] = {}
-    elements = []
-    for e, el in enumerate(s.elements):
-        where = f"[[system.elements]][{e}]"
-        for d in el.dofs:
-            if d >= n:
-                valid = "only DOF 0" if n == 1 else f"DOFs 0..{n - 1}"
-                raise fail(f"{where}.dofs", f"DOF {d} is outside the structure, which has {valid}.")
-        if len(el.dofs) == 2 and el.dofs[0] == el.dofs[1]:
-            raise fail(
-                f"{where}.dofs",
-                f"joins DOF {el.dofs[0]} to itself: give two different DOFs, or [{el.dofs[0]}] alone for an "
-                "element to the ground.",
-            )
-        pair = (el.type, frozenset(el.dofs))
-        if pair in seen:
-            raise fail(
-                f"{where}.dofs",
-                f"element {seen[pair]} is also a {el.type} element on DOFs {sorted(el.dofs)}: two such elements "
-                "act as one and their parameters cannot be told apart; give one element.",
-            )
-        seen[pair] = e
-        keys = ELEMENT_KEYS[el.type]
-        for kind, other in ELEMENT_KEYS.items():
-            for key in other:
-                if kind != el.type and key not in keys and getattr(el, key) is not None:
-                    raise fail(f"{where}.{key}", f"{key} belongs to a {kind} element; this one is {el.type}.")
-        for key in keys:
-            value = getattr(el, key)
-            if value is None:
-                raise fail(f"{where}.{key}", f"is required for a {el.type} element (keys: {', '.join(keys)}).")
-            name = element_param(e, key)
-            _split(fail, f"{where}.{key}", name, value, SCALAR_RULES[key], fixed, free)
-            if key == "nu" and name in free and not free[name].init >= 1:
-                raise fail(f"{where}.nu", f"init must be at least 1 (the Bouc-Wen exponent), got {free[name].init!r}.")
-        elements.append(Element(el.type, tuple(el.dofs)))
-    hysteretic = any(e.kind == "bouc-wen" for e in elements)
-    substeps = s.substeps or (DEFAULT_BOUC_WEN_SUBSTEPS if hysteretic else 1)
-    return NonlinearMDOF(base, elements, substeps=substeps)
-
-
-def _check_force_dofs(fail: _Fail, force_dofs: list[int] | None, n: int) -> None:
-    force_dofs = force_dofs if force_dofs is not None else [0]
-    if not force_dofs:
-        raise fail("[system].force_dofs", "must list at least one DOF.")
-    for d in force_dofs:
-        if not 0 <= d < n:
-            raise fail("[system].force_dofs", f"DOF {d} is outside the system's DOFs 0..{n - 1}.")
-    if len(set(force_dofs)) != len(force_dofs):
-        raise fail("[system].force_dofs", f"lists a DOF more than once: {force_dofs}.")
-
-
-def _shear_frame(fail: _Fail, s: _SystemSection, given: set, fixed: dict, free: dict, refuse, require):
-    """A shear frame: one mass per floor and one damper and spring per storey, each a number
-    or a prior table (parameters ``m_i``, ``c_i``, ``k_i``)."""
-    refuse(
-        ("m", "c", "k", "M", "C", "K"),
-        "give a shear frame's floors and storeys as lists (masses, "
-        "dampings, stiffnesses), or matrices M, C, K, not both.",
-    )
-    require(("masses", "dampings", "stiffnesses"))
-    n = len(s.masses)
-    for key in ("dampings", "stiffnesses"):
-        if len(getattr(s, key)) != n:
-            raise fail(
-                f"[system].{key}",
-                f"has {len(getattr(s, key))} entries but masses has {n}: "
-                "a shear frame has one mass per floor and one damper and "
-                "one spring per storey (storey i joins floor i to floor i-1, "
-                "storey 0 to the ground).",
-            )
-    if n < 1:
-        raise fail("[system].masses", "must list at least one floor mass.")
-    for key, short, rule in (
-        ("masses", "m", "positive"),
-        ("dampings", "c", "nonnegative"),
-        ("stiffnesses", "k", "positive"),
-    ):
-        for i, value in enumerate(getattr(s, key)):
-            _split(fail, f"[system].{key}[{i}]", f"{short}_{i}", value, rule, fixed, free)
-    _check_force_dofs(fail, s.force_dofs, n)
-    return ShearFrame(ndof=n, force_dofs=tuple(s.force_dofs if s.force_dofs is not None else [0]))
-
-
 def _sensor(fail: _Fail, i: int, sen: _SensorSection, free: dict, noise_names: dict) -> Sensor:
     """A :class:`Sensor` from ``[[sensors]][i]``; an inferred ``noise_std`` joins ``free``
     as ``noise_std_<column>`` (:attr:`Sensor.noise_param`)."""
