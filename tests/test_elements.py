@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_bouc_wen import pgas_against_exact
 
 from latentforce.errors import LatentForceError
 from latentforce.inference.gaussian import gaussian_smoother
@@ -144,27 +145,8 @@ def test_extended_and_unscented_smoothers_of_the_switched_off_frame_are_exact(or
 
 
 def test_pgas_of_the_switched_off_frame_matches_the_exact_smoother():
-    from latentforce.inference import pgas
-
     pm, y, mean, sd = _twin(0, 80)
-    out = pgas.run_pgas(
-        jax.random.key(5, impl="rbg"),
-        pm.model,
-        {**OFF, **GP},
-        {},
-        y,
-        np.ones(y.shape, bool),
-        DT,
-        particles=32,
-        iterations=700,
-        burn_in=100,
-        chains=2,
-        initial=(pm.mech0_mean, pm.mech0_cov),
-    )
-    m, s = out.state_mean["force"][:, 0], out.state_sd["force"][:, 0]
-    assert np.mean((m - mean) ** 2) / np.var(mean) < 5e-3
-    assert np.all(np.abs(m - mean) < 6 * sd / np.sqrt(150))
-    assert np.mean(np.abs(s / sd - 1.0)) < 0.1
+    pgas_against_exact(pm, {**OFF, **GP}, y, DT, mean, sd, max_nmse=5e-3)
 
 
 # ----- the config ------------------------------------------------------------------------
