@@ -172,15 +172,16 @@ WEAK_SD_RATIO = 0.8
 
 def _weak_identification_warning(problem: Problem, result: RunResult) -> None:
     """Name every sampled parameter whose posterior is barely narrower than its (proper) prior."""
-    from latentforce.priors import Flat, softplus_inverse
+    from latentforce.priors import Flat, to_coordinate
 
     weak = []
     for i, (name, spec) in enumerate(problem.free.items()):
         draws = result.param_draws.get(name)
         if draws is None or isinstance(spec.prior, Flat) or np.size(draws) < 20:
             continue
-        prior = np.asarray(softplus_inverse(spec.prior.sample(jax.random.fold_in(jax.random.key(7), i), (4000,))))
-        post = np.asarray(softplus_inverse(np.asarray(draws, dtype=float)))
+        sample = spec.prior.sample(jax.random.fold_in(jax.random.key(7), i), (4000,))
+        prior = np.asarray(to_coordinate(spec.prior, sample))
+        post = np.asarray(to_coordinate(spec.prior, np.asarray(draws, dtype=float)))
         post = post.reshape(-1, post.shape[-1]) if post.ndim > 1 else post[None]
         ok = np.isfinite(prior)
         # the sd within chains: chains stuck apart (not converged, reported as such) would make the
@@ -191,7 +192,8 @@ def _weak_identification_warning(problem: Problem, result: RunResult) -> None:
             weak.append(f"{name} (posterior sd {ratio:.2f} of the prior's)")
     if weak:
         result.diagnostics.setdefault("warnings", []).append(
-            f"weakly identified: {', '.join(weak)}, in the samplers' space (softplus^-1 of the value). "
+            f"weakly identified: {', '.join(weak)}, in the samplers' space (softplus^-1 of the value; "
+            "a parameter of either sign: its value). "
             "The data say little about them: their posteriors are mostly their priors, and so is what "
             "depends on them. Fix them at known values, narrow their priors from other evidence, or add a "
             "sensor that sees them."

@@ -1,7 +1,7 @@
-r"""Prior densities for the positive physical parameters, and the softplus map.
+r"""Prior densities of the inferred parameters, and the maps to the samplers' coordinates.
 
-Every parameter we infer (mass, damping, stiffness, force variance and
-lengthscale) is positive. A prior is a density on the physical value
+Most parameters we infer (mass, damping, stiffness, force variance and
+lengthscale) are positive. A prior is a density on the physical value
 :math:`\theta > 0`; samplers work in the unconstrained space :math:`x` with
 
 .. math:: \theta = \operatorname{softplus}(x) = \log(1 + e^x)
@@ -16,6 +16,17 @@ leaves, so ``log_prob`` can be jitted, vmapped and differentiated, and two
 priors of different families never compare equal (as same-length
 NamedTuples would). All share one signature, ``log_prob(theta) -> log
 density``, which is ``-inf`` for :math:`\theta \le 0`.
+
+**Signed parameters.** A cubic stiffness ``k3`` (softening springs) and
+Bouc-Wen's ``beta`` and ``gamma`` (the Noel-Schoukens benchmark has
+:math:`\gamma < 0`) may take either sign. A ``normal`` prior on such a key is
+:class:`SignedNormal`, a density on the whole real line, and the samplers'
+coordinate is its standardised value :math:`x = (\theta - \text{mean})/\text{sd}`
+(:func:`to_value`, :func:`to_coordinate`, :func:`log_prob_coordinate`): an
+affine map, so the coordinates have the unit scale that the samplers' first
+random-walk steps assume, whatever the parameter's magnitude. Any other prior
+kind on a signed key keeps it positive (a user who writes a log-normal prior
+for ``k3`` says it is a hardening spring).
 """
 
 from __future__ import annotations
@@ -37,12 +48,16 @@ __all__ = [
     "LogNormal",
     "Normal",
     "Prior",
+    "SignedNormal",
     "SoftplusNormal",
     "log_jacobian_softplus",
+    "log_prob_coordinate",
     "log_prob_unconstrained",
     "prior_from_spec",
     "softplus",
     "softplus_inverse",
+    "to_coordinate",
+    "to_value",
 ]
 
 
@@ -99,10 +114,12 @@ class Prior:
     ``log_prob(theta)`` returns the log density (``-inf`` for ``theta <= 0``),
     elementwise over any array shape; ``sample(key, shape)`` draws from it
     (not for improper priors); ``default_init()`` is a sensible starting
-    value for a sampler (``None`` where the prior has none).
+    value for a sampler (``None`` where the prior has none). ``signed``: the
+    support is the whole real line (:class:`SignedNormal`), not the positive reals.
     """
 
     name: ClassVar[str] = ""
+    signed: ClassVar[bool] = False
 
     def log_prob(self, theta: ArrayLike) -> Float[Array, "..."]:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -243,6 +260,26 @@ class SoftplusNormal(Prior):
         return float(softplus(self.loc))
 
 
+@_register
+class SignedNormal(Prior):
+    r"""Normal :math:`N(\text{mean}, \text{sd}^2)` on the whole real line: the ``normal`` prior
+    of a parameter that may take either sign (``k3``, ``beta``, ``gamma``; module doc)."""
+
+    mean: Any
+    sd: Any
+    name: ClassVar[str] = "normal"
+    signed: ClassVar[bool] = True
+
+    def log_prob(self, theta):
+        return stats.norm.logpdf(jnp.asarray(theta, dtype=float), self.mean, self.sd)
+
+    def sample(self, key, shape=()):
+        return self.mean + self.sd * jax.random.normal(key, shape, dtype=float)
+
+    def default_init(self):
+        return float(self.mean)
+
+
 #: Each prior's name in a config file, with its parameter names in order.
 PRIOR_PARAMS: dict[str, tuple[str, ...]] = {
     "flat": (),
@@ -264,13 +301,14 @@ _PRIOR_CLASSES: dict[str, type] = {
 _POSITIVE_PARAMS = {"sd", "sigma", "shape", "rate"}
 
 
-def prior_from_spec(name: str, **kwargs: float) -> Prior:
+def prior_from_spec(name: str, *, signed: bool = False, **kwargs: float) -> Prior:
     """Build a prior from its config name and keyword parameters.
 
     ``normal(mean, sd)``, ``lognormal(mu, sigma)``, ``halfnormal(sd)``,
-    ``gamma(shape, rate)``, ``flat()``. Raises ``ValueError`` for an unknown
-    name, a missing or unexpected keyword, or a non-finite or (for scales
-    and shapes) non-positive value.
+    ``gamma(shape, rate)``, ``flat()``. ``signed``: the parameter may take
+    either sign, and a ``normal`` prior is then :class:`SignedNormal` (module
+    doc). Raises ``ValueError`` for an unknown name, a missing or unexpected
+    keyword, or a non-finite or (for scales and shapes) non-positive value.
     """
     if name not in PRIOR_PARAMS:
         raise ValueError(f"unknown prior {name!r}; valid priors: {', '.join(PRIOR_PARAMS)}")
@@ -293,12 +331,46 @@ def prior_from_spec(name: str, **kwargs: float) -> Prior:
         if p in _POSITIVE_PARAMS and not v > 0:
             raise ValueError(f"prior {name!r}: {p} must be positive, got {v!r}")
         values[p] = float(v)
+    if signed and name == "normal":
+        return SignedNormal(**values)
     return _PRIOR_CLASSES[name](**values)
 
 
 def log_prob_unconstrained(prior: Prior, x: ArrayLike) -> Float[Array, "..."]:
-    r"""Log density of :math:`x` when :math:`\theta = \operatorname{softplus}(x)` has ``prior``.
+    r"""Log density of the samplers' coordinate :math:`x` of a parameter with ``prior``.
 
-    :math:`\log p_\theta(\operatorname{softplus}(x)) + \log\sigma(x)` (change of variables).
+    :math:`\log p_\theta(\operatorname{softplus}(x)) + \log\sigma(x)` (change of
+    variables) for a positive parameter; a signed one's affine coordinate as
+    :func:`log_prob_coordinate`.
     """
-    return prior.log_prob(softplus(x)) + log_jacobian_softplus(x)
+    return log_prob_coordinate(prior, x, "softplus")
+
+
+# ----- the samplers' coordinates -------------------------------------------------
+# ``positive`` names the map of a positive parameter: "softplus" (Eq. 27, ISMA 2018; the
+# Kalman samplers) or "log" (pgas's choice, inference/pgas_block.py). A signed prior's
+# coordinate is always its standardised value (module doc).
+def to_value(prior: Prior, x: ArrayLike, positive: str = "softplus") -> Float[Array, "..."]:
+    """The physical value at the samplers' coordinate ``x``."""
+    x = jnp.asarray(x, dtype=float)
+    if prior.signed:
+        return prior.mean + prior.sd * x
+    return softplus(x) if positive == "softplus" else jnp.exp(x)
+
+
+def to_coordinate(prior: Prior, theta: ArrayLike, positive: str = "softplus") -> Float[Array, "..."]:
+    """The samplers' coordinate of the physical value ``theta`` (inverse of :func:`to_value`)."""
+    theta = jnp.asarray(theta, dtype=float)
+    if prior.signed:
+        return (theta - prior.mean) / prior.sd
+    return softplus_inverse(theta) if positive == "softplus" else jnp.log(theta)
+
+
+def log_prob_coordinate(prior: Prior, x: ArrayLike, positive: str = "softplus") -> Float[Array, "..."]:
+    r""":math:`\log p_\theta(\theta(x)) + \log|d\theta/dx|`: the prior density of the coordinate."""
+    x = jnp.asarray(x, dtype=float)
+    if prior.signed:
+        return prior.log_prob(to_value(prior, x)) + jnp.log(jnp.asarray(prior.sd, dtype=float))
+    if positive == "softplus":
+        return prior.log_prob(softplus(x)) + log_jacobian_softplus(x)
+    return prior.log_prob(jnp.exp(x)) + x

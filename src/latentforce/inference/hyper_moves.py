@@ -20,6 +20,7 @@ from latentforce.inference.latent import (
     latent_log_density,
     observation_log_likelihood,
 )
+from latentforce.priors import log_prob_coordinate, to_coordinate, to_value
 
 # fractions of the burn-in MH steps after which the proposal shape is re-estimated
 _RESHAPE_AT = (0.05, 0.1, 0.2, 0.4, 0.7)
@@ -45,8 +46,9 @@ class Hyper:
     within-step noise pins them, and only a move that redraws the path with them mixes. The
     joint move's coordinates are ``(x, x_sys)``, hyperparameters first.
 
-    The sampling coordinates are :math:`x = \log\theta` (module doc; every prior of
-    :mod:`latentforce.priors` is on the positive reals). A pytree: the names are static, the
+    The sampling coordinates are :math:`x = \log\theta` (module doc), except a system parameter
+    that may take either sign under its prior (:class:`latentforce.priors.SignedNormal`: ``k3``,
+    ``beta``, ``gamma``), whose coordinate is its standardised value. A pytree: the names are static, the
     priors' numbers, the starting values and the fixed values are leaves (a compiled program
     that takes it serves every value).
     """
@@ -61,9 +63,13 @@ class Hyper:
         self.sys_priors = tuple(free[n][0] for n in self.sys_names)
         self.init = np.array([float(free[n][1]) for n in self.names], dtype=float)
         self.sys_init = np.array([float(free[n][1]) for n in self.sys_names], dtype=float)
-        for names, init in ((self.names, self.init), (self.sys_names, self.sys_init)):
-            if not np.all(init > 0):
-                raise ValueError(f"initial values of sampled parameters must be positive, got {dict(zip(names, init))}")
+        for names, init, priors in (
+            (self.names, self.init, self.priors),
+            (self.sys_names, self.sys_init, self.sys_priors),
+        ):
+            bad = {n: v for n, v, prior in zip(names, init, priors) if not (np.isfinite(v) and (prior.signed or v > 0))}
+            if bad:
+                raise ValueError(f"initial values of sampled parameters must be positive and finite, got {bad}")
         self.fixed = {n: float(params[n]) for n in HYPERPARAMETERS}
 
     def tree_flatten(self):
@@ -83,8 +89,27 @@ class Hyper:
 
     def system_values(self, x_sys: Float[Array, " s"]) -> dict:
         """The system parameters by name at the unconstrained ``x_sys``."""
-        theta = self.to_constrained(x_sys)
-        return {n: theta[i] for i, n in enumerate(self.sys_names)}
+        return {
+            n: to_value(prior, x_sys[..., i], "log")
+            for i, (n, prior) in enumerate(zip(self.sys_names, self.sys_priors))
+        }
+
+    def system_array(self, x_sys: Float[Array, "... s"]) -> Float[Array, "... s"]:
+        """The system parameters' values at ``x_sys`` (last axis: ``sys_names``)."""
+        values = self.system_values(x_sys)
+        return jnp.stack([values[n] for n in self.sys_names], axis=-1) if self.sys_names else jnp.zeros(x_sys.shape)
+
+    def joint_values(self, x: Float[Array, "... q"]) -> Float[Array, "... q"]:
+        """The joint move's values ``(theta, theta_sys)`` at its coordinates ``(x, x_sys)``."""
+        p = len(self.names)
+        return jnp.concatenate([self.to_constrained(x[..., :p]), self.system_array(x[..., p:])], axis=-1)
+
+    def joint_coordinates(self, theta: Float[Array, "... q"]) -> Float[Array, "... q"]:
+        """The joint move's coordinates at the values ``theta`` (inverse of :meth:`joint_values`)."""
+        theta = jnp.asarray(theta, dtype=float)
+        p = len(self.names)
+        sys = [to_coordinate(prior, theta[..., p + i], "log") for i, prior in enumerate(self.sys_priors)]
+        return jnp.concatenate([self.to_unconstrained(theta[..., :p])] + [v[..., None] for v in sys], axis=-1)
 
     def model_at(self, pm: particle_model.ParticleModel, x_sys: Float[Array, " s"]) -> particle_model.ParticleModel:
         """``pm`` at the system parameters ``x_sys`` (``pm`` itself when none is sampled)."""
@@ -94,9 +119,8 @@ class Hyper:
         """The prior density of the joint move's coordinates ``(x, x_sys)`` (log space, Jacobians included)."""
         p = len(self.names)
         lp = self.log_prior(x[:p])
-        theta = self.to_constrained(x[p:])
         for i, prior in enumerate(self.sys_priors):
-            lp = lp + prior.log_prob(theta[i]) + x[p + i]
+            lp = lp + log_prob_coordinate(prior, x[p + i], "log")
         return lp
 
     @staticmethod

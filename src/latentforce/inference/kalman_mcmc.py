@@ -4,7 +4,8 @@ r"""Exact inference for linear latent force models: ``kalman`` and ``kalman-mcmc
 the exact posterior of the states and force, and the exact log-likelihood.
 
 ``kalman-mcmc`` (Algorithm 1, ISMA 2018): random-walk Metropolis over any
-subset of the physical and GP parameters, in the softplus space of Eq. (27),
+subset of the physical and GP parameters, in the softplus space of Eq. (27) (a signed
+parameter: its standardised value, :mod:`latentforce.priors`),
 with the Kalman filter's exact log-likelihood (the energy function, Eq.
 24-26) plus the log prior and the log-Jacobian of the transform. Chains are
 vmapped and the iterations scanned in chunks of one compiled program.
@@ -46,7 +47,7 @@ from latentforce.inference.kalman_choice import (
 )
 from latentforce.inference.parallel_kalman import parallel_log_likelihood
 from latentforce.models import LatentForceModel
-from latentforce.priors import Prior, log_prob_unconstrained, softplus, softplus_inverse
+from latentforce.priors import Prior, log_prob_coordinate, to_coordinate, to_value
 
 
 class Initial(NamedTuple):
@@ -172,17 +173,23 @@ def log_posterior_fn(
     )
 
 
-def _params_of(fixed: dict, names: tuple[str, ...], x) -> dict:
+def _params_of(fixed: dict, names: tuple[str, ...], priors: tuple[Prior, ...], x) -> dict:
     params = dict(fixed)
     for i, name in enumerate(names):
-        params[name] = softplus(x[i])
+        params[name] = to_value(priors[i], x[i])
     return params
+
+
+def _coordinates(priors: tuple[Prior, ...], theta: np.ndarray) -> np.ndarray:
+    """The samplers' coordinates of the values ``theta`` (last axis: the parameters)."""
+    theta = np.asarray(theta, dtype=float)
+    return np.stack([np.asarray(to_coordinate(p, theta[..., i])) for i, p in enumerate(priors)], axis=-1)
 
 
 def _logpost(static, nums, x, y, mask):
     model, names, dt, complete, kalman = static
     fixed, priors, initial, loglik = nums
-    params = _params_of(fixed, names, x)
+    params = _params_of(fixed, names, priors, x)
     if loglik is not None:
         ll = loglik(params, y, mask)
     else:
@@ -191,7 +198,7 @@ def _logpost(static, nums, x, y, mask):
             ll = parallel_log_likelihood(*lg, y, mask)
         else:
             ll = log_likelihood_complete(*lg, y) if complete else log_likelihood(*lg, y, mask)
-    lp = sum(log_prob_unconstrained(prior, x[i]) for i, prior in enumerate(priors))
+    lp = sum(log_prob_coordinate(prior, x[i]) for i, prior in enumerate(priors))
     return lp + ll
 
 
@@ -213,13 +220,20 @@ def make_log_posterior(
     logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, complete, kalman=kalman)
 
     def loglik(x):
-        return logpost(x, y, mask) - sum(log_prob_unconstrained(p, x[i]) for i, p in enumerate(priors))
+        return logpost(x, y, mask) - sum(log_prob_coordinate(p, x[i]) for i, p in enumerate(priors))
 
     return (lambda x: logpost(x, y, mask)), loglik
 
 
 def start_chains(
-    key, logpost: Callable, data: tuple, inits: np.ndarray, chains: int, *, use_modes: bool = True
+    key,
+    logpost: Callable,
+    data: tuple,
+    inits: np.ndarray,
+    priors: tuple[Prior, ...],
+    chains: int,
+    *,
+    use_modes: bool = True,
 ) -> tuple[np.ndarray, list[np.ndarray], dict, list]:
     r"""Chain starts ``(chains, p)``, each chain's proposal covariance, a record, and the modes.
 
@@ -233,19 +247,28 @@ def start_chains(
     refined on the whole record.
     Without (or where the optimiser finds nothing finite), the paper's start:
     ``init`` times ``exp(0.3 z)`` and a 10 % diagonal step, and no modes.
+    A signed parameter (:class:`latentforce.priors.SignedNormal`) is dispersed
+    in its coordinate instead: by ``0.5 z`` (``0.3 z``) of its prior sd.
     """
     from latentforce.inference import laplace
 
     p = inits.size
     key_opt, key_start, key_old = jax.random.split(key, 3)
-    x_init = np.asarray(softplus_inverse(jnp.asarray(inits)))
+    x_init = _coordinates(priors, inits)
+    signed = np.array([p.signed for p in priors], dtype=bool)
+
+    def dispersed(z, scale):  # the starts x_init dispersed by exp(scale z) (signed: + scale z)
+        return np.where(
+            signed, x_init + scale * z, _coordinates(priors, np.where(signed, 1.0, inits) * np.exp(scale * z))
+        )
+
     record: dict = {"method": "init"}
     if use_modes:
         t0 = _time.perf_counter()
         z = np.asarray(jax.random.normal(key_opt, (N_DISPERSED_STARTS, p)))
         # Dispersed in the physical value by a factor exp(0.5 z): at least an order of
         # magnitude over the starts, so a second mode of the likelihood can show itself.
-        starts = np.concatenate([x_init[None], np.asarray(softplus_inverse(jnp.asarray(inits * np.exp(0.5 * z))))])
+        starts = np.concatenate([x_init[None], dispersed(z, 0.5)])
         T = data[0].shape[0]
         if T >= 16 * EXPLORE_WINDOW:
             # Explore from every start on the record's first samples (a cheaper, wider
@@ -279,10 +302,11 @@ def start_chains(
             return x0, [modes[w].cov for w in which], record, modes
         record = {"method": "init", "optimiser": opt, "note": "the optimiser found no finite optimum"}
     z = np.asarray(jax.random.normal(key_old, (chains, p)))
-    theta0 = inits[None, :] * np.exp(0.3 * z) if chains > 1 else inits[None, :]
-    x0 = np.asarray(softplus_inverse(jnp.asarray(theta0)))
-    # A 10 % step in the physical value (or 0.1 in x where the value is below one).
-    sd0 = 0.1 * np.maximum(1.0, theta0)
+    x0 = dispersed(z, 0.3) if chains > 1 else x_init[None, :]
+    theta0 = np.stack([np.asarray(to_value(p, x0[:, i])) for i, p in enumerate(priors)], axis=-1)
+    # A 10 % step in the physical value (or 0.1 in x where the value is below one; a signed
+    # parameter: a tenth of its prior sd).
+    sd0 = np.where(signed, 0.1, 0.1 * np.maximum(1.0, np.abs(theta0)))
     return x0, [np.diag(s**2) for s in sd0], record, []
 
 
@@ -340,7 +364,7 @@ def run_kalman_mcmc(
     target = mcmc.target_acceptance(p)
 
     key_start, key_run = jax.random.split(key)
-    x0, covs, start, modes = start_chains(key_start, logpost, data, inits, chains, use_modes=use_modes)
+    x0, covs, start, modes = start_chains(key_start, logpost, data, inits, priors, chains, use_modes=use_modes)
     # Independence steps from the modes' Laplace fit (module doc), where the optimiser found a mode.
     proposal = independence.from_modes(modes) if (modes and independent) else None
 
@@ -541,10 +565,8 @@ def finish(
     from latentforce.inference import convergence
 
     # The log-likelihood part of each draw: log posterior minus log prior (cheap, exact).
-    log_prior = sum(
-        np.asarray(log_prob_unconstrained(prior, jnp.asarray(xs[..., i]))) for i, prior in enumerate(priors)
-    )
-    draws = {n: np.asarray(softplus(jnp.asarray(xs[..., i]))) for i, n in enumerate(names)}
+    log_prior = sum(np.asarray(log_prob_coordinate(prior, jnp.asarray(xs[..., i]))) for i, prior in enumerate(priors))
+    draws = {n: np.asarray(to_value(priors[i], jnp.asarray(xs[..., i]))) for i, n in enumerate(names)}
     quantities = dict(draws)
     quantities["log_posterior"] = logpost
     return draws, logpost - log_prior, convergence.diagnose(quantities, target_ess=target_ess)

@@ -161,7 +161,7 @@ def run_kalman_nuts(
     logpost = log_posterior_fn(model, fixed, names, priors, dt, initial, bool(np.all(mask)), kalman=kalman)
     data = (jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask))
     key_start, key_run = jax.random.split(key)
-    x0, covs, start, _ = start_chains(key_start, logpost, data, inits, chains)
+    x0, covs, start, _ = start_chains(key_start, logpost, data, inits, priors, chains)
     # The Laplace covariance as a dense mass matrix, applied as the change of variables
     # x = shift + root z with an identity mass for z: the same dynamics, and the square
     # root taken here (NumPy) keeps LAPACK out of the vmapped program (cf. latentforce.linalg).

@@ -249,7 +249,7 @@ def run_pgas(
     params = {**params, **dict(zip(hyper.sys_names, hyper.sys_init))}
     d = len(hyper.joint_names)
     start_record, spread, joint_chol = None, 0.5 * np.eye(d), 0.05 * np.eye(d)
-    x0 = hyper.to_unconstrained(np.concatenate([hyper.init, hyper.sys_init])) if d else jnp.zeros(0)
+    x0 = hyper.joint_coordinates(np.concatenate([hyper.init, hyper.sys_init])) if d else jnp.zeros(0)
     # the model at the system parameters' initial values: its initial-state prior (a nonlinear
     # system's default depends on c and k) is kept while they are sampled (ParticleModel.with_params)
     pm = particle_model.ParticleModel(
@@ -263,7 +263,7 @@ def run_pgas(
         )
         spread, joint_chol = 2.0 * np.linalg.cholesky(cov), 2.38 / np.sqrt(d) * np.linalg.cholesky(cov)
         # the smoother's start and the shapes at the mode; each chain then carries its own (Hyper.model_at)
-        pm = pm.with_params({n: float(np.exp(v)) for n, v in zip(hyper.sys_names, x0[len(hyper.names) :])})
+        pm = pm.with_params({n: float(v) for n, v in hyper.system_values(jnp.asarray(x0[len(hyper.names) :])).items()})
     T = y.shape[0]
     t_start = time.perf_counter()
     auto = iterations is None

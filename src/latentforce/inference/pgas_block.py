@@ -548,7 +548,7 @@ def make_block(
             acc_noise,
             acc_sm,
             acc_joint,
-            jnp.broadcast_to(hyper.to_constrained(x_sys), (k_every, n_sys)),
+            jnp.broadcast_to(hyper.system_array(x_sys), (k_every, n_sys)),
         )
         return new, info
 

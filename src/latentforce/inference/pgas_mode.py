@@ -33,7 +33,7 @@ def log_posterior(x, loglik, hyper: Hyper, fixed: dict, y, mask, R):
     """Log prior (log-space Jacobians included) plus the extended Kalman filter's log-likelihood at
     the joint coordinates ``x``; ``fixed``: every other parameter."""
     p = len(hyper.names)
-    theta = jnp.exp(x)
+    theta = jnp.exp(x[:p])
     params = dict(fixed)
     params.update({n: theta[i] for i, n in enumerate(hyper.names)})
     params.update(hyper.system_values(x[p:]))
@@ -46,14 +46,14 @@ def mode_start(model, hyper: Hyper, params: dict, y, mask, R, dt: float, discret
     Laplace covariance (a diagonal fallback where the Hessian is not definite), and a record for the
     run's diagnostics."""
     loglik, _ = gaussian.for_parameters("ekf", model, dt, discretisation, initial)
-    x0 = np.log(np.concatenate([hyper.init, hyper.sys_init]))
+    x0 = np.asarray(hyper.joint_coordinates(np.concatenate([hyper.init, hyper.sys_init])))
     fixed = {n: jnp.asarray(v, dtype=float) for n, v in params.items() if n not in hyper.joint_names}
     args = (loglik, hyper, fixed, jnp.asarray(y), jnp.asarray(mask), jnp.asarray(R))
     modes, record = laplace.find_modes(log_posterior, x0[None], args=args)
     best = modes[0]
     names = hyper.joint_names
     out = {
-        "mode": {n: float(np.exp(v)) for n, v in zip(names, best.x)},
+        "mode": {n: float(v) for n, v in zip(names, np.asarray(hyper.joint_values(jnp.asarray(best.x))))},
         "laplace_sd_log": {n: float(np.sqrt(best.cov[i, i])) for i, n in enumerate(names)},
         "laplace_ok": bool(best.laplace_ok),
         "evaluations": record.get("evaluations"),

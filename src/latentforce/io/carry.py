@@ -13,7 +13,9 @@ The earlier result folder's ``posterior.nc`` holds the draws of each sampled
 parameter; they are mapped to the samplers' space :math:`x =
 \operatorname{softplus}^{-1}(\theta)`, where posteriors of positive
 parameters are close to Gaussian, and fitted there by their mean and
-standard deviation (:class:`latentforce.priors.SoftplusNormal`).
+standard deviation (:class:`latentforce.priors.SoftplusNormal`). A parameter
+that may take either sign (``k3``, ``beta``, ``gamma``) is fitted on its value
+(:class:`latentforce.priors.SignedNormal`).
 
 Each parameter is carried as its marginal: correlations between carried
 parameters are not kept (the joint prior is the product of the marginals),
@@ -30,13 +32,13 @@ from typing import NamedTuple
 import numpy as np
 
 from latentforce.errors import LatentForceError
-from latentforce.priors import SoftplusNormal
+from latentforce.priors import SignedNormal, SoftplusNormal
 
 
 class Carried(NamedTuple):
     """The fitted prior and where it came from (recorded in ``summary.json``)."""
 
-    prior: SoftplusNormal
+    prior: SoftplusNormal | SignedNormal
     source: str
     param: str
     draws: int
@@ -47,12 +49,13 @@ def _softplus_inverse(theta: np.ndarray) -> np.ndarray:
     return theta + np.log(-np.expm1(-theta))
 
 
-def carried_prior(folder: str | Path, param: str, where: str) -> Carried:
+def carried_prior(folder: str | Path, param: str, where: str, *, signed: bool = False) -> Carried:
     """Fit the posterior draws of ``param`` in result ``folder`` (see the module doc).
 
-    ``where`` names the config key in messages. Raises :class:`LatentForceError`
-    for a missing folder or file, a parameter that the run did not sample
-    (listing those it did), or draws that are not positive and finite.
+    ``where`` names the config key in messages; ``signed``: the parameter may
+    take either sign. Raises :class:`LatentForceError` for a missing folder or
+    file, a parameter that the run did not sample (listing those it did), or
+    draws that are not finite (or, for a positive parameter, not positive).
     """
     import xarray as xr
 
@@ -86,19 +89,20 @@ def carried_prior(folder: str | Path, param: str, where: str) -> Carried:
             f"{where}: the run in {str(folder)!r} has no posterior draws of {param!r}; "
             f'its sampled parameters are: {names}. Name one with param = "...".'
         )
-    if draws.size < 2 or not np.all(np.isfinite(draws)) or not np.all(draws > 0):
+    if draws.size < 2 or not np.all(np.isfinite(draws)) or not (signed or np.all(draws > 0)):
         raise LatentForceError(
-            f"{where}: the draws of {param!r} in {str(nc)!r} are not positive finite "
+            f"{where}: the draws of {param!r} in {str(nc)!r} are not {'' if signed else 'positive '}finite "
             f"numbers (or fewer than two); they cannot serve as a prior."
         )
-    x = _softplus_inverse(draws)
+    x = draws if signed else _softplus_inverse(draws)
     loc, scale = float(np.mean(x)), float(np.std(x, ddof=1))
     if not (math.isfinite(scale) and scale > 0):
         raise LatentForceError(
             f"{where}: the draws of {param!r} in {str(nc)!r} are all equal; a posterior "
             "with no spread cannot serve as a prior (fix the parameter instead)."
         )
-    return Carried(SoftplusNormal(loc, scale), str(folder.resolve()), param, int(draws.size), _converged(folder))
+    prior = SignedNormal(loc, scale) if signed else SoftplusNormal(loc, scale)
+    return Carried(prior, str(folder.resolve()), param, int(draws.size), _converged(folder))
 
 
 def _summary(folder: Path) -> dict:

@@ -324,8 +324,11 @@ def config_from_dict(
             "param": c.param,
             "draws": c.draws,
             "converged": c.converged,
-            "softplus_loc": c.prior.loc,
-            "softplus_scale": c.prior.scale,
+            **(
+                {"normal_mean": c.prior.mean, "normal_sd": c.prior.sd}
+                if c.prior.signed
+                else {"softplus_loc": c.prior.loc, "softplus_scale": c.prior.scale}
+            ),
         }
         for key, c in fail.carried.items()
     }

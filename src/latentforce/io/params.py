@@ -24,7 +24,14 @@ class ParamSpec(NamedTuple):
     init: float
 
 
-def _carried_spec(fail: _Fail, key: str, table: _PriorTable, param: str) -> ParamSpec:
+def _check_init(fail: _Fail, key: str, init: float, signed: bool, note: str = "") -> None:
+    if signed and not math.isfinite(init):
+        raise fail(f"{key}.init", f"the initial value must be a finite number, got {init!r}{note}.")
+    if not signed and not (math.isfinite(init) and init > 0):
+        raise fail(f"{key}.init", f"the initial value must be positive and finite, got {init!r}{note}.")
+
+
+def _carried_spec(fail: _Fail, key: str, table: _PriorTable, param: str, signed: bool) -> ParamSpec:
     """``prior = "posterior"``: the marginal posterior of ``param`` in an earlier result folder
     (:mod:`latentforce.io.carry`), ``from`` resolved against the config's folder."""
     extras = dict(table.model_extra or {})
@@ -45,18 +52,19 @@ def _carried_spec(fail: _Fail, key: str, table: _PriorTable, param: str) -> Para
     if not isinstance(param, str) or not param:
         raise fail(f"{key}.param", f"must be a parameter name (a string), got {param!r}.")
     folder = fail.base_dir / Path(source).expanduser()
-    carried = carried_prior(folder, param, f"{fail.source}: {key}")
+    carried = carried_prior(folder, param, f"{fail.source}: {key}", signed=signed)
     init = table.init if table.init is not None else carried.prior.default_init()
-    if not (math.isfinite(init) and init > 0):
-        raise fail(f"{key}.init", f"the initial value must be positive and finite, got {init!r}.")
+    _check_init(fail, key, init, carried.prior.signed)
     fail.carried[key] = carried
     return ParamSpec(prior=carried.prior, init=float(init))
 
 
-def _prior_spec(fail: _Fail, key: str, table: _PriorTable, param: str = "") -> ParamSpec:
+def _prior_spec(fail: _Fail, key: str, table: _PriorTable, param: str = "", signed: bool = False) -> ParamSpec:
+    """The prior table of ``key``; ``signed``: the parameter may take either sign (a ``normal``
+    prior is then on the whole real line, :class:`latentforce.priors.SignedNormal`)."""
     name = table.prior
     if name == "posterior":
-        return _carried_spec(fail, key, table, param)
+        return _carried_spec(fail, key, table, param, signed)
     if name not in PRIOR_PARAMS:
         raise fail(
             f"{key}.prior",
@@ -80,19 +88,13 @@ def _prior_spec(fail: _Fail, key: str, table: _PriorTable, param: str = "") -> P
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise fail(f"{key}.{p}", f"must be a finite number, got {v!r}.")
     try:
-        prior = prior_from_spec(name, **extras)
+        prior = prior_from_spec(name, signed=signed, **extras)
     except ValueError as exc:
         raise fail(key, f"{exc}.") from None
     init = table.init if table.init is not None else prior.default_init()
     if init is None:
         raise fail(f"{key}.init", f"a {name!r} prior has no natural starting value: give init (a positive number).")
-    if not (math.isfinite(init) and init > 0):
-        raise fail(
-            f"{key}.init",
-            f"the initial value must be positive and finite, got {init!r}"
-            + ("" if table.init is not None else " (from the prior; give init)")
-            + ".",
-        )
+    _check_init(fail, key, init, prior.signed, "" if table.init is not None else " (from the prior; give init)")
     return ParamSpec(prior=prior, init=float(init))
 
 
@@ -122,6 +124,6 @@ def _scalar(fail: _Fail, key: str, value: float, rule: str) -> float:
 
 def _split(fail: _Fail, key: str, name: str, value, rule: str, fixed: dict, free: dict) -> None:
     if isinstance(value, _PriorTable):
-        free[name] = _prior_spec(fail, key, value, name)
+        free[name] = _prior_spec(fail, key, value, name, signed=rule == "any")
     else:
         fixed[name] = _scalar(fail, key, value, rule)

@@ -24,8 +24,9 @@ from latentforce.systems import (
 # In the interface but without an implementation yet.
 PLANNED_SYSTEM_TYPES: tuple[str, ...] = ()
 BOUC_WEN_KEYS = ("alpha", "beta", "gamma", "nu")
-#: what a fixed value of each scalar system key must be (io/params._scalar); a prior is on the
-#: positive reals (latentforce.priors), so an inferred k3 or gamma is positive
+#: what a fixed value of each scalar system key must be (io/params._scalar); an "any" key may be
+#: inferred with either sign under a normal prior (latentforce.priors.SignedNormal), any other
+#: prior keeps it positive
 SCALAR_RULES = {
     "m": "positive",
     "c": "nonnegative",
