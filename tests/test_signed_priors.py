@@ -211,8 +211,9 @@ def test_gaussian_methods_infer_the_benchmarks_negative_gamma(tmp_path, monkeypa
 def test_pgas_infers_the_benchmarks_negative_gamma(tmp_path, monkeypatch):
     """pgas moves a signed system parameter in its own coordinate (start at the filter's mode,
     joint move, values in the results): from +500 under N(0, 2000^2) to gamma < 0. These counts
-    are a smoke run, not converged (measured R-hat 2.2, 2 chains of 300; docs/nonlinear.md has a
-    converging run), so the posterior is checked for its sign and place only."""
+    are a smoke run, not converged (measured R-hat 2.2, 2 chains of 300; docs/nonlinear.md, "Bouc-Wen
+    hysteresis", says where gamma mixes and where not yet), so the posterior is checked for its sign
+    and place only."""
     gamma, summary = _simulate_and_estimate(
         tmp_path, monkeypatch, "pgas", {"iterations": 300, "burn_in": 150, "chains": 2, "particles": 16}
     )

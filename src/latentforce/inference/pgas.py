@@ -148,6 +148,7 @@ def run_pgas(
     residual_steps: int = 60,
     smoother_steps: int = 1,
     joint_steps: int = 3,
+    joint_recentre: int = smoother_move.JOINT_RECENTRE,
     channels=None,
     target_ess: float = 400.0,
     max_time: float = 600.0,
@@ -298,6 +299,7 @@ def run_pgas(
         residual_steps=int(residual_steps),
         smoother_steps=int(smoother_steps),
         joint_steps=int(joint_steps),
+        recentre=int(joint_recentre),
     )
     make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, noise=noise, **block_settings)
     block_static = dict(

@@ -90,6 +90,14 @@ triangular with a unit diagonal, so the densities of path and latent are equal a
 :math:`\theta` and the ratio above stands unchanged. Given a path the within-step noise
 (sd ~1e-8 m per step) pins a stiffness or damping to a tiny interval, which is why a
 Metropolis-within-Gibbs step on them would not move.
+
+*Re-centred.* A system parameter that reshapes the path's nonlinear part (Bouc-Wen's
+``gamma`` reshapes the hysteretic force) makes the expansion about a centre found at the old
+value a poor fit at the new one, and only small steps pass. With ``recentre`` the expansion at
+each point :math:`\theta` is about ``recentre`` Gauss-Newton iterations from the fixed centre *at
+that point's model*: still a function of :math:`\theta` (and of the fixed centre and the data)
+alone, so the ratio above is unchanged, the current point evaluated as it was when proposed
+(tested). Cost: ``recentre`` more filter-and-smoother passes per point.
 """
 
 from __future__ import annotations
@@ -114,6 +122,11 @@ JOINT_STREAM = 0x4A00
 #: Gauss-Newton iterations of :func:`iterated_centre` (the Duffing cases converge to 1e-8 in 5-6
 #: from the extended Kalman smoother; the centre need not be the exact mode, only close to it)
 CENTRE_ITERATIONS = 3
+
+#: Gauss-Newton iterations that re-centre the joint move's expansion at each point theta when
+#: system parameters of a hysteretic system are sampled (:func:`joint_log_target`, module doc;
+#: where, measured: latentforce.inference.pgas_block.make_block)
+JOINT_RECENTRE = 2
 
 
 class Linearisation(NamedTuple):
@@ -348,13 +361,18 @@ class JointProposal(NamedTuple):
     tr: particle_model.Transition
 
 
-def joint_log_target(key, pm, tr, od: ObservationDensity, R, centre, log_prior, path=None) -> JointProposal:
+def joint_log_target(
+    key, pm, tr, od: ObservationDensity, R, centre, log_prior, path=None, recentre: int = 0
+) -> JointProposal:
     r"""The joint move's target at the transition ``tr`` (module doc, "The joint move").
 
     ``path=None``: a proposed point, its path drawn from the proposal about ``centre`` at ``tr``
     with ``key``; else the current point, whose path is ``path``. ``log_prior`` is the
-    hyperparameters' log prior density in the sampling coordinates at this point.
+    hyperparameters' log prior density in the sampling coordinates at this point. ``recentre``:
+    Gauss-Newton iterations from ``centre`` at this point's model first (module doc).
     """
+    if recentre:
+        centre = iterated_centre(pm, tr, od, R, centre, recentre)
     lin = linearise(pm, tr, centre)
     gains = _gains(pm, tr, lin, od, R)
     a, v = _filter_means(pm, lin, gains, od.y)
@@ -383,6 +401,7 @@ def joint_move(
     reshape_steps,
     step0,
     target: float,
+    recentre: int = 0,
 ):
     r"""``n_steps`` joint Metropolis-Hastings steps on :math:`(\theta, \text{path})` (module doc, "The joint move").
 
@@ -393,11 +412,12 @@ def joint_move(
     model at any system parameters (it is rebuilt at each point, :meth:`Hyper.model_at`) and
     ``tr`` the transition at the current point's. Adapts the walk where ``adapt`` (burn-in), re-shaping it from its
     running covariance after the steps numbered ``reshape_steps`` (counted from ``step0``).
-    Returns ``(rwm, path, tr, accepted)``.
+    ``recentre``: the expansion at each point is re-centred by that many Gauss-Newton iterations
+    from ``centre`` (module doc). Returns ``(rwm, path, tr, accepted)``.
     """
     p = len(hyper.names)
     cur = joint_log_target(
-        None, hyper.model_at(pm, rwm.x[p:]), tr, od, R, centre, hyper.joint_log_prior(rwm.x), path=path
+        None, hyper.model_at(pm, rwm.x[p:]), tr, od, R, centre, hyper.joint_log_prior(rwm.x), path, recentre
     )
     rwm = rwm._replace(logdensity=cur.log_target)
 
@@ -408,7 +428,7 @@ def joint_move(
         def _target(x):
             pm_x = hyper.model_at(pm, x[p:])  # the model at the proposed system parameters
             jp = joint_log_target(
-                k_draw, pm_x, pm_x.transition(*hyper.values(x)), od, R, centre, hyper.joint_log_prior(x)
+                k_draw, pm_x, pm_x.transition(*hyper.values(x)), od, R, centre, hyper.joint_log_prior(x), None, recentre
             )
             return jp.log_target, (jp.path, jp.tr)
 
