@@ -175,7 +175,7 @@ def test_random_walk_over_a_signed_and_a_positive_prior_draws_the_prior():
     assert stats.kstest(k3[::20], stats.norm(-2e4, 5e3).cdf).pvalue > 1e-3
 
 
-def _simulate_and_estimate(tmp_path, monkeypatch, method, inference):
+def _simulate_and_estimate(tmp_path, monkeypatch, method, inference, initial=None):
     from typer.testing import CliRunner
 
     from latentforce.cli import app
@@ -190,6 +190,8 @@ def _simulate_and_estimate(tmp_path, monkeypatch, method, inference):
     assert res.exit_code == 0, res.output
     d["system"]["gamma"] = {"prior": "normal", "mean": 0.0, "sd": 2000.0, "init": 500.0}
     d["inference"] = {"method": method, **inference}
+    if initial is not None:
+        d["initial"] = initial
     (tmp_path / "est.toml").write_text(to_toml(d))
     res = runner.invoke(app, ["estimate", "est.toml", "--out", "res"])
     assert res.exit_code == 0, res.output
@@ -209,14 +211,17 @@ def test_gaussian_methods_infer_the_benchmarks_negative_gamma(tmp_path, monkeypa
 
 
 def test_pgas_infers_the_benchmarks_negative_gamma(tmp_path, monkeypatch):
-    """pgas moves a signed system parameter in its own coordinate (start at the filter's mode,
-    joint move, values in the results): from +500 under N(0, 2000^2) to gamma < 0. These counts
-    are a smoke run, not converged (measured R-hat 2.2, 2 chains of 300; docs/nonlinear.md, "Bouc-Wen
-    hysteresis", says where gamma mixes and where not yet), so the posterior is checked for its sign
-    and place only."""
-    gamma, summary = _simulate_and_estimate(
-        tmp_path, monkeypatch, "pgas", {"iterations": 300, "burn_in": 150, "chains": 2, "particles": 16}
-    )
+    """pgas moves a signed system parameter in its own coordinate (start at the filter's mode, the
+    re-centred joint move, values in the results): from +500 under N(0, 2000^2) to gamma < 0, and
+    the chains mix. The record starts from rest, and ``[initial]`` says so for the hysteretic
+    force (sd 0.3 N): with the default's 14.7 N each chain's gamma froze (R-hat 2.6 at these
+    counts; docs/nonlinear.md, "Bouc-Wen hysteresis"). Measured here: R-hat 1.03, ESS ~200, -837 +-
+    154 (ekf on this record: -836 +- 163), truth -1100."""
+    initial = {"mean": [0.0, 0.0, 0.0, 0.0], "sd": [2.08e-4, 0.0455, 0.3, 50.0]}
+    settings = {"iterations": 600, "burn_in": 300, "chains": 4, "particles": 16, "thin_draws": 50}
+    gamma, summary = _simulate_and_estimate(tmp_path, monkeypatch, "pgas", settings, initial)
     assert summary["method"] == "pgas"
-    assert abs(gamma["mean"] + 1100.0) < 4 * gamma["sd"] + 50.0, gamma
-    assert gamma["sd"] < 2000.0 / 5 and gamma["mean"] + 3 * gamma["sd"] < 0, gamma
+    assert abs(gamma["mean"] + 1100.0) < 3 * gamma["sd"], gamma
+    assert 100.0 < gamma["sd"] < 2000.0 / 5 and gamma["mean"] + 3 * gamma["sd"] < 0, gamma
+    # mixed: not the frozen chains (R-hat 2.6-3.9, bulk ESS 4-5) the default start gave
+    assert gamma["r_hat"] < 1.1 and gamma["ess_bulk"] > 80, gamma
