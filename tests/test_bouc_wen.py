@@ -244,11 +244,10 @@ def test_config_builds_a_bouc_wen_system_and_refuses_invalid_values():
             config_from_dict(d, source="bw.toml")
 
 
-def test_cli_writes_the_hysteretic_force_and_the_hysteresis_loop(tmp_path, monkeypatch):
-    """simulate writes the hysteretic force as a truth column; estimate (ekf) reports it as a state
-    with its own columns, coverage and figures (against time and against displacement)."""
-    import json
-
+def simulated_record(tmp_path, monkeypatch):
+    """``(runner, config)``: in ``tmp_path`` (made the working folder), ``latentforce simulate`` of
+    :data:`BOUC_WEN_CONFIG` with a displacement channel added writes 0.4 s (seed 1) to ``d.csv``,
+    which ``config`` (a copy, free to change) reads; ``runner`` invokes the CLI."""
     from typer.testing import CliRunner
 
     from latentforce.cli import app
@@ -257,12 +256,24 @@ def test_cli_writes_the_hysteretic_force_and_the_hysteresis_loop(tmp_path, monke
     monkeypatch.chdir(tmp_path)
     d = copy.deepcopy(BOUC_WEN_CONFIG)
     d["sensors"].append({"column": "disp", "quantity": "displacement", "noise_std": 2e-5})
-    (tmp_path / "bw.toml").write_text(to_toml(d))
+    (tmp_path / "sim.toml").write_text(to_toml(d))
     runner = CliRunner()
-    res = runner.invoke(app, ["simulate", "bw.toml", "--out", "d.csv", "--duration", "0.4", "--seed", "1"])
+    res = runner.invoke(app, ["simulate", "sim.toml", "--out", "d.csv", "--duration", "0.4", "--seed", "1"])
     assert res.exit_code == 0, res.output
+    return (lambda args: runner.invoke(app, args)), d
+
+
+def test_cli_writes_the_hysteretic_force_and_the_hysteresis_loop(tmp_path, monkeypatch):
+    """simulate writes the hysteretic force as a truth column; estimate (ekf) reports it as a state
+    with its own columns, coverage and figures (against time and against displacement)."""
+    import json
+
+    from latentforce.demos.common import to_toml
+
+    invoke, d = simulated_record(tmp_path, monkeypatch)
+    (tmp_path / "bw.toml").write_text(to_toml(d))
     assert "hysteretic_force" in (tmp_path / "d.csv").read_text().splitlines()[0]
-    res = runner.invoke(app, ["estimate", "bw.toml", "--out", "res"])
+    res = invoke(["estimate", "bw.toml", "--out", "res"])
     assert res.exit_code == 0, res.output
     header = (tmp_path / "res" / "summary.csv").read_text().splitlines()[0]
     assert "hysteretic_force_mean" in header and "hysteretic_force_sd" in header

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import integrate, stats
+from test_bouc_wen import BOUC_WEN_CONFIG, simulated_record
 
 from latentforce.errors import LatentForceError
 from latentforce.inference.hyper_moves import Hyper
@@ -28,8 +29,6 @@ from latentforce.priors import (
     to_value,
 )
 from latentforce.systems import Duffing
-
-BENCH = dict(m=2.0, c=10.0, k=5e4, alpha=5e4, beta=800.0, gamma=-1100.0, nu=1.0)
 
 
 def test_signed_normal_is_the_normal_density_on_the_whole_line():
@@ -74,17 +73,8 @@ def test_a_normal_prior_is_signed_only_on_a_key_of_either_sign():
     assert isinstance(prior_from_spec("lognormal", signed=True, mu=0.0, sigma=1.0), LogNormal)
 
 
-BW_CONFIG = {
-    "data": {"path": "d.csv", "sample_rate": 750.0},
-    "system": {"type": "bouc-wen", **BENCH},
-    "force": {"kernel": "matern12", "variance": 2500.0, "lengthscale": 0.01},
-    "sensors": [{"column": "acc", "quantity": "acceleration", "noise_std": 1.0}],
-    "inference": {"method": "ekf"},
-}
-
-
 def _config(**system):
-    d = copy.deepcopy(BW_CONFIG)
+    d = copy.deepcopy(BOUC_WEN_CONFIG)
     d["system"].update(system)
     return config_from_dict(d, source="bw.toml")
 
@@ -103,7 +93,7 @@ def test_config_takes_priors_of_either_sign_on_k3_beta_gamma_and_elements():
     # a positive key's normal prior stays on the positive reals
     with pytest.raises(LatentForceError, match=r"\[system\].m.init.*positive"):
         _config(m={"prior": "normal", "mean": -2.0, "sd": 1.0})
-    d = copy.deepcopy(BW_CONFIG)
+    d = copy.deepcopy(BOUC_WEN_CONFIG)
     d["system"] = {"type": "duffing", "m": 1.0, "c": 1.0, "k": 1.0, "k3": {"prior": "normal", "mean": -5.0, "sd": 2.0}}
     assert isinstance(config_from_dict(d, source="d.toml").free["k3"].prior, SignedNormal)
     d["system"] = {
@@ -176,24 +166,15 @@ def test_random_walk_over_a_signed_and_a_positive_prior_draws_the_prior():
 
 
 def _simulate_and_estimate(tmp_path, monkeypatch, method, inference, initial=None):
-    from typer.testing import CliRunner
-
-    from latentforce.cli import app
     from latentforce.demos.common import to_toml
 
-    monkeypatch.chdir(tmp_path)
-    d = copy.deepcopy(BW_CONFIG)
-    d["sensors"].append({"column": "disp", "quantity": "displacement", "noise_std": 2e-5})
-    (tmp_path / "sim.toml").write_text(to_toml(d))
-    runner = CliRunner()
-    res = runner.invoke(app, ["simulate", "sim.toml", "--out", "d.csv", "--duration", "0.4", "--seed", "1"])
-    assert res.exit_code == 0, res.output
+    invoke, d = simulated_record(tmp_path, monkeypatch)
     d["system"]["gamma"] = {"prior": "normal", "mean": 0.0, "sd": 2000.0, "init": 500.0}
     d["inference"] = {"method": method, **inference}
     if initial is not None:
         d["initial"] = initial
     (tmp_path / "est.toml").write_text(to_toml(d))
-    res = runner.invoke(app, ["estimate", "est.toml", "--out", "res"])
+    res = invoke(["estimate", "est.toml", "--out", "res"])
     assert res.exit_code == 0, res.output
     summary = json.loads((tmp_path / "res" / "summary.json").read_text())
     return summary["parameters"]["gamma"], summary

@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_bouc_wen import BENCH
 from test_smc import linear_problem
 
 import latentforce  # noqa: F401
@@ -240,20 +241,19 @@ def test_recentred_joint_target_is_one_function_of_the_point():
     from latentforce.simulate import simulate
     from latentforce.systems import BoucWen
 
-    bench = dict(m=2.0, c=10.0, k=5e4, alpha=5e4, beta=800.0, gamma=-1100.0, nu=1.0)
     gp = dict(force_variance=2500.0, force_lengthscale=0.01)
     sensors = [Sensor("acceleration", 0, 1.0), Sensor("displacement", 0, 2e-5)]
     model = LatentForceModel(BoucWen(substeps=4), Matern(0), sensors)
     T, dt = 120, 1.0 / 750.0
-    sim = simulate(jax.random.key(1), model, {**bench, **gp}, T, dt, substeps=16)
+    sim = simulate(jax.random.key(1), model, {**BENCH, **gp}, T, dt, substeps=16)
     rng = np.random.default_rng(0)
     y = np.column_stack(
         [sim.acceleration[:, 0] + rng.normal(0, 1.0, T), sim.displacement[:, 0] + 2e-5 * rng.normal(size=T)]
     )
     mask = np.ones_like(y, dtype=bool)
-    pm = smc.ParticleModel(model, {**bench, **gp}, dt)
+    pm = smc.ParticleModel(model, {**BENCH, **gp}, dt)
     od = latent.observation_density(pm, jnp.asarray(y), jnp.asarray(mask))
-    hyper = Hyper({**bench, **gp}, {"gamma": (SignedNormal(0.0, 2000.0), -500.0)}, model.system.param_names)
+    hyper = Hyper({**BENCH, **gp}, {"gamma": (SignedNormal(0.0, 2000.0), -500.0)}, model.system.param_names)
     pm_off = hyper.model_at(pm, hyper.joint_coordinates(jnp.array([-500.0])))
     centre = pgas_start.extended_kalman_smoother(pm_off, pm_off.transition(*hyper.values(jnp.zeros(0))), y, mask)
 
