@@ -22,10 +22,9 @@ state, the block index and the data); :func:`run_pgas` initialises the chains,
 ``jax.vmap``-s the block over them and runs the blocks in a ``lax.scan``; Python only
 chunks the scan for progress reports. Initialisation never uses the truth:
 an extended Kalman smoother at the initial :math:`\theta` gives a path that
-fits the data; each chain starts from it moved in the low-frequency coordinates by a draw of the
-Gauss-Newton posterior with the data's information quartered (:func:`dispersed_start`: twice the
-posterior sd where the data pin a direction, at most a prior sd where they do not; different per
-chain), and from :math:`\theta_0 \exp(0.5\,\varepsilon)` per
+fits the data; each chain starts from it moved by twice its Gauss-Newton
+posterior sd in the low-frequency coordinates (:func:`dispersed_start`,
+different per chain), and from :math:`\theta_0 \exp(0.5\,\varepsilon)` per
 parameter.
 
 Any key implementation works. The sweep draws its random numbers in two

@@ -67,28 +67,6 @@ def extended_kalman_smoother(
     return jnp.concatenate([msm, ms[-1:]])
 
 
-def dispersal_cov(cov: Float[Array, "q q"], spread: float) -> Float[Array, "q q"]:
-    r"""The covariance of a chain's start about the smoother's path in the low-frequency coordinates:
-    the linearised posterior with the data's information divided by ``spread``\ :sup:`2`,
-
-    .. math:: S = \big(I + (C^{-1} - I)/s^2\big)^{-1},
-
-    ``cov`` :math:`C = (I + J^\top R^{-1} J)^{-1}` the Gauss-Newton posterior covariance of the
-    coordinates, whose prior is :math:`N(0, I)` (:func:`~latentforce.inference.path_moves.lowfreq_init`).
-    A direction the data pin (precision :math:`h \gg 1`) is dispersed by ``spread`` posterior sds, as
-    :math:`s^2 C` did; one the linearisation leaves to the prior by at most one prior sd, never
-    :math:`s` of them. Measured (the 3-storey frame with a Bouc-Wen brace, Matérn-3/2,
-    accelerations at floors 0 and 2): :math:`s^2 C` put one chain's initial hysteretic force two
-    prior sds out (-43 N, truth 0, posterior -2 +- 3 N) with a force compensating it, a local mode
-    of negligible mass (force 90 N off for 0.5 s) that the chain never left (R-hat 1.60, bulk ESS 7
-    in 240 s); from this one all four chains mixed (R-hat 1.007, ESS 600 in the same time).
-    """
-    # = s^2 C (I + (s^2 - 1) C)^-1: no inverse of C (its eigenvalues span orders of magnitude), and
-    # I + (s^2 - 1) C has its eigenvalues in [1, s^2]
-    s2 = float(spread) ** 2
-    return symmetrise(s2 * solve(jnp.eye(cov.shape[0]) + (s2 - 1.0) * cov, cov))
-
-
 def dispersed_start(
     key: Array,
     pm: particle_model.ParticleModel,
@@ -97,10 +75,8 @@ def dispersed_start(
     path: Float[Array, "T n"],
     spread: float = 2.0,
 ) -> Float[Array, "T n"]:
-    r"""A chain's starting path: ``path`` (the smoother's) moved in the low-frequency coordinates by a
-    draw of :func:`dispersal_cov` of their Gauss-Newton posterior covariance (``rwm_lf.cov``,
-    :func:`lowfreq_init`): ``spread`` posterior sds where the data pin a direction, at most a prior
-    sd where they do not.
+    r"""A chain's starting path: ``path`` (the smoother's) moved by ``spread`` times its
+    Gauss-Newton posterior sd in the low-frequency coordinates (``rwm_lf.cov``, :func:`lowfreq_init`).
 
     Over-dispersed exactly where the sampler is slow (the weakly observed, slow
     directions), while every acceleration sample stays fitted; the first sweep
@@ -112,5 +88,5 @@ def dispersed_start(
     longer than a quick run's burn-in.
     """
     w, eps_perp = lowfreq_coordinates(pm, frame, path)
-    step = cholesky(dispersal_cov(rwm_lf.cov, spread)) @ jax.random.normal(key, w.shape)
+    step = spread * cholesky(rwm_lf.cov) @ jax.random.normal(key, w.shape)
     return lowfreq_path(pm, frame, eps_perp, w + step)
