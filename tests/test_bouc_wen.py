@@ -206,6 +206,25 @@ BOUC_WEN_CONFIG = {
 }
 
 
+def test_the_default_initial_state_is_the_same_through_the_api_and_the_cli():
+    """A nonlinear system's near-rest default start, built by ``ParticleModel`` (``run_pgas`` and
+    the Gaussian smoothers called directly, ``initial=None``) and by the CLI
+    (``_mechanical_initial``), is the model's ``default_initial`` at the configured force
+    hyperparameters: it was once built at unit ones, so its spread depended on the force's units
+    (50x narrower on this record)."""
+    from latentforce.estimate_particles import _mechanical_initial
+
+    prob = config_from_dict(copy.deepcopy(BOUC_WEN_CONFIG), source="bw.toml")
+    params = dict(prob.fixed)
+    mean, cov = _mechanical_initial(prob, params)
+    pm = ParticleModel(prob.model, params, 1.0 / FS)
+    np.testing.assert_allclose(np.asarray(pm.mech0_mean), mean, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(pm.mech0_cov), cov, rtol=1e-9, atol=1e-30)
+    # the spread follows the force: four times the variance, four times the displacement's variance
+    quad = ParticleModel(prob.model, {**params, "force_variance": 4 * params["force_variance"]}, 1.0 / FS)
+    np.testing.assert_allclose(quad.mech0_cov[0, 0], 4 * pm.mech0_cov[0, 0], rtol=1e-9)
+
+
 def _config_error(changes, *fragments):
     d = copy.deepcopy(BOUC_WEN_CONFIG)
     for key, value in changes.items():

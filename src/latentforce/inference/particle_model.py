@@ -329,7 +329,8 @@ class ParticleModel:
 
     def initial_mech(self, initial=None):
         """``(mean, cov)`` of the initial mechanical state: ``initial = (mean, sd)`` or ``(mean, cov)``,
-        else the mechanical block of the stationary start at the hyperparameters in ``params``."""
+        else the mechanical block of the model's default start (stationary for a linear system,
+        near rest for a nonlinear one) at the hyperparameters in ``params``."""
         if initial is not None:
             mean, spread = initial
             mean = jnp.broadcast_to(jnp.asarray(mean, dtype=float), (self.nm,))
@@ -340,7 +341,9 @@ class ParticleModel:
         if self.is_linear:
             _, P0 = self.model.stationary_initial(self.params)
             return jnp.zeros(self.nm), symmetrise(P0[self.layout.mech, self.layout.mech])
-        m0, P0 = self.model.default_initial({**self.params, "force_variance": 1.0, "force_lengthscale": 1.0})
+        # at the force hyperparameters in params (the CLI's start, estimate_particles._mechanical_initial);
+        # unit ones only where params has none: the near-rest spread scales with the force's variance
+        m0, P0 = self.model.default_initial({"force_variance": 1.0, "force_lengthscale": 1.0, **self.params})
         return m0[self.layout.mech], symmetrise(P0[self.layout.mech, self.layout.mech])
 
     def path(self, g: Float[Array, "T nl"]) -> Float[Array, "T n"]:

@@ -21,11 +21,14 @@ One Gibbs block of one chain is :func:`make_block` (a pure function of the chain
 state, the block index and the data); :func:`run_pgas` initialises the chains,
 ``jax.vmap``-s the block over them and runs the blocks in a ``lax.scan``; Python only
 chunks the scan for progress reports. Initialisation never uses the truth:
-an extended Kalman smoother at the initial :math:`\theta` gives a path that
-fits the data; each chain starts from it moved by twice its Gauss-Newton
-posterior sd in the low-frequency coordinates (:func:`dispersed_start`,
-different per chain), and from :math:`\theta_0 \exp(0.5\,\varepsilon)` per
-parameter.
+an extended Kalman smoother at the initial :math:`\theta` gives a mean that
+fits the data, and Gauss-Newton from it a path of the model that does (for a
+nonlinear system the smoother's mean is none: its whitened mechanical
+innovations reached 3e4 sds); each chain starts from that path moved in the
+low-frequency coordinates by a draw of their Gauss-Newton posterior with the
+data's information quartered (:func:`dispersed_start`: twice the posterior sd
+where the data pin a direction, at most a prior sd where they do not; different
+per chain), and from :math:`\theta_0 \exp(0.5\,\varepsilon)` per parameter.
 
 Any key implementation works. The sweep draws its random numbers in two
 large batches of 32-bit words before its sequential loop
@@ -309,21 +312,24 @@ def run_pgas(
         settings=tuple(sorted(block_settings.items())),
     )
     eks, ref_q = _smooth(pm, y, mask, R, tr0)
+    # The chains' start and the moves' first shapes: for a nonlinear system the extended smoother's
+    # mean is no path of the model (its mechanical innovations, whitened, reached 3e4 sds on the
+    # frame: a log prior 4e9 below the mode's), and chains started from it relaxed in whatever
+    # direction their first moves took, two of four on the frame far off into a region they never
+    # left. Gauss-Newton from it (the smoother move's centre, a path of the model with the same fit)
+    # is where they start; for a linear system the two coincide (no iterations).
+    one = jax.tree_util.tree_map(lambda a: a[None], (tr0, eks))
+    start = _centres(pm, od, R, *one, hyper, np.zeros((1, 0)), iterations=_centre_iterations(pm))[0]
 
     def per_chain(a):
         return np.broadcast_to(np.asarray(a), (chains,) + np.shape(a))
 
     none = np.zeros((chains, 0))  # the shapes and centre at the starting model (system parameters' init)
     lfs, rps = _shapes(
-        pm, rm, basis, od, jax.tree_util.tree_map(per_chain, tr0), per_chain(eks), hyper, none, with_rp=with_rp
+        pm, rm, basis, od, jax.tree_util.tree_map(per_chain, tr0), per_chain(start), hyper, none, with_rp=with_rp
     )
     with_sm = int(smoother_steps) > 0
-    one = jax.tree_util.tree_map(lambda a: a[None], (tr0, eks))
-    centres = (
-        per_chain(_centres(pm, od, R, *one, hyper, np.zeros((1, 0)), iterations=_centre_iterations(pm))[0])
-        if with_sm
-        else None
-    )
+    centres = per_chain(start) if with_sm else None
     states = _init_chains(
         pm,
         hyper,
@@ -331,12 +337,13 @@ def run_pgas(
         basis,
         k_chains,
         tr0,
-        eks,
+        start,
         xs0,
         trs0,
         lfs,
         rps,
         R,
+        od,
         centres,
         jnp.asarray(joint_chol),
         chains=int(chains),
@@ -509,18 +516,18 @@ def _centres(pm, od, R, trs, paths, hyper, x_sys, *, iterations):
 
 @functools.partial(jit, static_argnames=("chains", "sched"))
 def _init_chains(
-    pm, hyper, noise, basis, k_chains, tr0, eks, xs0, trs0, lfs, rps, R, centres, joint_chol, *, chains, sched
+    pm, hyper, noise, basis, k_chains, tr0, start, xs0, trs0, lfs, rps, R, od, centres, joint_chol, *, chains, sched
 ):
-    """Every chain's first :class:`ChainState`, from the smoother's path moved by its own dispersion;
-    ``joint_chol`` the joint walk's first proposal shape."""
+    """Every chain's first :class:`ChainState`, from the start path (:func:`run_pgas`) moved by its
+    own dispersion (:func:`dispersed_start`); ``joint_chol`` the joint walk's first proposal shape."""
     frame0 = LowFrequencyFrame(tr0, basis)
-    T, nq = eks.shape[0], pm.layout.n_mech + pm.nforce  # displacement, velocity, force columns
+    T, nq = start.shape[0], pm.layout.n_mech + pm.nforce  # displacement, velocity, force columns
     # every chain starts from the configured (initial) noise levels; None: none inferred
     var0 = noise_gibbs.initial_variances(noise, R) if noise.channels else None
 
     def _init_chain(ck, x, tr, lf, rp, centre):
         k_path, k_run = jax.random.split(ck)
-        ref = dispersed_start(k_path, pm, frame0, lf, eks)
+        ref = dispersed_start(k_path, pm, frame0, lf, start, od)
         # the log density is set at the first block
         rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x[: len(hyper.names)])
         joint = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
