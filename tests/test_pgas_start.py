@@ -1,4 +1,4 @@
-"""Where the particle Gibbs chains start: the dispersal of the starts about the smoother's path."""
+"""Where the particle Gibbs chains start: the dispersal of the starts about their base path."""
 
 import jax.numpy as jnp
 import numpy as np
