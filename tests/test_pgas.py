@@ -640,37 +640,42 @@ def test_lowfreq_basis_is_orthonormal_dct():
     assert path_moves.lowfreq_basis(5, 16).shape == (5, 5)
 
 
+def _duffing_acceleration_record(order):
+    """The acceleration-only Duffing record of the start tests (1 % noise) and run_pgas's base
+    path on it: ``(pm, tr, od, eks, base)``, ``base`` Gauss-Newton from the extended smoother's
+    mean (a path of the model, :func:`test_the_chains_start_from_a_path_of_the_model`)."""
+    from latentforce.simulate import simulate
+
+    T, dt = 256, 1 / 2048
+    params = dict(m=1.0, c=20.0, k=1e4, k3=1e9, force_variance=20.0, force_lengthscale=0.1)
+    model = LatentForceModel(Duffing(), Matern(order), [Sensor("acceleration", 0, 1.0)])
+    acc = np.asarray(simulate(jax.random.key(0), model, params, T, dt).acceleration)
+    sd = 0.01 * np.sqrt(np.mean(acc**2))
+    y = jnp.asarray(acc + sd * np.random.default_rng(1).normal(size=acc.shape))
+    mask = jnp.ones(y.shape, bool)
+    pm = smc.ParticleModel(LatentForceModel(Duffing(), Matern(order), [Sensor("acceleration", 0, sd)]), params, dt)
+    tr = pm.transition(20.0, 0.1)
+    od = latent.observation_density(pm, y, mask)
+    eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
+    base = smoother_move.iterated_centre(pm, tr, od, pm.R, eks, smoother_move.CENTRE_ITERATIONS)
+    return pm, tr, od, eks, base
+
+
 def test_dispersed_start_fits_data_and_spreads_the_slow_directions():
     """Chain starts (``dispersed_start``) on the acceleration-only Duffing case.
 
     Each start must still fit every acceleration sample (its log target no
     more than 4q below its base path's, q the number of moved coordinates: a
     Gaussian 2-sd move costs 2 per informed coordinate; a draw the nonlinearity
-    puts further down is pulled back), and the starts must
-    spread the weakly observed force mean by twice its Gauss-Newton posterior
-    sd (sample variance of 64 starts within chi-square bounds). The earlier
+    puts further down is pulled back), and the starts must spread the weakly
+    observed force mean as the Gauss-Newton posterior with the data's
+    information quartered (``pgas_start.dispersal_cov``; sample variance of 64
+    starts within chi-square bounds). The earlier
     start, prior-scale noise on the latent path, failed the first check by
     about 1e6.
     """
-    from latentforce.simulate import simulate
-
-    T, dt = 256, 1 / 2048
-    params = dict(m=1.0, c=20.0, k=1e4, k3=1e9, force_variance=20.0, force_lengthscale=0.1)
-    sim = simulate(
-        jax.random.key(0), LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 1.0)]), params, T, dt
-    )
-    acc = np.asarray(sim.acceleration)
-    sd = 0.01 * np.sqrt(np.mean(acc**2))
-    y = jnp.asarray(acc + sd * np.random.default_rng(1).normal(size=acc.shape))
-    mask = jnp.ones(y.shape, bool)
-    model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, sd)])
-    pm = smc.ParticleModel(model, params, dt)
-    tr = pm.transition(20.0, 0.1)
-    od = latent.observation_density(pm, y, mask)
-    eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
-    # run_pgas's base path: Gauss-Newton from the smoother's mean, a path of the model
-    # (test_the_chains_start_from_a_path_of_the_model)
-    base = smoother_move.iterated_centre(pm, tr, od, pm.R, eks, smoother_move.CENTRE_ITERATIONS)
+    pm, tr, od, _, base = _duffing_acceleration_record(0)
+    T = base.shape[0]
     frame = path_moves.LowFrequencyFrame(tr, path_moves.lowfreq_basis(T, 16))
     rwm_lf = path_moves.lowfreq_init(pm, od, frame, base)
     q = rwm_lf.x.shape[0]
@@ -711,20 +716,7 @@ def test_the_chains_start_from_a_path_of_the_model(order):
     innovations, whitened, reached 6.7e3 sds on this Duffing record at Matérn-5/2 (3e4 on the
     frame with a Bouc-Wen brace, where two of four chains started from it ran off for good); the
     base path's stay within a few sds, and it fits the data as well."""
-    from latentforce.simulate import simulate
-
-    T, dt = 256, 1 / 2048
-    params = dict(m=1.0, c=20.0, k=1e4, k3=1e9, force_variance=20.0, force_lengthscale=0.1)
-    model = LatentForceModel(Duffing(), Matern(order), [Sensor("acceleration", 0, 1.0)])
-    acc = np.asarray(simulate(jax.random.key(0), model, params, T, dt).acceleration)
-    sd = 0.01 * np.sqrt(np.mean(acc**2))
-    y = jnp.asarray(acc + sd * np.random.default_rng(1).normal(size=acc.shape))
-    mask = jnp.ones(y.shape, bool)
-    pm = smc.ParticleModel(LatentForceModel(Duffing(), Matern(order), [Sensor("acceleration", 0, sd)]), params, dt)
-    tr = pm.transition(20.0, 0.1)
-    od = latent.observation_density(pm, y, mask)
-    eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
-    base = smoother_move.iterated_centre(pm, tr, od, pm.R, eks, smoother_move.CENTRE_ITERATIONS)
+    pm, tr, od, eks, base = _duffing_acceleration_record(order)
 
     def innovations(path):  # the mechanical innovations in prior sds
         return np.abs(np.asarray(latent.whiten(tr, pm.latent(path)))[:, pm.latent_layout.noise]).max()

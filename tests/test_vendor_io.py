@@ -294,42 +294,18 @@ def test_nan_in_one_channel_masks_that_channel_only(tmp_path):
     assert not ds.mask[5, 0] and not ds.mask[6, 0] and ds.mask[6, 1] and ds.mask[:, 0].sum() == T_FAST - 2
 
 
-def _dense_posterior(model, params, dt, T, rows, m0, P0):
-    """Dense Gaussian of x_{0:T-1} given observations ``rows`` = [(t, H_row, y, var), ...]."""
-    A, Q = (np.asarray(a) for a in model.discretise(params, dt))
-    n = A.shape[0]
-    covs, means = [np.asarray(P0)], [np.asarray(m0)]
-    for _ in range(1, T):
-        means.append(A @ means[-1])
-        covs.append(A @ covs[-1] @ A.T + Q)
-    Sx = np.zeros((T * n, T * n))
-    for t in range(T):
-        for s in range(t + 1):  # Cov(x_t, x_s) = A^{t-s} P_s
-            C = np.linalg.matrix_power(A, t - s) @ covs[s]
-            Sx[t * n : (t + 1) * n, s * n : (s + 1) * n] = C
-            Sx[s * n : (s + 1) * n, t * n : (t + 1) * n] = C.T
-    mx = np.concatenate(means)
-    Hb = np.zeros((len(rows), T * n))
-    for r, (t, h, _, _) in enumerate(rows):
-        Hb[r, t * n : (t + 1) * n] = h
-    y = np.array([r[2] for r in rows])
-    Sy = Hb @ Sx @ Hb.T + np.diag([r[3] for r in rows])
-    K = np.linalg.solve(Sy, Hb @ Sx).T
-    mean = (mx + K @ (y - Hb @ mx)).reshape(T, n)
-    cov = Sx - K @ Hb @ Sx
-    var = np.diagonal(cov).reshape(T, n)
-    return mean, var, _dense_log_likelihood(model, params, dt, T, rows, m0, P0)
-
-
 #: extended precision where the platform has it (x87 80-bit on x86-64 Linux); float64 elsewhere
 _EXTENDED = np.finfo(np.longdouble).eps < 1e-18
 
 
-def _dense_log_likelihood(model, params, dt, T, rows, m0, P0):
-    """The dense Gaussian's log-likelihood in extended precision (``np.longdouble``, NumPy's
-    linalg does not take it: a Cholesky by hand). In float64 it was good to 1.6e-9 relative only on
-    the two-rate record below (its channels' variances span ten orders in SI), and it moved by that
-    between NumPy builds; in extended precision it agrees with the Kalman filter to 1.1e-12."""
+def _dense_posterior(model, params, dt, T, rows, m0, P0):
+    """Dense Gaussian of x_{0:T-1} given observations ``rows`` = [(t, H_row, y, var), ...].
+
+    Built in extended precision (``np.longdouble``); the moments are solved in float64 (NumPy's
+    linalg does not take it), the log-likelihood by a Cholesky by hand in extended precision: in
+    float64 it was good to 1.6e-9 relative only on the two-rate record below (its channels'
+    variances span ten orders in SI) and moved by that between NumPy builds; in extended precision
+    it agrees with the Kalman filter to 1.1e-12."""
     ld = np.longdouble
     A, Q = (np.asarray(a).astype(ld) for a in model.discretise(params, dt))
     n = A.shape[0]
@@ -337,9 +313,6 @@ def _dense_log_likelihood(model, params, dt, T, rows, m0, P0):
     for _ in range(1, T):
         means.append(A @ means[-1])
         covs.append(A @ covs[-1] @ A.T + Q)
-    Hb = np.zeros((len(rows), T * n), dtype=ld)
-    for r, (t, h, _, _) in enumerate(rows):
-        Hb[r, t * n : (t + 1) * n] = np.asarray(h).astype(ld)
     Sx = np.zeros((T * n, T * n), dtype=ld)
     for t in range(T):
         Ap = np.eye(n, dtype=ld)
@@ -348,8 +321,18 @@ def _dense_log_likelihood(model, params, dt, T, rows, m0, P0):
             Sx[t * n : (t + 1) * n, s * n : (s + 1) * n] = C
             Sx[s * n : (s + 1) * n, t * n : (t + 1) * n] = C.T
             Ap = Ap @ A
+    mx = np.concatenate(means)
+    Hb = np.zeros((len(rows), T * n), dtype=ld)
+    for r, (t, h, _, _) in enumerate(rows):
+        Hb[r, t * n : (t + 1) * n] = np.asarray(h).astype(ld)
     Sy = Hb @ Sx @ Hb.T + np.diag(np.array([r[3] for r in rows], dtype=ld))
-    resid = np.array([r[2] for r in rows], dtype=ld) - Hb @ np.concatenate(means)
+    resid = np.array([r[2] for r in rows], dtype=ld) - Hb @ mx
+    # the moments in float64
+    Sx64, Hb64, Sy64 = (np.asarray(a, dtype=float) for a in (Sx, Hb, Sy))
+    K = np.linalg.solve(Sy64, Hb64 @ Sx64).T
+    mean = (np.asarray(mx, dtype=float) + K @ np.asarray(resid, dtype=float)).reshape(T, n)
+    var = np.diagonal(Sx64 - K @ Hb64 @ Sx64).reshape(T, n)
+    # the log-likelihood in extended precision
     m = len(rows)
     L, z = np.zeros((m, m), dtype=ld), np.zeros(m, dtype=ld)
     for i in range(m):
@@ -357,7 +340,8 @@ def _dense_log_likelihood(model, params, dt, T, rows, m0, P0):
             v = Sy[i, j] - L[i, :j] @ L[j, :j]
             L[i, j] = np.sqrt(v) if i == j else v / L[j, j]
         z[i] = (resid[i] - L[i, :i] @ z[:i]) / L[i, i]
-    return float(-0.5 * (z @ z + 2 * np.sum(np.log(np.diagonal(L))) + m * np.log(2 * np.pi * ld(1))))
+    ll = float(-0.5 * (z @ z + 2 * np.sum(np.log(np.diagonal(L))) + m * np.log(2 * np.pi * ld(1))))
+    return mean, var, ll
 
 
 def test_two_rates_and_a_gap_match_the_dense_gaussian(tmp_path):
