@@ -149,7 +149,7 @@ def run_pgas(
     lowfreq_steps: int = 5,
     residual_modes: int = 16,
     residual_steps: int = 60,
-    smoother_steps: int = 1,
+    smoother_steps: int = 4,
     joint_steps: int = 3,
     joint_recentre: int = smoother_move.JOINT_RECENTRE,
     channels=None,
@@ -188,9 +188,10 @@ def run_pgas(
     when no channel sees the force) move the ``residual_modes`` slowest
     modes of the mechanical within-step noise, the force following so that
     the acceleration predictions are kept. Before those, right after the
-    sweep, ``smoother_steps`` independence Metropolis-Hastings steps
-    (:mod:`latentforce.inference.smoother_move`; 0 disables) propose whole
-    paths from the linearised model's smoother about each chain's centre
+    sweep, ``smoother_steps`` Metropolis-Hastings steps
+    (:mod:`latentforce.inference.smoother_move`; 0 disables; an independence
+    step, then Crank-Nicolson steps, :data:`~latentforce.inference.smoother_move.CN_BETAS`)
+    propose whole paths from the linearised model's smoother about each chain's centre
     (Gauss-Newton from the extended Kalman smoother, for nonlinear systems
     re-set from the chain's path where the path moves are re-shaped in the
     burn-in): exact draws for a linear system, and most proposals accepted

@@ -11,15 +11,17 @@ Gibbs update of each inferred noise variance (:mod:`latentforce.inference.noise_
 :func:`reshape_chunks` its segments; the driver that vmaps and scans the block is
 :func:`latentforce.inference.pgas.run_pgas`.
 
-**Smoother move.** Right after the sweep, ``smoother_steps`` independence
-Metropolis-Hastings steps whose proposal is the smoother of the model
+**Smoother move.** Right after the sweep, ``smoother_steps``
+Metropolis-Hastings steps whose proposal is built from the smoother of the model
 linearised about the chain's centre path
-(:mod:`latentforce.inference.smoother_move`): for a smooth force (Matérn-5/2,
+(:mod:`latentforce.inference.smoother_move`; an independence step, then
+Crank-Nicolson steps of decreasing size about it): for a smooth force (Matérn-5/2,
 7/2) the sweep's ancestor weights collapse and it hardly renews the path,
 while with a displacement channel this move accepts most of its proposals,
-each a whole new path. Its random numbers come from the chain's key folded
-with :data:`~latentforce.inference.smoother_move.SMOOTHER_STREAM`. A state
-without a centre (``centre=None``) skips it.
+each a whole new path, and with acceleration alone its small steps still move
+it. Its random numbers come from the chain's key folded with
+:data:`~latentforce.inference.smoother_move.SMOOTHER_STREAM`. A state without a
+centre (``centre=None``) skips it.
 
 **Joint move.** With free hyperparameters (and a centre), the block starts
 with ``joint_steps`` Metropolis-Hastings steps on :math:`(\theta, \text{path})`
