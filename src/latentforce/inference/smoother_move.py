@@ -69,8 +69,10 @@ record of ``benchmarks/results/nonlinear_calibration_orders_acc.md`` at Matérn-
 independence step accepted 0 of its proposals and the ladder 4 % (the small steps), and the
 force's coverage of the truth at +-1/2/3 sd went from 44/77/83 % to 81/92/99 % in the same
 60 s (R-hat stayed above 2: the chains still hold apart, a segment of the record in another
-local mode; what is left of that issue). Tested: on a linear model whose proposal is built
-with the wrong noise (so :math:`q \ne \pi`), chains started at exact draws stay exact.
+local mode; what is left of that issue). Tested: on an acceleration-only Duffing record, where
+:math:`q \ne \pi`, chains at (near) posterior draws keep every time's mean and sd through these
+steps. The move is exact only with ``R`` the noise of ``od`` (as the Gibbs block calls it): the
+weights assume the proposal was built from the same observation density.
 
 The centre. :func:`iterated_centre` runs Gauss-Newton on the path (the
 iterated extended Kalman smoother: the linearised model's smoothed mean,
