@@ -657,7 +657,7 @@ def _duffing_acceleration_record(order):
     tr = pm.transition(20.0, 0.1)
     od = latent.observation_density(pm, y, mask)
     eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
-    base = smoother_move.iterated_centre(pm, tr, od, pm.R, eks, smoother_move.CENTRE_ITERATIONS)
+    base = smoother_move.iterated_centre(pm, tr, od, eks, smoother_move.CENTRE_ITERATIONS)
     return pm, tr, od, eks, base
 
 
@@ -829,7 +829,7 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
         od = latent.observation_density(pm, y, mask)
         eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
         if kind == "smoother":
-            x, acc = smoother_move.smoother_move(key, pm, tr, od, pm.R, eks, x, 5)
+            x, acc = smoother_move.smoother_move(key, pm, tr, od, eks, x, 5)
         elif kind == "residual":
             init = path_moves.residual_init(rm, pm, od, tr, eks)
             _, x, acc = path_moves.residual_move(key, init, rm, pm, od, tr, x, 30, adapt=False)
@@ -901,7 +901,6 @@ def test_joint_move_keeps_the_joint_distribution_of_a_nonlinear_model():
             pm,
             hyper,
             od,
-            pm.R,
             eks,
             tr,
             path,

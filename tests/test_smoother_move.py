@@ -31,12 +31,12 @@ def test_linear_proposal_is_the_exact_smoother_and_always_accepted(order):
 
     @jit
     def run(key):
-        gs = smoother_move.proposal_draws(key, pm, tr, od, pm.R, centre, 4000)
+        gs = smoother_move.proposal_draws(key, pm, tr, od, centre, 4000)
         lin = smoother_move.linearise(pm, tr, centre)
         lws = jax.vmap(lambda g: smoother_move.log_weight(pm, lin, od, g)[0])(gs[:50])
         xs = jax.vmap(pm.path)(gs)
         start = xs[0] + 0.5  # far from the posterior: still accepted
-        path, acc = smoother_move.smoother_move(jax.random.key(9), pm, tr, od, pm.R, centre, start, 20)
+        path, acc = smoother_move.smoother_move(jax.random.key(9), pm, tr, od, centre, start, 20)
         return xs, jax.vmap(lambda g: latent.whiten(tr, g))(gs), lws, path, acc
 
     xs, eps, lws, path, acc = run(jax.random.key(order))
@@ -68,12 +68,12 @@ def test_crank_nicolson_steps_keep_the_posterior_where_the_proposal_is_not_it(or
     @jit
     def run(key):
         eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
-        centre = smoother_move.iterated_centre(pm, tr, od, pm.R, eks)
+        centre = smoother_move.iterated_centre(pm, tr, od, eks)
         k0, k1, k2 = jax.random.split(key, 3)
-        start = jax.vmap(pm.path)(smoother_move.proposal_draws(k0, pm, tr, od, pm.R, centre, n))
+        start = jax.vmap(pm.path)(smoother_move.proposal_draws(k0, pm, tr, od, centre, n))
 
         def steps(k, x, m, betas):
-            return smoother_move.smoother_move(k, pm, tr, od, pm.R, centre, x, m, betas=betas)
+            return smoother_move.smoother_move(k, pm, tr, od, centre, x, m, betas=betas)
 
         post, acc_i = jax.vmap(lambda k, x: steps(k, x, 40, (1.0,)))(jax.random.split(k1, n), start)
         moved, acc_cn = jax.vmap(lambda k, x: steps(k, x, 20, (0.5, 0.2)))(jax.random.split(k2, n), post)
@@ -109,8 +109,8 @@ def test_joint_target_is_the_exact_marginal_likelihood_on_a_linear_model(order):
         tr = pm.transition(variance, lengthscale)
         A_d, Q_d, H, m1, P1 = pm.linear_discrete(tr)
         exact = log_likelihood(A_d, Q_d, H, pm.R, m1, P1, prob["y"], prob["mask"])
-        cur = smoother_move.joint_log_target(None, pm, tr, od, pm.R, centre, 0.7, path=path)
-        new = smoother_move.joint_log_target(jax.random.key(5), pm, tr, od, pm.R, centre, 0.7)
+        cur = smoother_move.joint_log_target(None, pm, tr, od, centre, 0.7, path=path)
+        new = smoother_move.joint_log_target(jax.random.key(5), pm, tr, od, centre, 0.7)
         return tr, exact, cur, new
 
     for variance, lengthscale in ((1.0, 0.5), (0.3, 0.8), (3.0, 0.2)):
@@ -184,7 +184,7 @@ def test_proposal_draws_follow_the_dense_gaussian_on_a_nonlinear_model(order):
     sd_dense = jnp.sqrt(jnp.diagonal(Jx @ cov_e @ Jx.T)).reshape(T, -1)
     xs = jit(
         lambda k: jax.vmap(lambda g: smoother_move.linear_path(pm, lin, g))(
-            smoother_move.proposal_draws(k, pm, tr, od, pm.R, eks, 4000)
+            smoother_move.proposal_draws(k, pm, tr, od, eks, 4000)
         )
     )(jax.random.key(2))
     z = (np.asarray(xs.mean(0)) - np.asarray(mean_dense)) / (np.asarray(sd_dense) / np.sqrt(4000))
@@ -203,8 +203,8 @@ def test_duffing_with_a_displacement_channel_accepts_most_proposals(order):
     @jit
     def run(key):
         eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
-        centre = smoother_move.iterated_centre(pm, tr, od, pm.R, eks)
-        return smoother_move.smoother_move(key, pm, tr, od, pm.R, centre, centre, 200), centre, eks
+        centre = smoother_move.iterated_centre(pm, tr, od, eks)
+        return smoother_move.smoother_move(key, pm, tr, od, centre, centre, 200), centre, eks
 
     (path, acc), centre, eks = run(jax.random.key(0))
     assert float(jnp.mean(acc)) > 0.5, float(jnp.mean(acc))
@@ -255,8 +255,8 @@ def test_joint_target_at_other_system_parameters_is_the_exact_marginal_likelihoo
         tr = pm_x.transition(*hyper.values(x))
         A_d, Q_d, H, m1, P1 = pm_x.linear_discrete(tr)
         exact = log_likelihood(A_d, Q_d, H, pm.R, m1, P1, prob["y"], prob["mask"]) + hyper.joint_log_prior(x)
-        cur = smoother_move.joint_log_target(None, pm_x, tr, od, pm.R, path, hyper.joint_log_prior(x), path=path)
-        new = smoother_move.joint_log_target(jax.random.key(5), pm_x, tr, od, pm.R, path, hyper.joint_log_prior(x))
+        cur = smoother_move.joint_log_target(None, pm_x, tr, od, path, hyper.joint_log_prior(x), path=path)
+        new = smoother_move.joint_log_target(jax.random.key(5), pm_x, tr, od, path, hyper.joint_log_prior(x))
         return exact, cur.log_target, new.log_target
 
     values = []
@@ -301,9 +301,9 @@ def test_recentred_joint_target_is_one_function_of_the_point():
         pm_x = hyper.model_at(pm, x)
         tr = pm_x.transition(*hyper.values(jnp.zeros(0)))
         lp = hyper.joint_log_prior(x)
-        new = smoother_move.joint_log_target(key, pm_x, tr, od, pm.R, centre, lp, None, 2)
-        cur = smoother_move.joint_log_target(None, pm_x, tr, od, pm.R, centre, lp, new.path, 2)
-        plain = smoother_move.joint_log_target(None, pm_x, tr, od, pm.R, centre, lp, new.path, 0)
+        new = smoother_move.joint_log_target(key, pm_x, tr, od, centre, lp, None, 2)
+        cur = smoother_move.joint_log_target(None, pm_x, tr, od, centre, lp, new.path, 2)
+        plain = smoother_move.joint_log_target(None, pm_x, tr, od, centre, lp, new.path, 0)
         return new.log_target, cur.log_target, plain.log_target
 
     for gamma, seed in ((-1100.0, 0), (-900.0, 1)):

@@ -61,6 +61,7 @@ class ObservationDensity(NamedTuple):
     maskf: Float[Array, "T d"]
     Rinv: Float[Array, "T d d"]  # zero rows/columns where missing
     const: Float[Array, " T"]
+    R: Float[Array, "d d"]  # the channels' noise covariance (the Gaussian moves build their proposals from it)
 
 
 def observation_density(pm: particle_model.ParticleModel, y, mask, R=None) -> ObservationDensity:
@@ -78,7 +79,7 @@ def observation_density(pm: particle_model.ParticleModel, y, mask, R=None) -> Ob
         return symmetrise(inv), -jnp.sum(jnp.log(jnp.diag(c))) - 0.5 * jnp.sum(m) * _LOG_2PI
 
     Rinv, const = jax.vmap(_one)(maskf)
-    return ObservationDensity(yz, maskf, Rinv, const)
+    return ObservationDensity(yz, maskf, Rinv, const, jnp.asarray(R, dtype=float))
 
 
 def predicted_observations(pm: particle_model.ParticleModel, path: Float[Array, "T n"]) -> Float[Array, "T d"]:

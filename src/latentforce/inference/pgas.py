@@ -320,7 +320,7 @@ def run_pgas(
     # left. Gauss-Newton from it (the smoother move's centre, a path of the model with the same fit)
     # is where they start; for a linear system the two coincide (no iterations).
     one = jax.tree_util.tree_map(lambda a: a[None], (tr0, eks))
-    start = _centres(pm, od, R, *one, hyper, np.zeros((1, 0)), iterations=_centre_iterations(pm))[0]
+    start = _centres(pm, od, *one, hyper, np.zeros((1, 0)), iterations=_centre_iterations(pm))[0]
 
     def per_chain(a):
         return np.broadcast_to(np.asarray(a), (chains,) + np.shape(a))
@@ -381,7 +381,7 @@ def run_pgas(
             if with_sm:  # the smoother move's centre: Gauss-Newton from each chain's own path
                 states = states._replace(
                     centre=_centres(
-                        pm, od, R, states.tr, states.reference, hyper, x_sys, iterations=_centre_iterations(pm)
+                        pm, od, states.tr, states.reference, hyper, x_sys, iterations=_centre_iterations(pm)
                     )
                 )
         if auto:
@@ -505,12 +505,12 @@ def _centre_iterations(pm) -> int:
 
 
 @functools.partial(jit, static_argnames=("iterations",))
-def _centres(pm, od, R, trs, paths, hyper, x_sys, *, iterations):
+def _centres(pm, od, trs, paths, hyper, x_sys, *, iterations):
     """The smoother move's centres (:func:`smoother_move.iterated_centre`) from ``paths``, one per
     transition in ``trs`` and system parameters in ``x_sys`` (leading axis): Gauss-Newton on each
     chain's own model, so that a chain whose stiffness is far from the start's gets proposals that
     fit it."""
-    return jax.vmap(lambda tr, x, xs: smoother_move.iterated_centre(_at(pm, hyper, xs), tr, od, R, x, iterations))(
+    return jax.vmap(lambda tr, x, xs: smoother_move.iterated_centre(_at(pm, hyper, xs), tr, od, x, iterations))(
         trs, paths, x_sys
     )
 

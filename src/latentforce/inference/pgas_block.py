@@ -412,7 +412,6 @@ def make_block(
                 pm_base,
                 hyper,
                 od,
-                R,
                 state.centre,
                 state.tr,
                 state.reference,
@@ -436,7 +435,7 @@ def make_block(
         if n_sm and state.centre is not None:
             # its own stream (folded in): a run without the move draws what it drew before
             k_sm = jax.random.fold_in(state.key, smoother_move.SMOOTHER_STREAM)
-            path, accs_sm = smoother_move.smoother_move(k_sm, pm, tr, od, R, state.centre, path, n_sm)
+            path, accs_sm = smoother_move.smoother_move(k_sm, pm, tr, od, state.centre, path, n_sm)
             acc_sm = jnp.mean(accs_sm.astype(float))
         rwm_lf, acc_lf = state.rwm_lf, jnp.zeros(())
         if n_lf:

@@ -71,8 +71,9 @@ force's coverage of the truth at +-1/2/3 sd went from 44/77/83 % to 81/92/99 % i
 60 s (R-hat stayed above 2: the chains still hold apart, a segment of the record in another
 local mode; what is left of that issue). Tested: on an acceleration-only Duffing record, where
 :math:`q \ne \pi`, chains at (near) posterior draws keep every time's mean and sd through these
-steps. The move is exact only with ``R`` the noise of ``od`` (as the Gibbs block calls it): the
-weights assume the proposal was built from the same observation density.
+steps. The proposal's noise is the observation density's own (``od.R``): the weights assume
+the proposal was built from the same density (a proposal built at another noise, with weights
+at this one, was measured wrong).
 
 The centre. :func:`iterated_centre` runs Gauss-Newton on the path (the
 iterated extended Kalman smoother: the linearised model's smoothed mean,
@@ -239,10 +240,11 @@ class _Gains(NamedTuple):
     logdet: Float[Array, " T"]  # log |S_t| over the observed channels (the marginal likelihood)
 
 
-def _gains(pm, tr, lin: Linearisation, od: ObservationDensity, R) -> _Gains:
+def _gains(pm, tr, lin: Linearisation, od: ObservationDensity) -> _Gains:
     """The covariance recursion of the linearised model in prediction form (Durbin & Koopman 2012,
     Sec. 4.3), its noise factored as the latent's whitening factors (state order) so that the
-    draws are exactly ``colour`` of innovations (:func:`_draw`)."""
+    draws are exactly ``colour`` of innovations (:func:`_draw`); the sensors' noise is ``od.R``."""
+    R = od.R
     G = pm.latent_layout
     latent = np.arange(G.n)
     perm = np.r_[latent[G.noise], latent[G.force]]  # the latent's entries in the state's order
@@ -313,17 +315,15 @@ def _smooth_from(pm, lin: Linearisation, gains: _Gains, a, v):
     return eps, a + jnp.einsum("tij,tj->ti", gains.P, r_prev)
 
 
-def _draw(key, pm, tr, lin: Linearisation, gains: _Gains, od: ObservationDensity, R, eps_hat) -> Float[Array, "T nl"]:
+def _draw(key, pm, tr, lin: Linearisation, gains: _Gains, od: ObservationDensity, eps_hat) -> Float[Array, "T nl"]:
     r"""One latent path of the proposal, by the simulation smoother of Durbin & Koopman (2002):
     :math:`\varepsilon^* \sim N(0, I)` and data :math:`y^*` simulated from the linearised model
     through it; then :math:`\varepsilon = \varepsilon^* - \hat\varepsilon(y^*) + \hat\varepsilon(y)`
     and the latent is ``colour`` of it (``eps_hat``: :math:`\hat\varepsilon(y)`)."""
-    return colour(tr, _draw_eps(key, pm, tr, lin, gains, od, R, eps_hat))
+    return colour(tr, _draw_eps(key, pm, tr, lin, gains, od, eps_hat))
 
 
-def _draw_eps(
-    key, pm, tr, lin: Linearisation, gains: _Gains, od: ObservationDensity, R, eps_hat
-) -> Float[Array, "T nl"]:
+def _draw_eps(key, pm, tr, lin: Linearisation, gains: _Gains, od: ObservationDensity, eps_hat) -> Float[Array, "T nl"]:
     """:func:`_draw`'s innovations (before ``colour``)."""
     k_eps, k_obs = jax.random.split(key)
     T = lin.centre.shape[0]
@@ -332,34 +332,34 @@ def _draw_eps(
     # each channel its own stream: a record observed through extra, never-observed channels
     # (pgas.observe_through) draws what it draws through its own sensors
     z = jax.vmap(lambda i: jax.random.normal(jax.random.fold_in(k_obs, i), (T,)), out_axes=1)(jnp.arange(od.y.shape[1]))
-    noise = z @ cholesky(symmetrise(R)).T
+    noise = z @ cholesky(symmetrise(od.R)).T
     y_star = lin.h + jnp.einsum("tij,tj->ti", lin.H, x_star - lin.centre) + noise
     return eps_star - _smooth(pm, lin, gains, y_star)[0] + eps_hat
 
 
-def proposal_draws(key, pm, tr, od: ObservationDensity, R, centre, n: int) -> Float[Array, "n T n"]:
+def proposal_draws(key, pm, tr, od: ObservationDensity, centre, n: int) -> Float[Array, "n T n"]:
     """``n`` independent draws of the proposal as latent paths :math:`g` (tests and diagnostics)."""
     lin = linearise(pm, tr, centre)
-    gains = _gains(pm, tr, lin, od, R)
+    gains = _gains(pm, tr, lin, od)
     eps_hat = _smooth(pm, lin, gains, od.y)[0]
-    return jax.vmap(lambda k: _draw(k, pm, tr, lin, gains, od, R, eps_hat))(jax.random.split(key, n))
+    return jax.vmap(lambda k: _draw(k, pm, tr, lin, gains, od, eps_hat))(jax.random.split(key, n))
 
 
 def iterated_centre(
-    pm, tr, od: ObservationDensity, R, path: Float[Array, "T n"], iterations: int = CENTRE_ITERATIONS
+    pm, tr, od: ObservationDensity, path: Float[Array, "T n"], iterations: int = CENTRE_ITERATIONS
 ) -> Float[Array, "T n"]:
     """Gauss-Newton from ``path``: the linearised model's smoothed mean, ``iterations`` times re-expanded there."""
 
     def _one(c, _):
         lin = linearise(pm, tr, c)
-        return _smooth(pm, lin, _gains(pm, tr, lin, od, R), od.y)[1], None
+        return _smooth(pm, lin, _gains(pm, tr, lin, od), od.y)[1], None
 
     c, _ = jax.lax.scan(_one, path, None, length=int(iterations))
     return c
 
 
 def smoother_move(
-    key, pm, tr, od: ObservationDensity, R, centre, path: Float[Array, "T n"], n_steps: int, betas=CN_BETAS
+    key, pm, tr, od: ObservationDensity, centre, path: Float[Array, "T n"], n_steps: int, betas=CN_BETAS
 ) -> tuple[Float[Array, "T n"], Float[Array, " k"]]:
     r"""``n_steps`` Metropolis-Hastings steps from the proposal about ``centre`` (module doc).
 
@@ -371,10 +371,10 @@ def smoother_move(
     and the steps then run in order. Returns the new path and each step's acceptance (bool).
     """
     lin = linearise(pm, tr, centre)
-    gains = _gains(pm, tr, lin, od, R)
+    gains = _gains(pm, tr, lin, od)
     eps_hat = _smooth(pm, lin, gains, od.y)[0]
     k_draw, k_acc = jax.random.split(key)
-    ds = jax.vmap(lambda k: _draw_eps(k, pm, tr, lin, gains, od, R, eps_hat))(jax.random.split(k_draw, n_steps))
+    ds = jax.vmap(lambda k: _draw_eps(k, pm, tr, lin, gains, od, eps_hat))(jax.random.split(k_draw, n_steps))
     beta = jnp.asarray([float(betas[j % len(betas)]) for j in range(int(n_steps))])
     g_cur = pm.latent(path)
     lw_cur = _log_weight(pm, lin, od, g_cur, path)  # the current path: no rebuild
@@ -401,7 +401,7 @@ class JointProposal(NamedTuple):
 
 
 def joint_log_target(
-    key, pm, tr, od: ObservationDensity, R, centre, log_prior, path=None, recentre: int = 0
+    key, pm, tr, od: ObservationDensity, centre, log_prior, path=None, recentre: int = 0
 ) -> JointProposal:
     r"""The joint move's target at the transition ``tr`` (module doc, "The joint move").
 
@@ -411,13 +411,13 @@ def joint_log_target(
     Gauss-Newton iterations from ``centre`` at this point's model first (module doc).
     """
     if recentre:
-        centre = iterated_centre(pm, tr, od, R, centre, recentre)
+        centre = iterated_centre(pm, tr, od, centre, recentre)
     lin = linearise(pm, tr, centre)
-    gains = _gains(pm, tr, lin, od, R)
+    gains = _gains(pm, tr, lin, od)
     a, v = _filter_means(pm, lin, gains, od.y)
     base = log_prior + _log_marginal(gains, v)
     if path is None:
-        g = _draw(key, pm, tr, lin, gains, od, R, _smooth_from(pm, lin, gains, a, v)[0])
+        g = _draw(key, pm, tr, lin, gains, od, _smooth_from(pm, lin, gains, a, v)[0])
         lw, path = log_weight(pm, lin, od, g)
     else:
         lw = _log_weight(pm, lin, od, pm.latent(path), path)
@@ -430,7 +430,6 @@ def joint_move(
     pm,
     hyper,
     od: ObservationDensity,
-    R,
     centre,
     tr,
     path: Float[Array, "T n"],
@@ -456,7 +455,7 @@ def joint_move(
     """
     p = len(hyper.names)
     cur = joint_log_target(
-        None, hyper.model_at(pm, rwm.x[p:]), tr, od, R, centre, hyper.joint_log_prior(rwm.x), path, recentre
+        None, hyper.model_at(pm, rwm.x[p:]), tr, od, centre, hyper.joint_log_prior(rwm.x), path, recentre
     )
     rwm = rwm._replace(logdensity=cur.log_target)
 
@@ -467,7 +466,7 @@ def joint_move(
         def _target(x):
             pm_x = hyper.model_at(pm, x[p:])  # the model at the proposed system parameters
             jp = joint_log_target(
-                k_draw, pm_x, pm_x.transition(*hyper.values(x)), od, R, centre, hyper.joint_log_prior(x), None, recentre
+                k_draw, pm_x, pm_x.transition(*hyper.values(x)), od, centre, hyper.joint_log_prior(x), None, recentre
             )
             return jp.log_target, (jp.path, jp.tr)
 
