@@ -38,6 +38,16 @@ def time_points(T: int) -> int:
     return 9
 
 
+def mech_initial(problem):
+    """The ``[initial]`` section's mechanical block ``(mean, cov)`` (as ``estimate`` passes it to
+    ``pgas``: the force states start from their stationary distribution), or None."""
+    if problem.initial is None:
+        return None
+    mean, cov = problem.initial
+    mech = problem.model.layout.mech
+    return np.asarray(mean)[mech], np.asarray(cov)[mech, mech]
+
+
 def simulate(rng: np.random.Generator, problem, params: dict, T: int, dt: float):
     """``(y, mask, paths)``: one record from the sampler's own model at ``params``; ``paths["force"]``
     is the true force value at every sample."""
@@ -50,7 +60,7 @@ def simulate(rng: np.random.Generator, problem, params: dict, T: int, dt: float)
     # The initial state's prior is the sampler's: the user's, else the default at the free
     # parameters' initial values (run_pgas builds its model there and keeps that prior while it
     # samples m, c, k, k3 ...; a nonlinear default depends on c and k)
-    initial = problem.initial
+    initial = mech_initial(problem)
     if initial is None:
         init = dict(params, **{n: spec.init for n, spec in problem.free.items()})
         initial = ParticleModel(model, init, dt, R=model.noise_covariance(init)).initial_mech()
@@ -85,7 +95,7 @@ def run(key, sampler: str, problem, y, mask, dt: float, settings: dict):
         jnp.asarray(mask),
         dt,
         iterations=None,
-        initial=problem.initial,
+        initial=mech_initial(problem),
         time_points=time_points(T),
         **settings,
     )
