@@ -39,13 +39,12 @@ def time_points(T: int) -> int:
 
 
 def mech_initial(problem):
-    """The ``[initial]`` section's mechanical block ``(mean, cov)`` (as ``estimate`` passes it to
-    ``pgas``: the force states start from their stationary distribution), or None."""
-    if problem.initial is None:
-        return None
-    mean, cov = problem.initial
-    mech = problem.model.layout.mech
-    return np.asarray(mean)[mech], np.asarray(cov)[mech, mech]
+    """The ``[initial]`` section's mechanical block ``(mean, cov)`` as ``estimate`` passes it to
+    ``pgas`` (the force states start from their stationary distribution), or None. Without the
+    section the family keeps its own default (``simulate``), not ``estimate``'s."""
+    from latentforce.estimate_particles import _mechanical_initial
+
+    return None if problem.initial is None else _mechanical_initial(problem, {})
 
 
 def simulate(rng: np.random.Generator, problem, params: dict, T: int, dt: float):

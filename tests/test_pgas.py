@@ -1000,7 +1000,7 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model(system):
                 hyper, lambda x_: jnp.zeros(()), jnp.concatenate([x, x_sys]), proposal_sd=0.2 if system else 0.3
             ),
         )
-        return state, pgas.BlockData(y, mask, pm.R, od, jnp.zeros((T, nq)))
+        return state, pgas.BlockData(y, mask, od, jnp.zeros((T, nq)))
 
     @jit
     def run(keys):

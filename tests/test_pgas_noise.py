@@ -337,7 +337,7 @@ def test_gibbs_block_with_an_inferred_noise_keeps_the_joint_distribution():
             sd**2,
             eks,  # the smoother move's centre (its noise covariance: the chain's own)
         )
-        return state, pgas_block.BlockData(y, mask, pm.R, od, jnp.zeros((T, nq)))
+        return state, pgas_block.BlockData(y, mask, od, jnp.zeros((T, nq)))
 
     @jit
     def run(keys):

@@ -356,7 +356,7 @@ def run_pgas(
 
     # the data are arguments, not constants of the program: a compiled program (and
     # JAX's persistent cache entry) then serves every record of the same shape
-    data = BlockData(y, mask, R, od, ref_q)
+    data = BlockData(y, mask, od, ref_q)
 
     infos = []
     verdict, done, finished, stopped = None, 0, False, None

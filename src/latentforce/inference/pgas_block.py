@@ -190,8 +190,7 @@ class BlockData(NamedTuple):
 
     y: Float[Array, "T d"]
     mask: Array
-    R: Float[Array, "d d"]  # the channels' noise covariance (its inferred entries: ChainState.noise_var)
-    od: ObservationDensity
+    od: ObservationDensity  # its R: the channels' noise covariance (its inferred entries: ChainState.noise_var)
     ref_q: Float[Array, "T q"]  # centring of the running sums (the smoother's summary quantities)
 
 
@@ -337,7 +336,7 @@ def make_block(
     ``noise`` (:class:`~latentforce.inference.noise_gibbs.NoiseLevels`): the
     channels whose noise level is inferred. With any, the block's noise
     covariance is ``diag(state.noise_var)`` (the chain's own, which the state
-    must then hold) wherever ``data.R`` and ``data.od`` would be used, and
+    must then hold) wherever ``data.od`` (and its ``R``) would be used, and
     after the hyperparameter steps each inferred variance gets one exact Gibbs
     update given the final path (:func:`~latentforce.inference.noise_gibbs.gibbs_step`),
     its random numbers from the chain's key folded with
@@ -398,10 +397,10 @@ def make_block(
         key, k_sweep, k_mh, k_lf, k_rp = jax.random.split(state.key, 5)
         tr = state.tr
         if n_noise:  # the chain's own noise levels
-            R = jnp.diag(state.noise_var)
-            od = observation_density(pm_base, data.y, data.mask, R)
+            od = observation_density(pm_base, data.y, data.mask, jnp.diag(state.noise_var))
         else:
-            R, od = data.R, data.od
+            od = data.od
+        R = od.R
         reference, rwm_x, rwm_joint, acc_joint = state.reference, state.rwm.x, state.rwm_joint, jnp.zeros(())
         if n_joint and (p or n_sys) and state.centre is not None and rwm_joint is not None:
             k_joint = jax.random.fold_in(state.key, smoother_move.JOINT_STREAM)
