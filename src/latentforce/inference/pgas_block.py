@@ -400,7 +400,6 @@ def make_block(
             od = observation_density(pm_base, data.y, data.mask, jnp.diag(state.noise_var))
         else:
             od = data.od
-        R = od.R
         reference, rwm_x, rwm_joint, acc_joint = state.reference, state.rwm.x, state.rwm_joint, jnp.zeros(())
         if n_joint and (p or n_sys) and state.centre is not None and rwm_joint is not None:
             k_joint = jax.random.fold_in(state.key, smoother_move.JOINT_STREAM)
@@ -427,7 +426,7 @@ def make_block(
         pm = hyper.model_at(pm_base, x_sys)
         rm = rm_base.at(pm) if n_sys else rm_base
         sweep = make_sweep(pm) if n_sys else sweep_fixed
-        sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal, R)
+        sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal, od.R)
         out = sweep(k_sweep, sc, reference)
         path = out.trajectory
         acc_sm = jnp.zeros(())
