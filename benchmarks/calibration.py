@@ -452,7 +452,7 @@ REPLICATIONS = {
     },
     "quick": {
         ("SBC", "kalman-mcmc"): 20,
-        ("SBC", "kalman-nuts"): 2,
+        ("SBC", "kalman-nuts"): 1,  # a smoke run (a second cost CI 18 s)
         ("coverage", "kalman-mcmc"): 2,
         ("coverage", "kalman-nuts"): 0,
         ("SBC", "pgas"): 1,

@@ -63,3 +63,47 @@ def _drop_compiled_programs_after_each_module():
     yield
     jax.clear_caches()
     gc.collect()
+
+
+class LoweredPrograms:
+    """The StableHLO text of compiled programs as a run calls them (fixture ``lowered_programs``)."""
+
+    def __init__(self, monkeypatch):
+        self.texts, self._seen, self._monkeypatch = [], set(), monkeypatch
+
+    def record(self, *modules):
+        """Replace every module-level compiled program (a ``jit`` function) of ``modules`` by one that
+        also keeps its text, once per program and signature (the arguments' tree, the arrays' shapes
+        and types, the other arguments' values: the optimiser calls one program hundreds of times)."""
+        import numpy as np
+
+        for module in modules:
+            for name, prog in list(vars(module).items()):
+                if not (callable(prog) and hasattr(prog, "lower") and hasattr(prog, "trace")):
+                    continue
+
+                def call(*args, _prog=prog, _name=name, **kw):
+                    leaves, tree = jax.tree_util.tree_flatten((args, kw))
+                    sig = tuple((np.shape(x), str(x.dtype)) if hasattr(x, "dtype") else x for x in leaves)
+                    if (_name, tree, sig) not in self._seen:
+                        self._seen.add((_name, tree, sig))
+                        self.texts.append((_name, _prog.lower(*args, **kw).as_text()))
+                    return _prog(*args, **kw)
+
+                self._monkeypatch.setattr(module, name, call)
+
+    @property
+    def names(self):
+        return {name for name, _ in self.texts}
+
+    def lapack_calls(self):
+        """The recorded programs whose text calls LAPACK."""
+        return sorted({name for name, text in self.texts if "lapack" in text})
+
+
+@pytest.fixture
+def lowered_programs(monkeypatch):
+    """Record the StableHLO text of the programs a test's run calls (:class:`LoweredPrograms`): used
+    to check that the samplers' programs hold no LAPACK call (``latentforce.linalg`` says why) on
+    runs the tests make anyway, not on runs of their own."""
+    return LoweredPrograms(monkeypatch)

@@ -195,15 +195,28 @@ def _inferred(method: str, extra: str = "") -> str:
 
 
 @pytest.mark.parametrize("method", ["kalman-mcmc", "kalman-nuts", "pgas"])
-def test_every_sampling_method_writes_a_result_folder_with_its_verdict(workdir, method):
+def test_every_sampling_method_writes_a_result_folder_with_its_verdict(workdir, method, lowered_programs):
     """estimate through the CLI: summary keys and columns, figures, posterior.nc opened by
-    ArviZ, and the convergence verdict (a short run: not converged, and its figures say so)."""
+    ArviZ, and the convergence verdict (a short run: not converged, and its figures say so).
+    And every compiled program of the run is free of LAPACK calls (``latentforce.linalg`` says
+    why): chains vmapped, which is what batches the factorisations; for pgas k3 is sampled, so
+    the per-chain model is in every program, and the filter's mode search starts the run."""
     import arviz as az
 
+    from latentforce.inference import kalman_mcmc, kalman_nuts, laplace, mixture, particle_model, pgas
+
+    lowered_programs.record(kalman_mcmc, kalman_nuts, laplace, mixture, pgas, particle_model)
     short = "iterations = 40\nburn_in = 20\nchains = 2\n"
     (workdir / "m.toml").write_text(_inferred(method, short))
     code, out = invoke("estimate", "m.toml", "--out", "res")
     assert code == 0, out
+    expected = {
+        "kalman-mcmc": {"_value_and_grad", "_run_chains", "_batch"},
+        "kalman-nuts": {"_value_and_grad", "_init_chains", "_run_chains", "_batch"},
+        "pgas": {"_value_and_grad", "_run_chunk", "_shapes", "_centres", "_smooth", "_init_chains", "_derived_program"},
+    }[method]
+    assert expected <= lowered_programs.names, lowered_programs.names
+    assert lowered_programs.lapack_calls() == []
     assert "NOT CONVERGED" in out  # 40 draws cannot reach an ESS of 400: said on stderr ...
     summary = json.loads((workdir / "res" / "summary.json").read_text())
     assert summary["method"] == method and summary["converged"] is False

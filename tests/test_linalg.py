@@ -1,5 +1,5 @@
-"""latentforce.linalg: the LAPACK-free factorisations and solves, against NumPy, and the
-samplers' compiled programs free of LAPACK calls (the module doc says why)."""
+"""latentforce.linalg: the LAPACK-free factorisations and solves, against NumPy (the module doc says
+why they exist; that the samplers' programs hold no LAPACK call is checked in test_cli.py)."""
 
 import jax
 import jax.numpy as jnp
@@ -8,10 +8,6 @@ import pytest
 
 import latentforce  # noqa: F401
 from latentforce import linalg
-from latentforce.kernels import Matern
-from latentforce.models import LatentForceModel, Sensor
-from latentforce.priors import LogNormal
-from latentforce.systems import Duffing, LinearSystem
 
 
 def _spd(rng, n, cond=1e3):
@@ -117,96 +113,5 @@ def test_derivatives_match_jax_linalg():
         np.testing.assert_allclose(float(d(ours)(0.1)), float(d(theirs)(0.1)), rtol=1e-8)
 
 
-# ---------------------------------------------------------------------------
-# The samplers' programs hold no LAPACK call
-# ---------------------------------------------------------------------------
-def _recording_programs(monkeypatch, texts, *modules):
-    """Replace every module-level compiled program (a ``jit`` function) of ``modules`` by one that
-    keeps its StableHLO text, once per program and signature (the arguments' tree, the arrays' shapes
-    and types, the other arguments' values): the optimiser calls one program hundreds of times."""
-    seen = set()
-    for module in modules:
-        for name, prog in list(vars(module).items()):
-            if not (callable(prog) and hasattr(prog, "lower") and hasattr(prog, "trace")):
-                continue
-
-            def call(*args, _prog=prog, _name=name, **kw):
-                leaves, tree = jax.tree_util.tree_flatten((args, kw))
-                sig = tuple((np.shape(x), str(x.dtype)) if hasattr(x, "dtype") else x for x in leaves)
-                if (_name, tree, sig) not in seen:
-                    seen.add((_name, tree, sig))
-                    texts.append((_name, _prog.lower(*args, **kw).as_text()))
-                return _prog(*args, **kw)
-
-            monkeypatch.setattr(module, name, call)
-
-
-def _lapack_calls(texts):
-    return sorted({name for name, text in texts if "lapack" in text})
-
-
-# with-k3 slow-marked for CI's time (its programs use the same linalg as the others; 60-120 s)
-@pytest.mark.parametrize(
-    "system", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["hyperparameters", "with-k3"]
-)
-def test_particle_gibbs_programs_call_no_lapack(monkeypatch, system):
-    """Every program of a nonlinear PGAS run (free hyperparameters, so the theta steps, the
-    low-frequency and the residual-preserving moves all run; chains vmapped, which is what
-    batches the factorisations) is free of LAPACK custom calls; ``with-k3``: k3 sampled too (the
-    per-chain model in every program, and the filter's mode search that starts the run)."""
-    from latentforce.inference import laplace, particle_model, pgas
-
-    texts = []
-    _recording_programs(monkeypatch, texts, pgas, particle_model, laplace)
-    model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
-    params = dict(m=1.0, c=0.5, k=10.0, k3=1000.0, force_variance=1.0, force_lengthscale=0.5)
-    free = {"force_variance": (LogNormal(0.0, 1.0), 1.0), "force_lengthscale": (LogNormal(-0.5, 1.0), 0.5)}
-    if system:
-        free["k3"] = (LogNormal(np.log(1000.0), 0.5), 800.0)
-    y = np.sin(np.arange(32) * 0.3)[:, None]
-    out = pgas.run_pgas(
-        jax.random.key(0, impl="rbg"),
-        model,
-        params,
-        free,
-        y,
-        np.ones(y.shape, bool),
-        0.05,
-        particles=8,
-        iterations=4,
-        burn_in=2,
-        chains=2,
-    )
-    assert np.all(np.isfinite(out.state_mean["force"]))
-    names = {name for name, _ in texts}
-    expected = {"_run_chunk", "_shapes", "_smooth", "_init_chains", "_start_transitions", "_derived_program"}
-    assert expected | ({"_value_and_grad", "_centres"} if system else set()) <= names, names
-    assert ("k3" in out.theta) == system
-    assert _lapack_calls(texts) == [], _lapack_calls(texts)
-
-
-def test_kalman_programs_call_no_lapack(monkeypatch):
-    """The linear path: the optimiser's gradient, Kalman MCMC and NUTS over chains, and the
-    mixture of smoothers (vmapped over parameter draws, with backward sampling)."""
-    from latentforce.inference import kalman_mcmc, kalman_nuts, laplace, mixture
-
-    texts = []
-    _recording_programs(monkeypatch, texts, kalman_mcmc, kalman_nuts, laplace, mixture)
-    M, K = np.diag([1.0, 0.5]), np.array([[30.0, -10.0], [-10.0, 10.0]])
-    model = LatentForceModel(
-        LinearSystem(ndof=2, force_dofs=(0,)),
-        Matern(1),
-        [Sensor("acceleration", 0, 0.05), Sensor("acceleration", 1, 0.05)],
-    )
-    fixed = dict(M=M, C=0.02 * K + 0.1 * M, K=K, force_variance=1.0, force_lengthscale=0.5)
-    free = {"force_variance": (LogNormal(0.0, 1.0), 1.0)}
-    y = np.random.default_rng(0).normal(size=(24, 2))
-    mask = np.ones(y.shape, bool)
-    out = kalman_mcmc.run_kalman_mcmc(
-        jax.random.key(0), model, fixed, free, y, mask, 0.05, iterations=8, burn_in=4, chains=2
-    )
-    kalman_nuts.run_kalman_nuts(jax.random.key(2), model, fixed, free, y, mask, 0.05, iterations=4, burn_in=4, chains=2)
-    mixture.mixture_posterior(jax.random.key(1), model, fixed, out.draws, y, mask, 0.05, thin_draws=2)
-    names = {name for name, _ in texts}
-    assert {"_run_chains", "_init_chains", "_value_and_grad", "_batch"} <= names, names
-    assert _lapack_calls(texts) == [], _lapack_calls(texts)
+# The samplers' programs are checked for LAPACK calls on the CLI's runs of every sampling method
+# (tests/test_cli.py, fixture ``lowered_programs`` of conftest.py), not on runs of their own here.

@@ -19,7 +19,8 @@ project's CI twice. Our matrices are a few states across (at most a few
 dozen rows), so these loops cost no more than the library calls, and XLA can
 fuse them into the surrounding loops, which it cannot do with a library call
 (see ``latentforce.compile``). ``tests/test_linalg.py`` checks them against
-NumPy and checks that the samplers' compiled programs hold no LAPACK call.
+NumPy; ``tests/test_cli.py`` checks that the compiled programs of a run of
+every sampling method hold no LAPACK call.
 """
 
 from __future__ import annotations
