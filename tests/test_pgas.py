@@ -924,7 +924,12 @@ def test_joint_move_keeps_the_joint_distribution_of_a_nonlinear_model():
 _SYSTEM_FREE = {"c": (LogNormal(np.log(0.5), 0.3), 0.5), "k3": (LogNormal(np.log(1000.0), 0.3), 1000.0)}
 
 
-@pytest.mark.parametrize("system", [False, True], ids=["hyperparameters", "with-c-k3"])
+# hyperparameters: slow-marked for CI's time (73-81 s). with-c-k3 runs every move of its block
+# (both hyperparameters free as well) and catches its breakages: with the non-centred step's
+# likelihood tempered by 10 % it fails (2026-11-28), as it does when c, k3's Jacobian is dropped.
+@pytest.mark.parametrize(
+    "system", [pytest.param(False, marks=pytest.mark.slow), True], ids=["hyperparameters", "with-c-k3"]
+)
 def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model(system):
     """The whole post-burn-in Gibbs block of ``run_pgas`` (:func:`pgas.make_block`: the joint
     (theta, path) move, sweep, smoother, low-frequency and residual-preserving moves, centred and
