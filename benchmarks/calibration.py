@@ -419,6 +419,18 @@ def cases() -> list[Case]:
             "pgas's own discrete model as duffing-sbc",
             quick=False,
         ),
+        Case(
+            "bouc-wen-sbc-params-default-start",
+            "duffing",
+            {k: v for k, v in BOUC_WEN_SBC_CONFIG.items() if k != "initial"},
+            65,
+            1.0 / 750.0,
+            None,
+            ("pgas",),
+            "as bouc-wen-sbc-params, with the CLI's default initial prior (no `[initial]`: the hysteretic "
+            "force's sd 14.7 N at the force's median variance, straddling the |r| kink), the records drawn from it",
+            quick=False,
+        ),
         dataclasses.replace(
             duffing,
             name="duffing-sbc-acc",

@@ -969,7 +969,8 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model(system):
         particles=16,
         lowfreq_steps=5,
         residual_steps=20,
-        joint_steps=3 if system else 1,  # the only move of c, k3: more steps for the check's power
+        joint_steps=3 if system else 1,  # the move of c, k3 with the path redrawn: more steps for the check's power
+        system_steps=3,  # c, k3 with the measured motion held (system_moves); none without them
     )
     n_draws = sched.n_draws
 
@@ -1004,6 +1005,9 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model(system):
             rwm_joint=hyper_moves.init_proposal(
                 hyper, lambda x_: jnp.zeros(()), jnp.concatenate([x, x_sys]), proposal_sd=0.2 if system else 0.3
             ),
+            rwm_sys=hyper_moves.init_proposal(hyper, lambda x_: jnp.zeros(()), x_sys, proposal_sd=0.3)
+            if system
+            else None,
         )
         return state, pgas.BlockData(y, mask, od, jnp.zeros((T, nq)))
 
@@ -1033,7 +1037,7 @@ def test_gibbs_block_keeps_the_joint_distribution_of_a_nonlinear_model(system):
         info.accept_residual,
         info.accept_smoother,
         info.accept_joint,
-    )
+    ) + ((info.accept_system,) if system else ())
     for a in rates:
         assert float(jnp.mean(a)) > 0.1, [float(jnp.mean(a_)) for a_ in rates]
     if system:  # the system parameters move, and the block records them

@@ -287,11 +287,19 @@ class ResidualMove:
         od: ObservationDensity,
         tr: particle_model.Transition,
         path: Float[Array, "T n"],
+        kinematic: bool = False,
     ):
-        """``c -> (latent, path)``: the path with noise ``w + delta_w(c)``, the residuals of ``path`` kept.
+        """``build(c, at=None) -> (latent, path)``: the path with noise ``w + delta_w(c)``, the
+        residuals of ``path`` kept.
 
         The force's other states follow their innovations' regression on the solved-for
         ones at ``tr`` (class doc), the regression's remainders of ``path`` kept.
+        ``at = (pm_b, tr_b)``: the coordinates are those of ``path`` under ``pm`` and ``tr``,
+        the path is rebuilt under ``pm_b`` and ``tr_b`` (the same structure at other system
+        parameters, the same hyperparameters: :mod:`latentforce.inference.system_moves`).
+        ``kinematic``: the displacements and velocities of ``path`` are held too, in place of
+        their within-step noise (which then follows: the rebuilt latent's); the internal states
+        keep theirs (:mod:`latentforce.inference.system_moves`).
         """
         rows, cols = self.rows, self.cols
         lay = pm.latent_layout
@@ -302,6 +310,8 @@ class ResidualMove:
         # y_S,t - rho_t is the path's own noise-free prediction on S: the map keeps it,
         # whether or not y_S,t was observed
         target = predicted_observations(pm, path)[:, rows]
+        mech_held = path[:, pm.layout.mech]
+        kin = jnp.asarray(np.arange(pm.nm) < 2 * pm.ndof)  # the displacements and velocities
         # scatter matrices (no indexed updates inside the scan: batched over chains
         # they were slow on CPU)
         to_u = jnp.zeros((nfx, len(cols))).at[cols, jnp.arange(len(cols))].set(1.0)
@@ -320,41 +330,56 @@ class ResidualMove:
         h = e0[:, b] - jnp.einsum("tbu,tu->tb", K, e0[:, cols])
         h = h.at[0].set(g0[0, b1] - K1 @ g0[0, a1]) if len(b) else h
 
-        def _values(mech, target_t):
-            # products as broadcast-multiply-sums: XLA fuses them (a dot per step,
-            # batched over chains, cost ten times the whole step on CPU)
-            return particle_model._mv1(self.Dinv, target_t - pm.offset(mech)[rows])
+        def build(c, at=None):
+            # the map at the rebuilding model: the force block (hence A_f and the gains K_t) is the
+            # hyperparameters' and the same; the first step's regression may see other system
+            # parameters (a linear part's stationary start)
+            pm_b, tr_b = (pm, tr) if at is None else at
+            Dinv = self.Dinv if at is None else self.at(pm_b).Dinv
+            K1_b = K1 if at is None else _regression(tr_b.Pinf, a1, b1)
 
-        def _state(mech, target_t, K_t, h_t, pred):
-            u = _values(mech, target_t)
-            if len(b) == 0:
-                return particle_model._mv1(to_u, u)
-            x_b = pred[b] + particle_model._mv1(K_t, u - pred[cols]) + h_t
-            return particle_model._mv1(to_u, u) + particle_model._mv1(to_b, x_b)
+            def _values(mech, target_t):
+                # products as broadcast-multiply-sums: XLA fuses them (a dot per step,
+                # batched over chains, cost ten times the whole step on CPU)
+                return particle_model._mv1(Dinv, target_t - pm_b.offset(mech)[rows])
 
-        def _first(mech1, w1):
-            u = _values(mech1, target[0])
-            if len(b) == 0:
-                return particle_model._mv1(to_u, u)
-            x_b = particle_model._mv1(K1, jnp.concatenate([u, w1])) + h[0]
-            return particle_model._mv1(to_u, u) + particle_model._mv1(to_b, x_b)
+            def _state(mech, target_t, K_t, h_t, pred):
+                u = _values(mech, target_t)
+                if len(b) == 0:
+                    return particle_model._mv1(to_u, u)
+                x_b = pred[b] + particle_model._mv1(K_t, u - pred[cols]) + h_t
+                return particle_model._mv1(to_u, u) + particle_model._mv1(to_b, x_b)
 
-        def build(c):
+            def _first(mech1, w1):
+                u = _values(mech1, target[0])
+                if len(b) == 0:
+                    return particle_model._mv1(to_u, u)
+                x_b = particle_model._mv1(K1_b, jnp.concatenate([u, w1])) + h[0]
+                return particle_model._mv1(to_u, u) + particle_model._mv1(to_b, x_b)
+
             w = w0 + self.delta_w(c)
-            mech1 = pm.mech0_mean + w[0]
-            xf1 = _first(mech1, w[0])
+            mech1 = pm_b.mech0_mean + w[0]
+            if kinematic:
+                mech1 = jnp.where(kin, mech_held[0], mech1)
+            xf1 = _first(mech1, mech1 - pm_b.mech0_mean)
 
             def _step(carry, inp):
                 mech, xf = carry
-                target_n, K_n, h_n, w_n = inp
-                mech_n = pm.phi(mech, xf) + w_n
+                target_n, K_n, h_n, w_n, held_n = inp
+                pred_n = pm_b.phi(mech, xf)
+                mech_n = pred_n + w_n
+                if kinematic:
+                    mech_n = jnp.where(kin, held_n, mech_n)
                 xf_n = _state(mech_n, target_n, K_n, h_n, particle_model._mv1(Af, xf))
                 # one stacked output: two (mech and xf), batched over chains, made XLA's
                 # CPU loop several times slower
-                return (mech_n, xf_n), jnp.concatenate([mech_n, xf_n])
+                return (mech_n, xf_n), jnp.concatenate([mech_n, xf_n, mech_n - pred_n])
 
-            _, rows_ = jax.lax.scan(_step, (mech1, xf1), (target[1:], K[1:], h[1:], w[1:]))
-            new_path = jnp.concatenate([jnp.concatenate([mech1, xf1])[None], rows_])
+            _, rows_ = jax.lax.scan(_step, (mech1, xf1), (target[1:], K[1:], h[1:], w[1:], mech_held[1:]))
+            nm_, nx_ = pm.nm, pm.nfx
+            new_path = jnp.concatenate([jnp.concatenate([mech1, xf1])[None], rows_[:, : nm_ + nx_]])
+            if kinematic:  # the within-step noise that the held kinematics imply
+                w = jnp.concatenate([(mech1 - pm_b.mech0_mean)[None], rows_[:, nm_ + nx_ :]])
             return jnp.concatenate([new_path[:, pm.layout.force_states], w], axis=1), new_path
 
         return build

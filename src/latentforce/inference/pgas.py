@@ -75,6 +75,7 @@ from latentforce.inference.pgas_block import (  # noqa: F401 (re-exported: calle
 from latentforce.inference.pgas_output import PGASOutput, _assemble, _verdict, convergence_diagnostics  # noqa: F401 (re-exported)
 from latentforce.inference.pgas_start import dispersed_start, extended_kalman_smoother
 from latentforce.inference.resume import pgas_loop_state, pgas_restore
+from latentforce.linalg import cholesky
 
 
 def observe_through(model, channels, y, mask):
@@ -151,6 +152,7 @@ def run_pgas(
     residual_steps: int = 60,
     smoother_steps: int = 4,
     joint_steps: int = 3,
+    system_steps: int = 5,
     joint_recentre: int = smoother_move.JOINT_RECENTRE,
     channels=None,
     target_ess: float = 400.0,
@@ -164,7 +166,8 @@ def run_pgas(
     are ignored except as fixed defaults). ``free``: ``name -> (prior, init)``
     for a subset of ``force_variance, force_lengthscale`` (may be empty: the
     trajectory is then sampled at fixed :math:`\theta`), of the system's parameters
-    (``model.system.param_names``: m, c, k, k3 ..., moved by the joint move alone, each chain's
+    (``model.system.param_names``: m, c, k, k3 ..., moved by the joint move and by ``system_steps``
+    steps with the measured motion held (:mod:`~latentforce.inference.system_moves`), each chain's
     other moves on the model at its own values; ``smoother_steps`` and ``joint_steps`` must then
     be positive; recorded like the hyperparameters, after them) and of the sensors'
     noise levels, named by their :attr:`~latentforce.models.Sensor.noise_param`
@@ -303,6 +306,7 @@ def run_pgas(
         residual_steps=int(residual_steps),
         smoother_steps=int(smoother_steps),
         joint_steps=int(joint_steps),
+        system_steps=int(system_steps),
         recentre=int(joint_recentre),
     )
     make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, noise=noise, **block_settings)
@@ -536,6 +540,11 @@ def _init_chains(
         # fit where system parameters are inferred): the guess stays in every reshape (mcmc)
         joint_cov = joint_chol @ joint_chol.T
         joint = joint._replace(chol=joint_chol, cov=joint_cov, cov0=joint_cov * (x.shape[0] / 2.38**2))
+        # the system move's walk (system_moves): the same guess's block
+        p, s = len(hyper.names), len(hyper.sys_names)
+        cov_s = joint_cov[p:, p:] * (x.shape[0] / 2.38**2)
+        chol_s = cholesky(cov_s) * (2.38 / max(s, 1) ** 0.5) if s else jnp.zeros((0, 0))
+        sys_walk = joint._replace(x=x[p:], log_scale=jnp.zeros(()), chol=chol_s, mean=x[p:], cov=cov_s, cov0=cov_s)
         return ChainState(
             k_run,
             ref,
@@ -553,6 +562,7 @@ def _init_chains(
             var0,
             centre,
             joint if hyper.joint_names and centre is not None else None,
+            sys_walk if hyper.sys_names and centre is not None else None,
         )
 
     return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps, centres)

@@ -62,6 +62,14 @@ is exact for any system (prior ratio times the other channels' likelihood
 ratio). Gauss-Newton shape, recomputed like the low-frequency move's;
 scale adapted in burn-in.
 
+**System parameters with the measured motion held.** Where system parameters are sampled
+and some channel sees the force, after the path moves ``system_steps`` Metropolis steps
+(:func:`latentforce.inference.system_moves.system_move`) move them with the path's
+displacements, velocities and accelerometer residuals held, the force taking up the change
+of the restoring force: exact (a bijection of constant Jacobian for each parameter value),
+no linearisation. Its walk (``ChainState.rwm_sys``) adapts in burn-in; random numbers from
+:data:`~latentforce.inference.system_moves.SYSTEM_STREAM`.
+
 **Sampling space.** The random walk runs in *log* space,
 :math:`x = \log\theta` (this method's choice, overriding the softplus default
 of INTERFACE.md; the priors stay on the physical values):
@@ -110,7 +118,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from latentforce.inference import mcmc, noise_gibbs, particle_model, smc, smoother_move
+from latentforce.inference import mcmc, noise_gibbs, particle_model, smc, smoother_move, system_moves
 from latentforce.inference.hyper_moves import (
     _RESHAPE_AT,
     Hyper,
@@ -160,6 +168,9 @@ class ChainState(NamedTuple):
     centre: Float[Array, "T n"] | None = None
     # the joint (theta, path) move's random walk and its adaptation (None: the move is not made)
     rwm_joint: mcmc.RWMState | None = None
+    # the system parameters' residual-preserving walk (system_moves; None: the move is not made);
+    # its x follows rwm_joint.x[p:], which holds the chain's system parameters
+    rwm_sys: mcmc.RWMState | None = None
 
 
 class BlockInfo(NamedTuple):
@@ -183,6 +194,7 @@ class BlockInfo(NamedTuple):
     # the sampled system parameters (Hyper.sys_names) after the block's joint move, repeated for its k
     # MH iterations (they pair with theta as the Gibbs chain's state)
     system: Float[Array, "k s"]
+    accept_system: Float[Array, ""]  # the system parameters' residual-preserving move (zero where not made)
 
 
 class BlockData(NamedTuple):
@@ -296,6 +308,7 @@ def make_block(
     residual_steps: int = 60,
     smoother_steps: int = 1,
     joint_steps: int = 1,
+    system_steps: int = 0,
     recentre: int = smoother_move.JOINT_RECENTRE,
     noise: noise_gibbs.NoiseLevels = noise_gibbs.NoiseLevels(),
 ) -> Callable:
@@ -320,9 +333,11 @@ def make_block(
     ``data`` (:class:`BlockData`) may be shared or batched. ``tpoints``: the
     time indices whose force values are recorded.
 
-    System parameters (``hyper.sys_names``) are moved by the joint move alone, which then must
+    System parameters (``hyper.sys_names``) are moved by the joint move, which then must
     run (``joint_steps`` and ``smoother_steps`` positive, the state holding ``centre`` and
-    ``rwm_joint``); the chain's values are ``rwm_joint.x[p:]`` (log space), and every other
+    ``rwm_joint``), and by ``system_steps`` steps of the system move with the measured motion
+    held (module doc; the state holding ``rwm_sys``; skipped where no channel sees the force);
+    the chain's values are ``rwm_joint.x[p:]`` (log space), and every other
     move of the block runs on the model at them (:meth:`~latentforce.inference.hyper_moves.Hyper.model_at`).
 
     The caller's :class:`ChainState` must hold ``tr``, the transition at
@@ -388,6 +403,14 @@ def make_block(
             f"joint_steps and smoother_steps must be positive, got {joint_steps} and {smoother_steps}"
         )
 
+    # the system parameters' residual-preserving move (system_moves): where they are sampled and
+    # some channel sees the force
+    n_sysrp = int(system_steps) if n_sys and rm.applies else 0
+    if int(system_steps) < 0:
+        raise ValueError(f"system_steps must be non-negative, got {system_steps}")
+    sys_reshape = jnp.asarray(adaptation_schedule(sched.burn_blocks * n_sysrp) or (-1,))
+    target_sys = mcmc.target_acceptance(max(n_sys, 1))
+
     lf_reshape = jnp.asarray((-1,))
     n_noise = len(noise.channels)
     interweave = bool(interweave) and p > 0
@@ -446,6 +469,29 @@ def make_block(
         if n_rp:
             rwm_rp, path, accs_rp = residual_move(k_rp, rwm_rp, rm, pm, od, tr, path, n_rp, adapt=b < burn_blocks)
             acc_rp = jnp.mean(accs_rp.astype(float))
+        rwm_sys, acc_sys = state.rwm_sys, jnp.zeros(())
+        if n_sysrp and rwm_sys is not None:
+            rwm_sys, path, tr, accs_sys = system_moves.system_move(
+                jax.random.fold_in(state.key, system_moves.SYSTEM_STREAM),
+                rwm_sys._replace(x=x_sys),
+                hyper,
+                pm_base,
+                rm_base,
+                od,
+                rwm_x,
+                tr,
+                path,
+                n_sysrp,
+                adapt=b < burn_blocks,
+                reshape_steps=sys_reshape,
+                step0=b * n_sysrp,
+                target=target_sys,
+            )
+            acc_sys = jnp.mean(accs_sys.astype(float))
+            # the block's other moves go on at the chain's new system parameters
+            x_sys = rwm_sys.x
+            rwm_joint = rwm_joint._replace(x=jnp.concatenate([rwm_joint.x[:p], x_sys]))
+            pm = hyper.model_at(pm_base, x_sys)
         # ---- accumulate post-burn-in state samples
         post = (b >= burn_blocks) & (b < n_blocks)
         wgt = post.astype(float)
@@ -538,6 +584,7 @@ def make_block(
             noise_var,
             state.centre,
             rwm_joint,
+            rwm_sys,
         )
         info = BlockInfo(
             theta,
@@ -555,6 +602,7 @@ def make_block(
             acc_sm,
             acc_joint,
             jnp.broadcast_to(hyper.system_array(x_sys), (k_every, n_sys)),
+            acc_sys,
         )
         return new, info
 
