@@ -641,7 +641,15 @@ def _free_names(case: Case) -> list[str]:
 
 def _info_summary(records: list[RunRecord]) -> dict:
     out = {}
-    for key in ("acceptance", "steps", "draws_per_chain", "switch_rate", "smoother_acceptance", "joint_acceptance"):
+    for key in (
+        "acceptance",
+        "steps",
+        "draws_per_chain",
+        "switch_rate",
+        "smoother_acceptance",
+        "joint_acceptance",
+        "system_acceptance",
+    ):
         vals = [r.info[key] for r in records if r.info.get(key) is not None]
         if vals:
             out[key] = float(np.median(vals))
@@ -766,6 +774,8 @@ def notes(summaries: list[dict]) -> list[str]:
             bits.append(f"median smoother-move acceptance {info['smoother_acceptance']:.2f}")
         if "joint_acceptance" in info:
             bits.append(f"median joint-move acceptance {info['joint_acceptance']:.2f}")
+        if "system_acceptance" in info:
+            bits.append(f"median system-move acceptance {info['system_acceptance']:.2f}")
         if "draws_per_chain" in info:
             bits.append(f"median draws per chain {info['draws_per_chain']:.0f}")
         if info.get("multimodal"):

@@ -111,7 +111,11 @@ def run(key, sampler: str, problem, y, mask, dt: float, settings: dict):
         "draws_per_chain": int(n),
         "switch_rate": float(np.mean(out.switch_rate)),
     }
-    for key, name in (("acceptance_smoother", "smoother_acceptance"), ("acceptance_joint", "joint_acceptance")):
+    for key, name in (
+        ("acceptance_smoother", "smoother_acceptance"),
+        ("acceptance_joint", "joint_acceptance"),
+        ("acceptance_system", "system_acceptance"),
+    ):
         if diag.get(key) is not None:
             info[name] = float(np.mean(diag[key]))
     return draws, dict(diag.get("convergence") or {}), info

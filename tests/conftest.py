@@ -25,6 +25,7 @@ import shutil
 import tempfile
 
 import jax
+import numpy as np
 import pytest
 
 import latentforce
@@ -75,8 +76,6 @@ class LoweredPrograms:
         """Replace every module-level compiled program (a ``jit`` function) of ``modules`` by one that
         also keeps its text, once per program and signature (the arguments' tree, the arrays' shapes
         and types, the other arguments' values: the optimiser calls one program hundreds of times)."""
-        import numpy as np
-
         for module in modules:
             for name, prog in list(vars(module).items()):
                 if not (callable(prog) and hasattr(prog, "lower") and hasattr(prog, "trace")):

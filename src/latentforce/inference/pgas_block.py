@@ -194,7 +194,8 @@ class BlockInfo(NamedTuple):
     # the sampled system parameters (Hyper.sys_names) after the block's joint move, repeated for its k
     # MH iterations (they pair with theta as the Gibbs chain's state)
     system: Float[Array, "k s"]
-    accept_system: Float[Array, ""]  # the system parameters' residual-preserving move (zero where not made)
+    # the system parameters' move with the measured motion held (zero where it is not made)
+    accept_system: Float[Array, ""] | None = None
 
 
 class BlockData(NamedTuple):

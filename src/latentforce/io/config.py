@@ -64,8 +64,8 @@ __all__ = [
 METHODS = ("kalman", "kalman-mcmc", "kalman-nuts", "pgas", "ekf", "ukf")
 # Parameters PGAS may infer (Algorithm 4, Vibration 2020, with Metropolis-within-Gibbs on the
 # force hyperparameters), besides the system's own (m, c, k, k3 ..., moved by the joint move of
-# latentforce.inference.smoother_move) and the sensors' noise levels (an exact Gibbs step each,
-# latentforce.inference.noise_gibbs).
+# latentforce.inference.smoother_move and the move of latentforce.inference.system_moves) and the
+# sensors' noise levels (an exact Gibbs step each, latentforce.inference.noise_gibbs).
 PGAS_FREE_OK = ("force_variance", "force_lengthscale")
 #: warm-up iterations per chain when [inference].burn_in is not given: the Kalman
 #: samplers start at the posterior's modes (Laplace), so a short warm-up adapts them
