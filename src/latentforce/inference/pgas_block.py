@@ -111,7 +111,6 @@ median :math:`\ell` of several seconds). Use a proper prior on
 
 from __future__ import annotations
 
-import math
 from typing import Callable, NamedTuple
 
 import jax
@@ -120,7 +119,6 @@ from jaxtyping import Array, Float
 
 from latentforce.inference import mcmc, noise_gibbs, particle_model, smc, smoother_move, system_moves
 from latentforce.inference.hyper_moves import (
-    _RESHAPE_AT,
     Hyper,
     adaptation_schedule,
     mh_step,
@@ -140,6 +138,7 @@ from latentforce.inference.path_moves import (
     residual_init,
     residual_move,
 )
+from latentforce.inference.pgas_schedule import Schedule, reshape_chunks, schedule  # noqa: F401 (re-exported)
 
 
 class ChainState(NamedTuple):
@@ -168,7 +167,7 @@ class ChainState(NamedTuple):
     centre: Float[Array, "T n"] | None = None
     # the joint (theta, path) move's random walk and its adaptation (None: the move is not made)
     rwm_joint: mcmc.RWMState | None = None
-    # the system parameters' residual-preserving walk (system_moves; None: the move is not made);
+    # the system parameters' walk with the measured motion held (system_moves; None: not made);
     # its x follows rwm_joint.x[p:], which holds the chain's system parameters
     rwm_sys: mcmc.RWMState | None = None
 
@@ -211,35 +210,6 @@ def _summary_quantities(pm: particle_model.ParticleModel, path: Float[Array, "T 
     return jnp.concatenate([path[:, pm.layout.mech], path[:, pm.layout.force]], axis=1)
 
 
-class Schedule(NamedTuple):
-    """Iteration bookkeeping of a Gibbs run (static integers; :func:`schedule`)."""
-
-    state_every: int
-    mh_steps: int
-    burn_in: int  # iterations
-    total: int  # iterations, burn-in included
-    n_blocks: int  # Gibbs blocks, one sweep each
-    burn_blocks: int  # blocks whose sweep is at an iteration < burn_in (they adapt)
-    thin: int  # every thin-th post-burn-in path is stored
-    n_draws: int  # stored paths
-
-
-def schedule(burn_in: int, iterations: int, state_every: int = 1, mh_steps: int = 1, thin_draws: int = 200) -> Schedule:
-    """The blocks of a run of ``burn_in + iterations`` iterations, a sweep on every ``state_every``-th."""
-    k_every, n_mh = int(state_every), int(mh_steps)
-    if n_mh < 1:
-        raise ValueError(f"mh_steps must be at least 1, got {mh_steps}")
-    if k_every < 1:
-        raise ValueError(f"state_every must be at least 1, got {state_every}")
-    total = int(burn_in) + int(iterations)
-    n_blocks = -(-total // k_every)
-    burn_blocks = -(-int(burn_in) // k_every)
-    post_sweeps = n_blocks - burn_blocks
-    thin = max(1, -(-post_sweeps // max(1, int(thin_draws))))
-    n_draws = -(-post_sweeps // thin) if post_sweeps > 0 else 0
-    return Schedule(k_every, n_mh, int(burn_in), total, n_blocks, burn_blocks, thin, n_draws)
-
-
 def path_move_shapes(
     pm: particle_model.ParticleModel,
     rm: ResidualMove,
@@ -253,36 +223,6 @@ def path_move_shapes(
     :func:`residual_init`); without the residual move its walk is a copy of the other."""
     lf = lowfreq_init(pm, od, LowFrequencyFrame(tr, basis), path)
     return lf, (residual_init(rm, pm, od, tr, path) if with_residual else lf)
-
-
-def reshape_chunks(
-    n_blocks: int, burn_blocks: int, chunk_blocks: int, nonlinear: bool
-) -> tuple[int, list[tuple[int, int]], tuple[int, ...]]:
-    """``(scan_len, segments, reshape_at)``: how :func:`~latentforce.inference.pgas.run_pgas` runs its blocks.
-
-    ``segments``: the ``(start, end)`` runs of blocks, each one call of one
-    compiled program that scans ``scan_len >= end - start`` blocks and skips
-    those at or past ``end``. ``reshape_at``: the blocks before which the path
-    moves are re-shaped at each chain's path. For a linear model the
-    Gauss-Newton shapes from the smoother are exact and nothing is re-shaped.
-    For a nonlinear one the chain's path moves away from the smoother's, so the
-    shapes are re-computed at fractions ``_RESHAPE_AT`` of the burn-in, by a
-    program of their own shared with the start: inside the block (under a
-    conditional) they added a quarter to its compile time. A scan of fixed
-    length with skipped iterations, not one program per segment length: XLA
-    unrolls short scans, and the block compiled twice as long at length 2.
-    """
-    chunk_blocks = max(1, int(chunk_blocks))
-    scan_len = -(-n_blocks // max(1, -(-n_blocks // chunk_blocks)))
-    at = (
-        ()
-        if not nonlinear
-        else tuple(
-            sorted({int(math.ceil(f * burn_blocks)) - 1 for f in _RESHAPE_AT if 1 <= math.ceil(f * burn_blocks) - 1})
-        )
-    )
-    bounds = sorted(set(range(0, n_blocks, scan_len)) | {b for b in at if b < n_blocks} | {n_blocks})
-    return scan_len, list(zip(bounds[:-1], bounds[1:])), at
 
 
 def _with_scale_of(fresh: mcmc.RWMState, adapted: mcmc.RWMState) -> mcmc.RWMState:
@@ -404,11 +344,11 @@ def make_block(
             f"joint_steps and smoother_steps must be positive, got {joint_steps} and {smoother_steps}"
         )
 
-    # the system parameters' residual-preserving move (system_moves): where they are sampled and
-    # some channel sees the force
-    n_sysrp = int(system_steps) if n_sys and rm.applies else 0
+    # the system parameters' move with the measured motion held (system_moves): where they are
+    # sampled and some channel sees the force
     if int(system_steps) < 0:
         raise ValueError(f"system_steps must be non-negative, got {system_steps}")
+    n_sysrp = int(system_steps) if n_sys and rm.applies else 0
     sys_reshape = jnp.asarray(adaptation_schedule(sched.burn_blocks * n_sysrp) or (-1,))
     target_sys = mcmc.target_acceptance(max(n_sys, 1))
 

@@ -80,7 +80,7 @@ iterated extended Kalman smoother: the linearised model's smoothed mean,
 re-linearised there) from a given path. The Gibbs driver sets it from the
 extended Kalman smoother at the start and, for nonlinear systems, from each
 chain's own path at the burn-in's re-shaping points
-(:func:`latentforce.inference.pgas_block.reshape_chunks`); after the burn-in
+(:func:`latentforce.inference.pgas_schedule.reshape_chunks`); after the burn-in
 it is fixed, so the post-burn-in kernel is a fixed one given :math:`\theta`.
 
 The joint move (:func:`joint_move`). Given a path, a smooth force's
