@@ -1,6 +1,6 @@
-r"""The system parameters' residual-preserving move: a nonlinear system's parameters stepped with
-its path deformed so that the accelerometers' residuals are kept (the non-centred partner of the
-joint move).
+r"""The system parameters' move with the measured motion held: a nonlinear system's parameters
+stepped with its path deformed so that the displacements, velocities and accelerometer residuals
+are kept (the non-centred partner of the joint move).
 
 **Why.** The joint move (:func:`latentforce.inference.smoother_move.joint_move`) proposes system
 parameters with a new path drawn from the model linearised about a centre path, so it is as good
@@ -9,23 +9,26 @@ as that linearisation. Across a kink of the dynamics (Bouc-Wen's :math:`|r|` at 
 gamma sampled and an initial hysteretic force straddling zero, each chain's gamma froze
 (within-chain sd 3-20 against a posterior sd of 160, R-hat 3.9; docs/nonlinear.md, "gamma < 0").
 
-**The move.** Take as coordinates of the latent path those of the residual-preserving trajectory
-move (:class:`latentforce.inference.path_moves.ResidualMove`): the mechanical within-step noise
-:math:`w`, the residuals :math:`\rho` of the channels that see the force, and the remainders
-:math:`h` of the force derivatives' innovations. Hold them and step the system parameters
-:math:`x_s` (the joint move's coordinates); the path at :math:`x_s'` is rebuilt by the same map
-under the model at :math:`x_s'`: the kinematics nearly stay, the force takes up the changed
-restoring force (:math:`u' \approx u + \Delta r` for a Bouc-Wen gamma step), and the force's
-prior, the within-step noise's and the other channels' likelihood decide. No linearisation enters.
+**The move.** Coordinates of the latent path (:meth:`ResidualMove.builder` with ``kinematic``):
+the displacements and velocities themselves, the internal (hysteretic) states' within-step noise,
+the residuals :math:`\rho` of the channels that see the force, and the remainders :math:`h` of the
+force derivatives' innovations. Hold them and step the system parameters :math:`x_s` (the joint
+move's coordinates); the path at :math:`x_s'` is rebuilt by the same map under the model at
+:math:`x_s'`: the motion stays, the force takes up the changed restoring force (:math:`u' \approx
+u + \Delta r` for a Bouc-Wen gamma step), the displacements' and velocities' within-step noise
+follows, and the force's prior, the within-step noise's density and the other channels'
+likelihood decide. No linearisation enters. Holding the noise of every mechanical state instead
+(the residual-preserving move's coordinates) lets the motion drift with a changed restoring force
+within each step, and a displacement channel then pins the parameters (docs/nonlinear.md).
 
 **Exactness.** For every :math:`x_s` the map :math:`F_{x_s}` from the coordinates to the latent
-path is a bijection, triangular in time with diagonal blocks the identity (:math:`w`, :math:`h`)
-and :math:`-D_S^{-1}(x_s)` (the force values from the residuals). So the joint density of
-:math:`(x_s, \xi)` is :math:`\pi(x_s, F_{x_s}(\xi))\,|\det D_S^{-1}(x_s)|^T`, and a symmetric
-random walk on :math:`x_s` at fixed :math:`\xi` is a Metropolis step on it: accepted with the
-prior ratio times the latent's density ratio (its within-step noise covariance depends on
-:math:`x_s`: log-determinants included) times the likelihood ratio times the Jacobian ratio
-(1 unless the mass is sampled). Its scale adapts in burn-in only.
+path is a bijection, triangular in time with diagonal blocks the identity (the held motion, the
+internal noise, :math:`h`) and :math:`-D_S^{-1}(x_s)` (the force values from the residuals). So
+the joint density of :math:`(x_s, \xi)` is :math:`\pi(x_s, F_{x_s}(\xi))\,|\det D_S^{-1}(x_s)|^T`,
+and a symmetric random walk on :math:`x_s` at fixed :math:`\xi` is a Metropolis step on it:
+accepted with the prior ratio times the latent's density ratio (its within-step noise covariance
+depends on :math:`x_s`: log-determinants included) times the likelihood ratio times the Jacobian
+ratio (1 unless the mass is sampled). Its scale adapts in burn-in only.
 """
 
 from __future__ import annotations
