@@ -33,3 +33,6 @@ def test_a_quick_demo_writes_its_result_folders(tmp_path, monkeypatch, name):
         assert isinstance(summary["converged"], bool), folder
         assert (folder / "figures" / "force.png").stat().st_size > 1000, folder
         assert (folder / "posterior.nc").is_file() and (folder / "summary.csv").is_file(), folder
+    if name == "bouc-wen":  # the internal states' start-up move runs (fixed system parameters; 0.60-0.63)
+        moved = json.loads((tmp_path / "d" / "summary.json").read_text())["diagnostics"]["acceptance_internal"]
+        assert len(moved) >= 2 and min(moved) > 0.05, moved

@@ -112,6 +112,7 @@ def run_pgas(
     smoother_steps: int = 4,
     joint_steps: int = 3,
     system_steps: int = 5,
+    internal_steps: int = 10,
     joint_recentre: int = smoother_move.JOINT_RECENTRE,
     channels=None,
     target_ess: float = 400.0,
@@ -149,7 +150,12 @@ def run_pgas(
     residual-preserving steps (:func:`residual_move`; 0 disables; skipped
     when no channel sees the force) move the ``residual_modes`` slowest
     modes of the mechanical within-step noise, the force following so that
-    the acceleration predictions are kept. Before those, right after the
+    the acceleration predictions are kept; where the system has internal
+    (hysteretic) states and no system parameter is sampled, ``internal_steps``
+    steps of their start-up move
+    follow (:mod:`latentforce.inference.internal_move`; 0 disables: their
+    initial values stepped with the displacements, velocities and
+    accelerometer residuals held). Before those, right after the
     sweep, ``smoother_steps`` Metropolis-Hastings steps
     (:mod:`latentforce.inference.smoother_move`; 0 disables; an independence
     step, then Crank-Nicolson steps, :data:`~latentforce.inference.smoother_move.CN_BETAS`)
@@ -266,6 +272,7 @@ def run_pgas(
         smoother_steps=int(smoother_steps),
         joint_steps=int(joint_steps),
         system_steps=int(system_steps),
+        internal_steps=int(internal_steps),
         recentre=int(joint_recentre),
     )
     make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, noise=noise, **block_settings)

@@ -125,6 +125,7 @@ def _assemble(
         "acceptance_smoother": info.accept_smoother[:, burn_blocks:].mean(axis=1).tolist(),
         "acceptance_joint": np.asarray(info.accept_joint)[:, burn_blocks:].mean(axis=1).tolist(),
         "acceptance_system": np.asarray(info.accept_system)[:, burn_blocks:].mean(axis=1).tolist(),
+        "acceptance_internal": np.asarray(info.accept_internal)[:, burn_blocks:].mean(axis=1).tolist(),
     }
     if noise_names:  # per chain, per inferred channel: the independence sampler's acceptance
         diag["acceptance_noise"] = {
