@@ -43,14 +43,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from latentforce.inference import particle_model
-from latentforce.inference.latent import (
-    ObservationDensity,
-    _whiten,
-    observation_log_likelihood,
-    predicted_observations,
-)
-from latentforce.inference.path_moves import ResidualMove, residual_log_target
-from latentforce.linalg import cho_solve, cholesky, symmetrise
+from latentforce.inference.latent import ObservationDensity, _whiten, observation_log_likelihood
+from latentforce.inference.path_moves import ResidualMove, gauss_newton_covariance, residual_log_target
+from latentforce.linalg import cholesky
 
 #: the chain key's fold for this move's random numbers (a run without it draws what it drew before)
 INTERNAL_STREAM = 0x4953
@@ -109,11 +104,4 @@ def _shape(rm, pm, od, tr, path, build, idx, internal, cP, cQ) -> Float[Array, "
     the reference path (module doc): their initial values at the prior mean, the held coordinates
     as they are."""
     c_ref = jnp.zeros(rm.dim).at[idx].set((pm.mech0_mean[internal] - path[0, internal]) / rm.scale_0[internal])
-
-    def features(a):
-        g, x = build(c_ref.at[idx].add(a))
-        return _whiten(tr, g, cP, cQ).ravel(), predicted_observations(pm, x) * od.maskf
-
-    Je, Jy = jax.jacfwd(features)(jnp.zeros(idx.shape[0]))
-    prec = symmetrise(Je.T @ Je + jnp.einsum("tim,tij,tjn->mn", Jy, od.Rinv, Jy))
-    return cholesky(symmetrise(cho_solve(cholesky(prec), jnp.eye(idx.shape[0]))))
+    return cholesky(gauss_newton_covariance(pm, od, tr, build, lambda a: c_ref.at[idx].add(a), idx.shape[0], cP, cQ))

@@ -459,6 +459,29 @@ def residual_log_target(
     return -0.5 * jnp.sum(_whiten(tr, g, cP, cQ) ** 2) + observation_log_likelihood(pm, od, path), path
 
 
+def gauss_newton_covariance(
+    pm: particle_model.ParticleModel,
+    od: ObservationDensity,
+    tr: particle_model.Transition,
+    build: Callable,
+    coordinates: Callable,
+    q: int,
+    cP,
+    cQ,
+) -> Float[Array, "q q"]:
+    r""":math:`(J_\varepsilon^\top J_\varepsilon + J_y^\top R^{-1} J_y)^{-1}` at :math:`a = 0`: the Jacobians
+    of the whitened latent and of the predicted observations of the path ``build(coordinates(a))``
+    (a :meth:`ResidualMove.builder`'s map) with respect to ``q`` coordinates :math:`a`."""
+
+    def features(a):
+        g, x = build(coordinates(a))
+        return _whiten(tr, g, cP, cQ).ravel(), predicted_observations(pm, x) * od.maskf
+
+    Je, Jy = jax.jacfwd(features)(jnp.zeros(q))
+    prec = symmetrise(Je.T @ Je + jnp.einsum("tim,tij,tjn->mn", Jy, od.Rinv, Jy))
+    return symmetrise(cho_solve(cholesky(prec), jnp.eye(q)))
+
+
 def residual_init(
     rm: ResidualMove,
     pm: particle_model.ParticleModel,
@@ -476,14 +499,7 @@ def residual_init(
     build = rm.builder(pm, od, tr, path)
     q = rm.dim
     cP, cQ = particle_model._chol(tr.Pinf), particle_model._chol(tr.Q)
-
-    def features(c):
-        g, x = build(c)
-        return _whiten(tr, g, cP, cQ).ravel(), predicted_observations(pm, x) * od.maskf
-
-    Je, Jy = jax.jacfwd(features)(jnp.zeros(q))
-    prec = symmetrise(Je.T @ Je + jnp.einsum("tim,tij,tjn->mn", Jy, od.Rinv, Jy))
-    cov = symmetrise(cho_solve(cholesky(prec), jnp.eye(q)))
+    cov = gauss_newton_covariance(pm, od, tr, build, lambda c: c, q, cP, cQ)
     chol = cholesky(cov) * (2.38 / math.sqrt(q))
     return mcmc.RWMState(jnp.zeros(q), jnp.zeros(()), jnp.zeros(()), chol, jnp.zeros(q), cov, jnp.zeros(()))
 
