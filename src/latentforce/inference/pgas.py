@@ -52,7 +52,7 @@ import numpy as np
 from jaxtyping import Array
 
 from latentforce.compile import jit
-from latentforce.inference import convergence, noise_gibbs, particle_model, pgas_mode, smoother_move
+from latentforce.inference import convergence, internal_move, noise_gibbs, particle_model, pgas_mode, smoother_move
 from latentforce.inference.hyper_moves import Hyper, init_proposal
 from latentforce.inference.latent import observation_density
 from latentforce.inference.path_moves import (
@@ -151,8 +151,9 @@ def run_pgas(
     when no channel sees the force) move the ``residual_modes`` slowest
     modes of the mechanical within-step noise, the force following so that
     the acceleration predictions are kept; where the system has internal
-    (hysteretic) states and no system parameter is sampled, ``internal_steps``
-    steps of their start-up move
+    (hysteretic) states, the initial prior leaves them free of the displacements
+    and velocities (:func:`~latentforce.inference.internal_move.free`) and no
+    system parameter is sampled, ``internal_steps`` steps of their start-up move
     follow (:mod:`latentforce.inference.internal_move`; 0 disables: their
     initial values stepped with the displacements, velocities and
     accelerometer residuals held). Before those, right after the
@@ -272,7 +273,9 @@ def run_pgas(
         smoother_steps=int(smoother_steps),
         joint_steps=int(joint_steps),
         system_steps=int(system_steps),
-        internal_steps=int(internal_steps),
+        # the start-up move where the initial prior leaves the internal states free (internal_move.free;
+        # a negative count is make_block's error)
+        internal_steps=int(internal_steps) if int(internal_steps) < 0 or internal_move.free(pm) else 0,
         recentre=int(joint_recentre),
     )
     make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, noise=noise, **block_settings)

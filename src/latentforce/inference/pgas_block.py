@@ -363,10 +363,10 @@ def make_block(
     target_sys = mcmc.target_acceptance(max(n_sys, 1))
     # the internal states' start-up move (internal_move): where the system has internal states and
     # no system parameter is sampled. With gamma sampled (the Bouc-Wen benchmark record of
-    # tests/test_signed_priors.py) it made the first thousand iterations worse: a chain went to
-    # gamma ~ -1 900 with r offset over the record (R-hat 1.46 at 500 + 500 iterations, 1.20 at
-    # 500 + 1 000, against 1.04 without it), though "auto" converged sooner (225 s against 277 s)
-    # and wider (sd 200 against 166): docs/nonlinear.md, an open question
+    # tests/test_signed_priors.py) the same posterior either way ("auto", three seeds: gamma sd
+    # 163-166 both ways but one run's 200, an excursion), 1.0-1.6x sooner with it, but a chain
+    # reaching gamma ~ -2 000 with r0 ~ +30-80 N stays there for hundreds of iterations (this move
+    # holds gamma, the system move holds r0): R-hat 1.46 at the test's 500 + 500 (docs/nonlinear.md)
     if int(internal_steps) < 0:
         raise ValueError(f"internal_steps must be non-negative, got {internal_steps}")
     n_int = int(internal_steps) if internal_move.applies(pm_base, rm) and not n_sys else 0
