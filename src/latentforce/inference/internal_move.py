@@ -32,8 +32,8 @@ the conditional sd of the Bouc-Wen record's r0 was 9 N at Matérn-3/2 but 0.2-0.
 multiples alternate between :data:`SCALES`. Skipped where the system has no internal state or no
 channel sees the force (:attr:`ResidualMove.applies`); by ``pgas`` where the initial prior ties
 the internal states to the displacements and velocities (:func:`free`) and where system
-parameters are sampled (docs/nonlinear.md: the same posterior, but a chain that reaches the far
-end of the gamma-r0 ridge stays there, each move holding the other's coordinate).
+parameters are sampled (the system move's walk then carries these initial values with the
+parameters: :mod:`latentforce.inference.system_moves`).
 """
 
 from __future__ import annotations
@@ -74,13 +74,17 @@ def free(pm: particle_model.ParticleModel) -> bool:
     ``r = alpha z`` exactly, ``models.LatentForceModel.default_initial``): the move would step a
     coordinate of zero prior width, rebuilding the path ten times an iteration to change nothing
     (measured: the Bouc-Wen linear twin's pgas test 51-62 s -> 98 s with it)."""
+    return bool(np.any(free_share(pm) > TIED))
+
+
+def free_share(pm: particle_model.ParticleModel) -> np.ndarray:
+    """Each internal state's conditional variance given the initial displacements and velocities
+    under the initial prior (``pm.mech0_cov``, concrete), as a share of its marginal variance."""
     k = 2 * pm.ndof
     P = np.asarray(pm.mech0_cov, dtype=float)
-    if P.shape[0] <= k:
-        return False
     A, B, C = P[:k, :k], P[k:, :k], P[k:, k:]
     cond = np.diagonal(C - B @ np.linalg.pinv(A, hermitian=True) @ B.T)
-    return bool(np.any(cond > TIED * np.maximum(np.diagonal(C), np.finfo(float).tiny)))
+    return np.clip(cond, 0.0, None) / np.maximum(np.diagonal(C), np.finfo(float).tiny)
 
 
 def internal_move(

@@ -26,7 +26,7 @@ fits the data, and Gauss-Newton from it a path of the model that does (for a
 nonlinear system the smoother's mean is none: its whitened mechanical
 innovations reached 3e4 sds); each chain starts from that path moved in the
 low-frequency coordinates by a draw of their Gauss-Newton posterior with the
-data's information quartered (:func:`dispersed_start`: twice the posterior sd
+data's information quartered (:func:`~latentforce.inference.pgas_start.dispersed_start`: twice the posterior sd
 where the data pin a direction, at most a prior sd where they do not; different
 per chain), and from :math:`\theta_0 \exp(0.5\,\varepsilon)` per parameter.
 
@@ -53,10 +53,9 @@ from jaxtyping import Array
 
 from latentforce.compile import jit
 from latentforce.inference import convergence, internal_move, noise_gibbs, particle_model, pgas_mode, smoother_move
-from latentforce.inference.hyper_moves import Hyper, init_proposal
+from latentforce.inference.hyper_moves import Hyper
 from latentforce.inference.latent import observation_density
 from latentforce.inference.path_moves import (
-    LowFrequencyFrame,
     ResidualMove,
     lowfreq_basis,
 )
@@ -71,12 +70,12 @@ from latentforce.inference.pgas_block import (  # noqa: F401 (re-exported: calle
     path_move_shapes,
     reshape_chunks,
     schedule,
+    system_internal,
 )
 from latentforce.inference.pgas_channels import _unnamed, observe_through  # noqa: F401 (re-exported)
 from latentforce.inference.pgas_output import PGASOutput, _assemble, _verdict, convergence_diagnostics  # noqa: F401 (re-exported)
-from latentforce.inference.pgas_start import dispersed_start, extended_kalman_smoother
+from latentforce.inference.pgas_start import extended_kalman_smoother, init_chains
 from latentforce.inference.resume import pgas_loop_state, pgas_restore
-from latentforce.linalg import cholesky
 
 
 def run_pgas(
@@ -156,7 +155,11 @@ def run_pgas(
     system parameter is sampled, ``internal_steps`` steps of their start-up move
     follow (:mod:`latentforce.inference.internal_move`; 0 disables: their
     initial values stepped with the displacements, velocities and
-    accelerometer residuals held). Before those, right after the
+    accelerometer residuals held); where system parameters are sampled, the
+    system move's walk carries those initial values instead (0 disables that
+    too: :func:`~latentforce.inference.pgas_block.system_internal`), and each
+    chain starts from a path of its own model (Gauss-Newton at its dispersed
+    system parameters). Before those, right after the
     sweep, ``smoother_steps`` Metropolis-Hastings steps
     (:mod:`latentforce.inference.smoother_move`; 0 disables; an independence
     step, then Crank-Nicolson steps, :data:`~latentforce.inference.smoother_move.CN_BETAS`)
@@ -298,20 +301,38 @@ def run_pgas(
     def per_chain(a):
         return np.broadcast_to(np.asarray(a), (chains,) + np.shape(a))
 
-    none = np.zeros((chains, 0))  # the shapes and centre at the starting model (system parameters' init)
-    lfs, rps = _shapes(
-        pm, rm, basis, od, jax.tree_util.tree_map(per_chain, tr0), per_chain(start), hyper, none, with_rp=with_rp
-    )
+    if hyper.sys_names and not pm.is_linear:
+        # Each chain starts from a path of its own model: its system parameters are dispersed about
+        # the mode, and the start path is the mode's. A nonlinear system's path depends on them (a
+        # Bouc-Wen r on gamma): on the gamma record of tests/test_signed_priors.py one chain, 50
+        # iterations after a start on the mode's path, still had its hysteretic state's within-step
+        # noise 26 times its typical sum of squares (a log target 4 500 below the other chains'),
+        # and with r0 moved it stayed near there for the test's 1 000 iterations (docs/nonlinear.md).
+        # Gauss-Newton from the mode's path on each chain's model (the smoother move's centre
+        # between burn-in chunks) is its start, its shapes and centre.
+        xs_sys0 = np.asarray(xs0)[:, len(hyper.names) :]
+        starts = _centres(pm, od, trs0, per_chain(start), hyper, xs_sys0, iterations=_centre_iterations(pm))
+        lfs, rps = _shapes(pm, rm, basis, od, trs0, starts, hyper, xs_sys0, with_rp=with_rp)
+    else:
+        starts = per_chain(start)
+        none = np.zeros((chains, 0))  # the shapes and centre at the starting model
+        lfs, rps = _shapes(
+            pm, rm, basis, od, jax.tree_util.tree_map(per_chain, tr0), starts, hyper, none, with_rp=with_rp
+        )
     with_sm = int(smoother_steps) > 0
-    centres = per_chain(start) if with_sm else None
-    states = _init_chains(
+    centres = starts if with_sm else None
+    # the system move's walk on the internal states' initial offsets too (system_moves): its first
+    # guess of their variance, the share of the initial prior's that the motion leaves free
+    n_sys_int = system_internal(pm, rm, len(hyper.sys_names), system_steps, block_settings["internal_steps"])
+    int_var = jnp.asarray(internal_move.free_share(pm)[:n_sys_int])
+    states = init_chains(
         pm,
         hyper,
         noise,
         basis,
         k_chains,
         tr0,
-        start,
+        jnp.asarray(starts),
         xs0,
         trs0,
         lfs,
@@ -320,6 +341,7 @@ def run_pgas(
         od,
         centres,
         jnp.asarray(joint_chol),
+        int_var,
         chains=int(chains),
         sched=sched,
     )
@@ -486,55 +508,6 @@ def _centres(pm, od, trs, paths, hyper, x_sys, *, iterations):
     return jax.vmap(lambda tr, x, xs: smoother_move.iterated_centre(_at(pm, hyper, xs), tr, od, x, iterations))(
         trs, paths, x_sys
     )
-
-
-@functools.partial(jit, static_argnames=("chains", "sched"))
-def _init_chains(
-    pm, hyper, noise, basis, k_chains, tr0, start, xs0, trs0, lfs, rps, R, od, centres, joint_chol, *, chains, sched
-):
-    """Every chain's first :class:`ChainState`, from the start path (:func:`run_pgas`) moved by its
-    own dispersion (:func:`dispersed_start`); ``joint_chol`` the joint walk's first proposal shape."""
-    frame0 = LowFrequencyFrame(tr0, basis)
-    T, nq = start.shape[0], pm.layout.n_mech + pm.nforce  # displacement, velocity, force columns
-    # every chain starts from the configured (initial) noise levels; None: none inferred
-    var0 = noise_gibbs.initial_variances(noise, R) if noise.channels else None
-
-    def _init_chain(ck, x, tr, lf, rp, centre):
-        k_path, k_run = jax.random.split(ck)
-        ref = dispersed_start(k_path, pm, frame0, lf, start, od)
-        # the log density is set at the first block
-        rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x[: len(hyper.names)])
-        joint = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
-        # the first proposal's covariance, 2.38^2/d times the guess of the posterior's (a Laplace
-        # fit where system parameters are inferred): the guess stays in every reshape (mcmc)
-        joint_cov = joint_chol @ joint_chol.T
-        joint = joint._replace(chol=joint_chol, cov=joint_cov, cov0=joint_cov * (x.shape[0] / 2.38**2))
-        # the system move's walk (system_moves): the same guess's block
-        p, s = len(hyper.names), len(hyper.sys_names)
-        cov_s = joint_cov[p:, p:] * (x.shape[0] / 2.38**2)
-        chol_s = cholesky(cov_s) * (2.38 / max(s, 1) ** 0.5) if s else jnp.zeros((0, 0))
-        sys_walk = joint._replace(x=x[p:], log_scale=jnp.zeros(()), chol=chol_s, mean=x[p:], cov=cov_s, cov0=cov_s)
-        return ChainState(
-            k_run,
-            ref,
-            rwm,
-            rwm,
-            lf,
-            rp,
-            tr,
-            jnp.zeros((), jnp.int32),
-            jnp.zeros((T, nq)),
-            jnp.zeros((T, nq)),
-            jnp.zeros(()),
-            jnp.zeros((sched.n_draws + 1, T, pm.n_state)),
-            jnp.asarray(sched.thin, jnp.int32),
-            var0,
-            centre,
-            joint if hyper.joint_names and centre is not None else None,
-            sys_walk if hyper.sys_names and centre is not None else None,
-        )
-
-    return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps, centres)
 
 
 @functools.partial(jit, static_argnames=("sched", "tpoints", "mpoints", "settings"))

@@ -75,7 +75,9 @@ and some channel sees the force, after the path moves ``system_steps`` Metropoli
 displacements, velocities and accelerometer residuals held, the force taking up the change
 of the restoring force: exact (a bijection of constant Jacobian for each parameter value),
 no linearisation. Its walk (``ChainState.rwm_sys``) adapts in burn-in; random numbers from
-:data:`~latentforce.inference.system_moves.SYSTEM_STREAM`.
+:data:`~latentforce.inference.system_moves.SYSTEM_STREAM`. Where the start-up move would run
+(:func:`system_internal`), the walk carries the internal states' initial values too, so that
+a parameter and the initial hysteretic force it needs move together.
 
 **Sampling space.** The random walk runs in *log* space,
 :math:`x = \log\theta` (this method's choice, overriding the softplus default
@@ -239,6 +241,16 @@ def _with_scale_of(fresh: mcmc.RWMState, adapted: mcmc.RWMState) -> mcmc.RWMStat
     return fresh._replace(log_scale=adapted.log_scale, count=adapted.count)
 
 
+def system_internal(pm, rm, n_sys: int, system_steps: int, internal_steps: int) -> int:
+    """How many internal states' initial values the system move's walk carries besides the
+    system parameters (:func:`~latentforce.inference.system_moves.system_move`, ``internal``):
+    all of them where system parameters are sampled, the system move runs and so would the
+    start-up move (``internal_steps`` positive: ``run_pgas`` sets it to zero where the initial
+    prior ties them, :func:`~latentforce.inference.internal_move.free`); else none."""
+    on = n_sys and int(system_steps) > 0 and rm.applies and int(internal_steps) > 0 and internal_move.applies(pm, rm)
+    return pm.nm - 2 * pm.ndof if on else 0
+
+
 def make_block(
     pm: particle_model.ParticleModel,
     hyper: Hyper,
@@ -360,13 +372,15 @@ def make_block(
         raise ValueError(f"system_steps must be non-negative, got {system_steps}")
     n_sysrp = int(system_steps) if n_sys and rm.applies else 0
     sys_reshape = jnp.asarray(adaptation_schedule(sched.burn_blocks * n_sysrp) or (-1,))
-    target_sys = mcmc.target_acceptance(max(n_sys, 1))
+    # its walk is on the internal states' initial values too where the start-up move would run
+    # (system_moves, "The internal states' start")
+    n_sys_int = system_internal(pm, rm, n_sys, system_steps, internal_steps)
+    target_sys = mcmc.target_acceptance(max(n_sys + n_sys_int, 1))
     # the internal states' start-up move (internal_move): where the system has internal states and
-    # no system parameter is sampled. With gamma sampled (the Bouc-Wen benchmark record of
-    # tests/test_signed_priors.py) the same posterior either way ("auto", three seeds: gamma sd
-    # 163-166 both ways but one run's 200, an excursion), 1.0-1.6x sooner with it, but a chain
-    # reaching gamma ~ -2 000 with r0 ~ +30-80 N stays there for hundreds of iterations (this move
-    # holds gamma, the system move holds r0): R-hat 1.46 at the test's 500 + 500 (docs/nonlinear.md)
+    # no system parameter is sampled; where some are, the system move's walk carries the internal
+    # states' initial values (system_internal), so that a parameter and the initial hysteretic
+    # force it needs move together (docs/nonlinear.md: 1.4-2.6x sooner to converged on the
+    # Bouc-Wen gamma record than with neither)
     if int(internal_steps) < 0:
         raise ValueError(f"internal_steps must be non-negative, got {internal_steps}")
     n_int = int(internal_steps) if internal_move.applies(pm_base, rm) and not n_sys else 0
@@ -451,10 +465,11 @@ def make_block(
                 reshape_steps=sys_reshape,
                 step0=b * n_sysrp,
                 target=target_sys,
+                internal=bool(n_sys_int),
             )
             acc_sys = jnp.mean(accs_sys.astype(float))
             # the block's other moves go on at the chain's new system parameters
-            x_sys = rwm_sys.x
+            x_sys = rwm_sys.x[:n_sys]
             rwm_joint = rwm_joint._replace(x=jnp.concatenate([rwm_joint.x[:p], x_sys]))
             pm = hyper.model_at(pm_base, x_sys)
         # ---- accumulate post-burn-in state samples

@@ -1,13 +1,18 @@
-r"""Where the particle Gibbs chains start: the extended Kalman smoother of the sampler's model, and
-over-dispersed starts around the Gauss-Newton path from its mean (:func:`dispersed_start`)."""
+r"""Where the particle Gibbs chains start: the extended Kalman smoother of the sampler's model,
+over-dispersed starts around the Gauss-Newton path from its mean (:func:`dispersed_start`), and
+every chain's first state (:func:`init_chains`)."""
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from latentforce.inference import mcmc, particle_model
+from latentforce.compile import jit
+from latentforce.inference import mcmc, noise_gibbs, particle_model
+from latentforce.inference.hyper_moves import init_proposal
 from latentforce.inference.kalman import _update
 from latentforce.inference.latent import ObservationDensity
 from latentforce.inference.path_moves import (
@@ -16,6 +21,7 @@ from latentforce.inference.path_moves import (
     lowfreq_log_target,
     lowfreq_path,
 )
+from latentforce.inference.pgas_block import ChainState
 from latentforce.linalg import cholesky, solve, symmetrise
 
 
@@ -136,3 +142,79 @@ def dispersed_start(
     ok = drops <= 4.0 * w.shape[0]  # NaN (a path that blew up) is never ok
     scale = jnp.where(jnp.any(ok), scales[jnp.argmax(ok)], 0.0)
     return lowfreq_path(pm, frame, eps_perp, w + scale * step)
+
+
+@functools.partial(jit, static_argnames=("chains", "sched"))
+def init_chains(
+    pm,
+    hyper,
+    noise,
+    basis,
+    k_chains,
+    tr0,
+    start,
+    xs0,
+    trs0,
+    lfs,
+    rps,
+    R,
+    od,
+    centres,
+    joint_chol,
+    int_var,
+    *,
+    chains,
+    sched,
+):
+    """Every chain's first :class:`ChainState`, from its start path (``start``, leading axis the
+    chains: :func:`~latentforce.inference.pgas.run_pgas`) moved by its own dispersion
+    (:func:`dispersed_start`) on its own model (system parameters ``xs0[:, p:]``); ``joint_chol``
+    the joint walk's first proposal shape;
+    ``int_var`` the first guess of the variances of the internal states' offsets that the system
+    move's walk carries besides the parameters (none: empty)."""
+    frame0 = LowFrequencyFrame(tr0, basis)
+    T, nq = start.shape[1], pm.layout.n_mech + pm.nforce  # displacement, velocity, force columns
+    # every chain starts from the configured (initial) noise levels; None: none inferred
+    var0 = noise_gibbs.initial_variances(noise, R) if noise.channels else None
+
+    def _init_chain(ck, x, tr, lf, rp, centre, start_c):
+        k_path, k_run = jax.random.split(ck)
+        # with system parameters sampled, on the chain's own model (run_pgas: its start is a path of it)
+        p_ = len(hyper.names)
+        pm_c, frame = (hyper.model_at(pm, x[p_:]), LowFrequencyFrame(tr, basis)) if hyper.sys_names else (pm, frame0)
+        ref = dispersed_start(k_path, pm_c, frame, lf, start_c, od)
+        # the log density is set at the first block
+        rwm = init_proposal(hyper, lambda x_: jnp.zeros(()), x[: len(hyper.names)])
+        joint = init_proposal(hyper, lambda x_: jnp.zeros(()), x)
+        # the first proposal's covariance, 2.38^2/d times the guess of the posterior's (a Laplace
+        # fit where system parameters are inferred): the guess stays in every reshape (mcmc)
+        joint_cov = joint_chol @ joint_chol.T
+        joint = joint._replace(chol=joint_chol, cov=joint_cov, cov0=joint_cov * (x.shape[0] / 2.38**2))
+        # the system move's walk (system_moves): the same guess's block
+        p, s = len(hyper.names), len(hyper.sys_names)
+        cov_s = jax.scipy.linalg.block_diag(joint_cov[p:, p:] * (x.shape[0] / 2.38**2), jnp.diag(int_var))
+        d_s = s + int_var.shape[0]
+        chol_s = cholesky(cov_s) * (2.38 / max(d_s, 1) ** 0.5) if s else jnp.zeros((0, 0))
+        x_s = jnp.concatenate([x[p:], jnp.zeros(int_var.shape[0])])  # the offsets: the path's, at each move
+        sys_walk = joint._replace(x=x_s, log_scale=jnp.zeros(()), chol=chol_s, mean=x_s, cov=cov_s, cov0=cov_s)
+        return ChainState(
+            k_run,
+            ref,
+            rwm,
+            rwm,
+            lf,
+            rp,
+            tr,
+            jnp.zeros((), jnp.int32),
+            jnp.zeros((T, nq)),
+            jnp.zeros((T, nq)),
+            jnp.zeros(()),
+            jnp.zeros((sched.n_draws + 1, T, pm.n_state)),
+            jnp.asarray(sched.thin, jnp.int32),
+            var0,
+            centre,
+            joint if hyper.joint_names and centre is not None else None,
+            sys_walk if hyper.sys_names and centre is not None else None,
+        )
+
+    return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps, centres, start)

@@ -29,12 +29,23 @@ and a symmetric random walk on :math:`x_s` at fixed :math:`\xi` is a Metropolis 
 accepted with the prior ratio times the latent's density ratio (its within-step noise covariance
 depends on :math:`x_s`: log-determinants included) times the likelihood ratio times the Jacobian
 ratio (1 unless the mass is sampled). Its scale adapts in burn-in only.
+
+**The internal states' start.** Among the held coordinates are the internal states' initial
+values, and the start-up move (:mod:`latentforce.inference.internal_move`) holds the system
+parameters: on the Bouc-Wen benchmark record with gamma sampled and the default start, a chain
+that reached gamma ~ -2 000 with r0 ~ +30-80 N (what such a gamma needs) stayed there for hundreds
+of iterations, each move holding the other's coordinate (docs/nonlinear.md). With ``internal``
+the walk is on both: the system parameters and the internal states' initial offsets (in the
+initial prior's sds, :func:`internal_offsets`), one more translation of held coordinates, so the
+Jacobian is unchanged and the target is the same; the offsets are read from the path at each call
+(absolute, so the walk's running covariance learns their correlation with the parameters).
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from latentforce.inference import mcmc, particle_model
@@ -51,6 +62,20 @@ def _log_jacobian(rm: ResidualMove, T: int) -> Float[Array, ""]:
     """:math:`T \\log|\\det D_S^{-1}|` of the map at ``rm``'s model (module doc), as half the log
     determinant of :math:`D_S^{-\\top} D_S^{-1}` (our Cholesky: the compiled programs call no LAPACK)."""
     return T * jnp.sum(jnp.log(jnp.diagonal(cholesky(rm.Dinv.T @ rm.Dinv))))
+
+
+def internal_coordinates(rm: ResidualMove, pm: particle_model.ParticleModel) -> np.ndarray:
+    """The internal states' initial offsets among the residual move's coordinates."""
+    return rm.K * pm.nm + np.arange(2 * pm.ndof, pm.nm)
+
+
+def internal_offsets(
+    rm: ResidualMove, pm: particle_model.ParticleModel, path: Float[Array, "T n"]
+) -> Float[Array, " k"]:
+    """The internal states' initial values of ``path`` as offsets from the initial prior's mean, in
+    the residual move's units (the prior's sds): the system move's extra coordinates."""
+    internal = np.arange(2 * pm.ndof, pm.nm)
+    return (path[0, internal] - pm.mech0_mean[internal]) / rm.scale_0[internal]
 
 
 def system_log_target(
@@ -90,6 +115,7 @@ def system_move(
     reshape_steps: Array,
     step0: Array,
     target: float,
+    internal: bool = False,
 ):
     r"""``n_steps`` residual-preserving Metropolis steps on the system parameters (module doc).
 
@@ -99,21 +125,37 @@ def system_move(
     Adapts the walk where ``adapt``, re-shaping it after the steps ``reshape_steps`` (counted from
     ``step0``). Returns ``(rwm, path, tr, accepted)``, the path and transition bit-for-bit the
     input's when nothing was accepted.
+
+    ``internal``: the internal states' initial values are coordinates of the walk too (module doc,
+    "The internal states' start"): the returned ``rwm.x`` is the system parameters followed by
+    those values' offsets from the initial prior's mean in its sds (:func:`internal_offsets`); the
+    ``rwm`` passed in holds the system parameters alone, or both (its offsets are then replaced by
+    the path's), its adaptation statistics of both.
     """
     var, ls = hyper.values(x_hyper)
-    pm0 = hyper.model_at(pm_base, rwm.x)
+    s = len(hyper.sys_names)
+    x_sys0 = rwm.x[:s]
+    pm0 = hyper.model_at(pm_base, x_sys0)
     # the held coordinates are the current path's under the current model, extracted once; the
     # builder rebuilds the path under each proposal's model
     build = rm.builder(pm0, od, tr, path, kinematic=True)
-    rwm = rwm._replace(
-        logdensity=system_log_target(hyper, pm0, rm.at(pm0), od, tr, x_hyper, rwm.x, pm0.latent(path), path)
-    )
     c0 = jnp.zeros(rm.dim)
+    if internal:
+        idx, a0 = internal_coordinates(rm, pm0), internal_offsets(rm, pm0, path)
+        x0 = jnp.concatenate([x_sys0, a0])
+    else:
+        idx, a0, x0 = None, None, x_sys0
+    rwm = rwm._replace(
+        x=x0, logdensity=system_log_target(hyper, pm0, rm.at(pm0), od, tr, x_hyper, x_sys0, pm0.latent(path), path)
+    )
 
-    def _target(x_sys):
+    def _target(x):
+        x_sys = x[:s]
         pm_x = hyper.model_at(pm_base, x_sys)
         tr_x = pm_x.transition(var, ls)
-        g, path_x = build(c0, at=(pm_x, tr_x))
+        # the internal states' initial offsets: a translation of held coordinates (module doc)
+        c = c0 if idx is None else c0.at[idx].set(x[s:] - a0)
+        g, path_x = build(c, at=(pm_x, tr_x))
         return system_log_target(hyper, pm_x, rm.at(pm_x), od, tr_x, x_hyper, x_sys, g, path_x), (path_x, tr_x)
 
     def _one(carry, s):
