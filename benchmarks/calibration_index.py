@@ -93,15 +93,15 @@ class Study:
     T: str
     runs: int
     converged: float | None
-    quantities: list[str]
-    chi2: list[float]
-    ks: list[float]
-    cover90: list[float]
-    rhat: list[float]
-    ess: list[float]
     seconds: str
     source: str
     date: str
+    quantities: list[str] = dataclasses.field(default_factory=list)
+    chi2: list[float] = dataclasses.field(default_factory=list)
+    ks: list[float] = dataclasses.field(default_factory=list)
+    cover90: list[float] = dataclasses.field(default_factory=list)
+    rhat: list[float] = dataclasses.field(default_factory=list)
+    ess: list[float] = dataclasses.field(default_factory=list)
 
 
 def studies(tables: list[Table]) -> list[Study]:
@@ -121,26 +121,22 @@ def studies(tables: list[Table]) -> list[Study]:
                         row[2],
                         int(row[3].replace(",", "")),
                         _float(row[col["converged"]]),
-                        [],
-                        [],
-                        [],
-                        [],
-                        [],
-                        [],
                         row[col["s/run (first)"]],
                         t.source,
                         t.date,
-                    )  # fmt: skip
+                    )
                 )
             s = out[-1]
             s.quantities.append(row[col["param"]])
-            for attr, name in (("chi2", "SBC χ² p"), ("ks", "SBC KS p"), ("rhat", "R-hat (median)")):
+            for values, name in (
+                (s.chi2, "SBC χ² p"),
+                (s.ks, "SBC KS p"),
+                (s.rhat, "R-hat (median)"),
+                (s.ess, "bulk ESS (median)"),
+                (s.cover90, "cover 90 %"),
+            ):
                 if (v := _float(row[col[name]])) is not None:
-                    getattr(s, attr).append(v)
-            if (v := _float(row[col["bulk ESS (median)"]])) is not None:
-                s.ess.append(v)
-            if (v := _float(row[col["cover 90 %"]])) is not None:
-                s.cover90.append(v)
+                    values.append(v)
     return out
 
 
@@ -186,8 +182,8 @@ def _coverage(cell: str) -> list[float] | None:
 
 
 def record_rows(tables: list[Table]) -> tuple[list[str], dict[str, list[int]]]:
-    """One row per (case, method) of the fixed-record tables, newest first; and per kernel order
-    how many ``pgas`` rows meet the rules out of how many."""
+    """One row per (case, method) of the fixed-record tables from its newest file, sorted by case;
+    and per kernel order how many ``pgas`` rows meet the rules out of how many."""
     newest: dict[tuple[str, str], tuple[Table, list[str]]] = {}
     for t in sorted(tables, key=lambda t: t.date):
         if "force ±1/±2/±3 sd %" not in t.header:
