@@ -145,6 +145,7 @@ def test_pgas_matches_kalman_smoother_two_dof():
         burn_in=100,
         chains=4,
         initial=(0.0, 0.1),
+        residual_steps=60,  # the move under test (a linear system's default is none)
     )
     km = np.asarray(ks.means)
     ksd = np.sqrt(np.asarray(jnp.diagonal(ks.covs, axis1=1, axis2=2)))
@@ -156,6 +157,34 @@ def test_pgas_matches_kalman_smoother_two_dof():
             assert np.mean(np.abs(sd / ksd[:, i] - 1.0)) < 0.1, (name, j)
     assert max(out.diagnostics["rhat"].values()) < 1.05, out.diagnostics["rhat"]
     assert min(out.diagnostics["acceptance_residual"]) > 0.05
+
+
+def test_default_residual_steps_follow_the_model():
+    """60 residual-preserving steps a block on an SDOF nonlinear system, 60 / ndof on an MDOF one,
+    none on a linear system while the smoother move (an exact draw there) runs."""
+    from latentforce.systems import Element, LinearSystem, NonlinearMDOF, ShearFrame
+
+    gp = dict(force_variance=1.0, force_lengthscale=0.5)
+    sensors = [Sensor("acceleration", 0, 0.1)]
+    duffing = smc.ParticleModel(
+        LatentForceModel(Duffing(), Matern(1), sensors), dict(m=1.0, c=0.2, k=10.0, k3=50.0, **gp), 0.05
+    )
+    frame_params = {f"{kind}_{i}": v for kind, v in (("m", 1.0), ("c", 2.0), ("k", 2e3)) for i in range(3)}
+    frame = smc.ParticleModel(
+        LatentForceModel(NonlinearMDOF(ShearFrame(3, force_dofs=(2,)), [Element("cubic", (1, 0))]), Matern(0), sensors),
+        {**frame_params, "element0_k3": 1e5, **gp},
+        0.01,
+    )
+    two_dof = smc.ParticleModel(
+        LatentForceModel(LinearSystem(ndof=2, force_dofs=(0,)), Matern(0), sensors),
+        dict(M=np.eye(2), C=0.1 * np.eye(2), K=np.array([[30.0, -10.0], [-10.0, 10.0]]), **gp),
+        0.05,
+        initial=(0.0, 0.1),
+    )
+    assert pgas.default_residual_steps(duffing, 4) == 60
+    assert frame.ndof == 3 and pgas.default_residual_steps(frame, 4) == 20
+    assert pgas.default_residual_steps(two_dof, 4) == 0
+    assert pgas.default_residual_steps(two_dof, 0) == 30  # no smoother move: the path moves are the sweep's help
 
 
 def _batch_se(draws, batches=20):
