@@ -267,7 +267,7 @@ def make_block(
     unroll: int = 1,
     interweave: bool = True,
     lowfreq_steps: int = 5,
-    residual_steps: int = 60,
+    residual_steps: int,
     smoother_steps: int = 1,
     joint_steps: int = 1,
     system_steps: int = 0,
@@ -285,7 +285,8 @@ def make_block(
     A PGAS sweep at the carried transition; ``smoother_steps`` smoother moves
     about ``state.centre`` (module doc); ``lowfreq_steps`` low-frequency
     moves (``basis``: :func:`lowfreq_basis`) and ``residual_steps``
-    residual-preserving moves (``rm``; skipped where it does not apply); the
+    residual-preserving moves (``rm``; skipped where it does not apply; no default: the
+    caller chooses, :func:`~latentforce.inference.pgas.default_residual_steps` for run_pgas); the
     post-burn-in running sums and thinned draws; then ``state_every``
     Metropolis-within-Gibbs iterations of ``mh_steps`` centred and (with
     ``interweave``) non-centred steps on :math:`\theta`. Blocks
