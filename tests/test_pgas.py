@@ -161,7 +161,7 @@ def test_pgas_matches_kalman_smoother_two_dof():
 
 def test_default_residual_steps_follow_the_model():
     """60 residual-preserving steps a block on an SDOF nonlinear system, 60 / ndof on an MDOF one,
-    none on a linear system while the smoother move (an exact draw there) runs."""
+    none on a linear system or with a displacement (or strain) channel while the smoother move runs."""
     from latentforce.systems import Element, LinearSystem, NonlinearMDOF, ShearFrame
 
     gp = dict(force_variance=1.0, force_lengthscale=0.5)
@@ -185,6 +185,20 @@ def test_default_residual_steps_follow_the_model():
     assert frame.ndof == 3 and pgas.default_residual_steps(frame, 4) == 20
     assert pgas.default_residual_steps(two_dof, 4) == 0
     assert pgas.default_residual_steps(two_dof, 0) == 30  # no smoother move: the path moves are the sweep's help
+    # a displacement (or strain) channel pins the move's direction: none while the smoother move runs
+    for quantity in ("displacement", "strain"):
+        extra = Sensor(quantity, 0, 0.01, coefficients=(1.0,)) if quantity == "strain" else Sensor(quantity, 0, 0.01)
+        pinned = smc.ParticleModel(
+            LatentForceModel(Duffing(), Matern(1), [*sensors, extra]), dict(m=1.0, c=0.2, k=10.0, k3=50.0, **gp), 0.05
+        )
+        assert pgas.default_residual_steps(pinned, 4) == 0
+        assert pgas.default_residual_steps(pinned, 0) == 60
+    velocity = smc.ParticleModel(
+        LatentForceModel(Duffing(), Matern(1), [*sensors, Sensor("velocity", 0, 0.01)]),
+        dict(m=1.0, c=0.2, k=10.0, k3=50.0, **gp),
+        0.05,
+    )
+    assert pgas.default_residual_steps(velocity, 4) == 60  # a velocity channel leaves the offset free
 
 
 def _batch_se(draws, batches=20):
