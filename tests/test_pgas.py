@@ -161,7 +161,8 @@ def test_pgas_matches_kalman_smoother_two_dof():
 
 def test_default_residual_steps_follow_the_model():
     """60 residual-preserving steps a block on an SDOF nonlinear system, 60 / ndof on an MDOF one,
-    none on a linear system or with a displacement (or strain) channel while the smoother move runs."""
+    none on a linear system or with a displacement (or strain) channel while the smoother move runs;
+    the smoother move 8 steps with such a channel on a nonlinear system, else 4."""
     from latentforce.systems import Element, LinearSystem, NonlinearMDOF, ShearFrame
 
     gp = dict(force_variance=1.0, force_lengthscale=0.5)
@@ -193,12 +194,15 @@ def test_default_residual_steps_follow_the_model():
         )
         assert pgas.default_residual_steps(pinned, 4) == 0
         assert pgas.default_residual_steps(pinned, 0) == 60
+        assert pgas.default_smoother_steps(pinned) == 8  # the smoother move renews the path there
     velocity = smc.ParticleModel(
         LatentForceModel(Duffing(), Matern(1), [*sensors, Sensor("velocity", 0, 0.01)]),
         dict(m=1.0, c=0.2, k=10.0, k3=50.0, **gp),
         0.05,
     )
     assert pgas.default_residual_steps(velocity, 4) == 60  # a velocity channel leaves the offset free
+    assert pgas.default_smoother_steps(velocity) == pgas.default_smoother_steps(duffing) == 4
+    assert pgas.default_smoother_steps(two_dof) == 4  # linear: its first step is an exact draw
 
 
 def _batch_se(draws, batches=20):
