@@ -1163,7 +1163,10 @@ def test_runs_through_the_same_channels_compile_once_and_agree_with_their_own_se
         initial=(0.0, 0.01),
         lowfreq_modes=4,
         residual_modes=4,
+        # the step counts' defaults follow the channels (a displacement channel, here never observed, sets
+        # them: pgas.default_smoother_steps), so the same draws need them set
         residual_steps=4,
+        smoother_steps=4,
     )
 
     def run(model, y_, channels_):

@@ -82,6 +82,8 @@ DISPLACEMENT_CHANNELS = ("displacement", "strain")
 
 
 def _displacement_measured(pm: particle_model.ParticleModel) -> bool:
+    """Whether a channel reads displacement: by the model's channels, not the data, so that records run
+    through the same channels (``run_pgas(channels=...)``) share one compiled block whichever they observe."""
     return any(s.quantity in DISPLACEMENT_CHANNELS for s in pm.model.sensors)
 
 
@@ -250,7 +252,9 @@ def run_pgas(
     observe the system (default: the sensors'; :func:`observe_through`).
     Channels no sensor reads are never observed, so the posterior is the same
     (the draws too, unless an unobserved channel is the one that lets the
-    residual-preserving move apply: an exact move either way, so still the same
+    residual-preserving move apply, or an unobserved displacement or strain channel
+    sets the path moves' default step counts, :func:`default_smoother_steps` and
+    :func:`default_residual_steps`: exact moves either way, so still the same
     posterior); two runs whose models differ only in their sensors' names and
     noise then have one structure and share every compiled program.
 
