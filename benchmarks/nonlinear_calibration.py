@@ -87,6 +87,11 @@ class Case(NamedTuple):
     system: str = "duffing"
 
     @property
+    def duffing(self) -> dict:
+        """The Duffing's m, c, k (k3 is the case's own): the paper's at ``system = "paper"``."""
+        return PAPER_SYSTEM if self.system == "paper" else SYSTEM
+
+    @property
     def dt(self) -> float:
         return {"bouc-wen": BW_DT, "paper": PAPER_DT}.get(self.system, DT)
 
@@ -160,7 +165,7 @@ def case_config(case: Case, method: str, max_time: float) -> dict:
             "inference": inference,
         }
     bw, paper = case.system == "bouc-wen", case.system == "paper"
-    system = {"type": "duffing", **(PAPER_SYSTEM if paper else SYSTEM), "k3": case.k3}
+    system = {"type": "duffing", **case.duffing, "k3": case.k3}
     return {
         "data": {"sample_rate": 1.0 / case.dt},
         "system": {"type": "bouc-wen", **BW_SYSTEM} if bw else system,
@@ -207,7 +212,7 @@ def simulate(case: Case, seed: int):
         truth["hysteretic_force"] = r
         share = float(np.std(r - BW_SYSTEM["alpha"] * z) / np.std(BW_SYSTEM["k"] * z + r))
         return y, truth, noise_sd, share
-    cubic, linear = case.k3 * z**3, (PAPER_SYSTEM if case.system == "paper" else SYSTEM)["k"] * z
+    cubic, linear = case.k3 * z**3, case.duffing["k"] * z
     share = float(np.std(cubic) / np.std(linear + cubic))
     return y, truth, noise_sd, share
 

@@ -73,63 +73,13 @@ from latentforce.inference.pgas_block import (  # noqa: F401 (re-exported: calle
     system_internal,
 )
 from latentforce.inference.pgas_channels import _unnamed, observe_through  # noqa: F401 (re-exported)
+from latentforce.inference.pgas_defaults import (  # noqa: F401 (re-exported)
+    default_residual_steps,
+    default_smoother_steps,
+)
 from latentforce.inference.pgas_output import PGASOutput, _assemble, _verdict, convergence_diagnostics  # noqa: F401 (re-exported)
 from latentforce.inference.pgas_start import extended_kalman_smoother, init_chains
 from latentforce.inference.resume import pgas_loop_state, pgas_restore
-
-#: sensor quantities that pin the displacement (:func:`default_residual_steps`)
-DISPLACEMENT_CHANNELS = ("displacement", "strain")
-
-
-def _displacement_measured(pm: particle_model.ParticleModel) -> bool:
-    """Whether a channel reads displacement: by the model's channels, not the data, so that records run
-    through the same channels (``run_pgas(channels=...)``) share one compiled block whichever they observe."""
-    return any(s.quantity in DISPLACEMENT_CHANNELS for s in pm.model.sensors)
-
-
-def default_smoother_steps(pm: particle_model.ParticleModel) -> int:
-    """The smoother move's steps per block where the caller gives none: 8 on a nonlinear system with a
-    displacement (or strain) channel, else 4 (one of each :data:`~latentforce.inference.smoother_move.CN_BETAS`).
-
-    With a displacement channel the smoother move is what renews the path (it accepts ~90 % of its
-    proposals on the Duffing, 25-30 % on the Bouc-Wen oscillator) and the residual-preserving move is
-    off (:func:`default_residual_steps`), so it gets a larger share of the block. Measured, same
-    records and seed, 8 against 4 steps (no residual-preserving steps in either): Duffing acc + disp
-    converged in 19.5 / 20.1 / 23.3 / 24.9 s against 21 / 21 / 28 / 27 s (Matérn-1/2 ... 7/2); the
-    Bouc-Wen oscillator at Matérn-3/2 converged in 140 s (R-hat 1.009, ESS 486) where 4 steps ended
-    unconverged at the 180 s cap (1.011, 335); Matérn-1/2 95 s against 136 s, 5/2 R-hat 1.127 / ESS 21
-    against 1.275 / 11 (docs/nonlinear.md). Without a displacement channel the
-    move accepts a few per cent of its proposals (acceleration alone) and more steps would cost
-    more than they buy; on a linear system its first step is already an exact draw.
-    """
-    return 8 if not pm.is_linear and _displacement_measured(pm) else 4
-
-
-def default_residual_steps(pm: particle_model.ParticleModel, smoother_steps: int) -> int:
-    """The residual-preserving move's steps per block where the caller gives none: 60 over the number of DOFs.
-
-    60 on an SDOF system: on the acceleration-only Duffing, where the move's slow direction is the
-    posterior's, 20 -> 60 steps raised the force's bulk ESS from 5-26 to 34-108 (docs/nonlinear.md).
-    Fewer on more DOFs, whose steps cost more and, measured, buy less: on the 3-storey frame
-    (acc0, acc2, T = 400, 240 s cap, one record per order) 20 steps instead of 60 reached
-    the convergence rule 25-27 % sooner at every Matérn order with the same coverage
-    (1/2: 226 s against unconverged at 257 s; 3/2: 142 against 189 s; 5/2: 153 against 209 s),
-    and none at all 205 s on 1/2, so the move is not what the frame's mixing waits on.
-    None on a linear system while the smoother move runs: that move is then an exact draw of
-    the path given theta (acceptance 1), after which a move at fixed theta adds nothing; on the
-    2-DOF linear suite (Matérn-3/2, acc and acc + disp) 0 steps converged in 26 and 30 s, 60 in 47
-    and 37 s, both within the exact smoother's rule.
-    None either where a channel measures displacement (or strain) while the smoother move runs: the
-    move's direction, slow displacement content at fixed acceleration residuals, is then pinned by
-    the data, and the smoother move (accepting ~90 % there) renews the path. Measured, same records
-    and seed, 0 against 60 steps: Duffing acc + disp converged in 21 / 21 / 28 / 27 s against
-    28 / 31 / 40 / 38 s (Matérn-1/2 ... 7/2, coverage unchanged); the Bouc-Wen oscillator (acc + disp,
-    180 s cap) Matérn-1/2 converged in 136 s against 174 s, 3/2 R-hat 1.011 / ESS 335 against
-    1.023 / 261, 5/2 1.275 / 11 against 2.03 / 5 (docs/nonlinear.md).
-    """
-    if int(smoother_steps) > 0 and (pm.is_linear or _displacement_measured(pm)):
-        return 0
-    return max(1, round(60 / pm.ndof))
 
 
 def run_pgas(
@@ -201,7 +151,8 @@ def run_pgas(
     initial mechanical state at fixed :math:`\theta`; the moved path is the
     next reference and the recorded sample. Then ``residual_steps``
     residual-preserving steps (:func:`residual_move`; 0 disables; skipped
-    when no channel sees the force; None: :func:`default_residual_steps`) move the ``residual_modes`` slowest
+    when no channel sees the force; None:
+    :func:`~latentforce.inference.pgas_defaults.default_residual_steps`) move the ``residual_modes`` slowest
     modes of the mechanical within-step noise, the force following so that
     the acceleration predictions are kept; where the system has internal
     (hysteretic) states, the initial prior leaves them free of the displacements
@@ -215,7 +166,8 @@ def run_pgas(
     chain starts from a path of its own model (Gauss-Newton at its dispersed
     system parameters). Before those, right after the
     sweep, ``smoother_steps`` Metropolis-Hastings steps
-    (:mod:`latentforce.inference.smoother_move`; 0 disables; None: :func:`default_smoother_steps`; an independence
+    (:mod:`latentforce.inference.smoother_move`; 0 disables; None:
+    :func:`~latentforce.inference.pgas_defaults.default_smoother_steps`; an independence
     step, then Crank-Nicolson steps, :data:`~latentforce.inference.smoother_move.CN_BETAS`)
     propose whole paths from the linearised model's smoother about each chain's centre
     (Gauss-Newton from the extended Kalman smoother, for nonlinear systems
@@ -253,8 +205,9 @@ def run_pgas(
     Channels no sensor reads are never observed, so the posterior is the same
     (the draws too, unless an unobserved channel is the one that lets the
     residual-preserving move apply, or an unobserved displacement or strain channel
-    sets the path moves' default step counts, :func:`default_smoother_steps` and
-    :func:`default_residual_steps`: exact moves either way, so still the same
+    sets the path moves' default step counts,
+    :func:`~latentforce.inference.pgas_defaults.default_smoother_steps` and
+    :func:`~latentforce.inference.pgas_defaults.default_residual_steps`: exact moves either way, so still the same
     posterior); two runs whose models differ only in their sensors' names and
     noise then have one structure and share every compiled program.
 

@@ -286,7 +286,7 @@ def make_block(
     about ``state.centre`` (module doc); ``lowfreq_steps`` low-frequency
     moves (``basis``: :func:`lowfreq_basis`) and ``residual_steps``
     residual-preserving moves (``rm``; skipped where it does not apply; no default: the
-    caller chooses, :func:`~latentforce.inference.pgas.default_residual_steps` for run_pgas); the
+    caller chooses, :func:`~latentforce.inference.pgas_defaults.default_residual_steps` for run_pgas); the
     post-burn-in running sums and thinned draws; then ``state_every``
     Metropolis-within-Gibbs iterations of ``mh_steps`` centred and (with
     ``interweave``) non-centred steps on :math:`\theta`. Blocks
