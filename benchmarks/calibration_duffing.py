@@ -116,6 +116,6 @@ def run(key, sampler: str, problem, y, mask, dt: float, settings: dict):
         ("acceptance_joint", "joint_acceptance"),
         ("acceptance_system", "system_acceptance"),
     ):
-        if diag.get(key) is not None:
+        if diag.get(key):  # [] where the move did not run
             info[name] = float(np.mean(diag[key]))
     return draws, dict(diag.get("convergence") or {}), info

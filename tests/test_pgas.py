@@ -101,6 +101,13 @@ def test_pgas_matches_kalman_smoother_for_smooth_forces_from_the_stationary_star
         assert np.mean(np.abs(ratio - 1.0)) < 0.1, (name, ratio)
     assert min(out.diagnostics["switch_rate"]) > 0.3, out.diagnostics["switch_rate"]
     assert max(out.diagnostics["rhat"].values()) < 1.05, out.diagnostics["rhat"]
+    # the moves' acceptances: the smoother move's proposals are exact draws on a linear system (every one
+    # accepted); the moves the block does not make (no residual-preserving steps on a linear system, no
+    # joint or system move without sampled parameters) list none rather than reading as never accepted
+    assert len(out.diagnostics["acceptance_smoother"]) == 4
+    assert min(out.diagnostics["acceptance_smoother"]) > 0.999, out.diagnostics["acceptance_smoother"]
+    for move in ("residual", "joint", "system", "internal"):
+        assert out.diagnostics[f"acceptance_{move}"] == [], (move, out.diagnostics[f"acceptance_{move}"])
 
 
 def test_pgas_matches_kalman_smoother_two_dof():

@@ -79,6 +79,18 @@ def _verdict(
     return convergence.diagnose(params, states, target_ess=target_ess)
 
 
+def _move_rate(accept, burn_blocks: int) -> list:
+    """A path move's acceptance per chain over the post-burn-in blocks; none (``[]``) where the block does
+    not make the move (:data:`~latentforce.inference.pgas_block.NOT_RUN`), so that a move that never ran
+    does not read as one that never accepted."""
+    if accept is None:
+        return []
+    a = np.asarray(accept)[:, burn_blocks:]
+    if a.size == 0 or np.all(np.isnan(a)):
+        return []
+    return a.mean(axis=1).tolist()
+
+
 def _assemble(
     pm, hyper, states: ChainState, info: BlockInfo, ref_q, burn_in, total, burn_blocks, n_draws, tpoints, noise_names=()
 ) -> PGASOutput:
@@ -120,12 +132,12 @@ def _assemble(
         .tolist()
         if hyper.names
         else [],
-        "acceptance_lowfreq": info.accept_lowfreq[:, burn_blocks:].mean(axis=1).tolist(),
-        "acceptance_residual": info.accept_residual[:, burn_blocks:].mean(axis=1).tolist(),
-        "acceptance_smoother": info.accept_smoother[:, burn_blocks:].mean(axis=1).tolist(),
-        "acceptance_joint": np.asarray(info.accept_joint)[:, burn_blocks:].mean(axis=1).tolist(),
-        "acceptance_system": np.asarray(info.accept_system)[:, burn_blocks:].mean(axis=1).tolist(),
-        "acceptance_internal": np.asarray(info.accept_internal)[:, burn_blocks:].mean(axis=1).tolist(),
+        "acceptance_lowfreq": _move_rate(info.accept_lowfreq, burn_blocks),
+        "acceptance_residual": _move_rate(info.accept_residual, burn_blocks),
+        "acceptance_smoother": _move_rate(info.accept_smoother, burn_blocks),
+        "acceptance_joint": _move_rate(info.accept_joint, burn_blocks),
+        "acceptance_system": _move_rate(info.accept_system, burn_blocks),
+        "acceptance_internal": _move_rate(info.accept_internal, burn_blocks),
     }
     if noise_names:  # per chain, per inferred channel: the independence sampler's acceptance
         diag["acceptance_noise"] = {
