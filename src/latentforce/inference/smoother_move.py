@@ -358,8 +358,33 @@ def iterated_centre(
     return c
 
 
+class Prepared(NamedTuple):
+    """The linearised model about a centre, its covariance recursion and its smoothed innovations: what
+    the smoother move's and the line move's steps share within a block (:func:`prepare`)."""
+
+    lin: Linearisation
+    gains: _Gains
+    eps_hat: Float[Array, "T nl"]
+
+
+def prepare(pm, tr, od: ObservationDensity, centre) -> Prepared:
+    """The proposal's parts about ``centre`` (:class:`Prepared`): one expansion, one covariance recursion,
+    one smoothing pass."""
+    lin = linearise(pm, tr, centre)
+    gains = _gains(pm, tr, lin, od)
+    return Prepared(lin, gains, _smooth(pm, lin, gains, od.y)[0])
+
+
 def smoother_move(
-    key, pm, tr, od: ObservationDensity, centre, path: Float[Array, "T n"], n_steps: int, betas=CN_BETAS
+    key,
+    pm,
+    tr,
+    od: ObservationDensity,
+    centre,
+    path: Float[Array, "T n"],
+    n_steps: int,
+    betas=CN_BETAS,
+    prepared: Prepared | None = None,
 ) -> tuple[Float[Array, "T n"], Float[Array, " k"]]:
     r"""``n_steps`` Metropolis-Hastings steps from the proposal about ``centre`` (module doc).
 
@@ -368,11 +393,10 @@ def smoother_move(
     + \beta(\varepsilon^q - \hat\varepsilon)`, :math:`\varepsilon^q` a draw of the proposal
     (module doc, "Crank-Nicolson steps"); :math:`\beta = 1` is the independence step. The draws do
     not depend on the chain, so all are made at once (one filter pass, ``n_steps`` backward passes)
-    and the steps then run in order. Returns the new path and each step's acceptance (bool).
+    and the steps then run in order. ``prepared``: :func:`prepare` of ``centre``, where the caller
+    has it. Returns the new path and each step's acceptance (bool).
     """
-    lin = linearise(pm, tr, centre)
-    gains = _gains(pm, tr, lin, od)
-    eps_hat = _smooth(pm, lin, gains, od.y)[0]
+    lin, gains, eps_hat = prepare(pm, tr, od, centre) if prepared is None else prepared
     k_draw, k_acc = jax.random.split(key)
     ds = jax.vmap(lambda k: _draw_eps(k, pm, tr, lin, gains, od, eps_hat))(jax.random.split(k_draw, n_steps))
     beta = jnp.asarray([float(betas[j % len(betas)]) for j in range(int(n_steps))])
