@@ -71,9 +71,6 @@ from latentforce.inference import particle_model
 from latentforce.inference import smoother_move as sm
 from latentforce.inference.latent import ObservationDensity, colour, whiten
 
-#: the chain key's fold for this move's random numbers (a run without the move draws what it drew before)
-LINE_STREAM = 0x4C49
-
 #: how many times over the record the move's functionals sit at (:func:`line_functionals`)
 LINE_TIMES = 16
 
@@ -163,34 +160,14 @@ def main(argv=None) -> int:
 
     latentforce.enable_x64()
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    import nonlinear_calibration as nc
-
-    from latentforce.estimate_particles import _mechanical_initial
-    from latentforce.inference import latent, pgas
-    from latentforce.io.config import config_from_dict
+    from start_up_probe import bouc_wen_chains
 
     parser = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
     parser.add_argument("--iterations", type=int, default=300)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
-    case = nc.QUICK_BOUC_WEN[0]._replace(order=2)
-    y, _, noise_sd, _ = nc.simulate(case, args.seed)
-    cfg = nc.case_config(case, "pgas", 100)
-    for sensor, sd in zip(cfg["sensors"], noise_sd):
-        sensor["noise_std"] = float(sd)
-    problem = config_from_dict(cfg, source="line_probe")
-    params = dict(problem.fixed)
-    initial = _mechanical_initial(problem, params)
-    mask = np.ones(y.shape, bool)
-    out = pgas.run_pgas(
-        jax.random.key(args.seed), problem.model, params, {}, y, mask, case.dt,
-        iterations=args.iterations, burn_in=args.iterations // 2, chains=4, initial=initial, thin_draws=20,
-    )  # fmt: skip
-    paths = np.asarray(out.trajectories)
-    pm = particle_model.ParticleModel(problem.model, params, case.dt, initial=initial)
-    tr = pm.transition(params["force_variance"], params["force_lengthscale"])
-    od = latent.observation_density(pm, jnp.asarray(y), jnp.asarray(mask))
+    paths, pm, tr, od = bouc_wen_chains(2, args.iterations, args.seed, "line_probe")
     r = 2 * pm.ndof
     prep = sm.prepare(pm, tr, od, sm.iterated_centre(pm, tr, od, jnp.asarray(paths[0, -1])))
     r0_line = (np.zeros(1, np.int32), jnp.eye(pm.n_state)[r][None])

@@ -62,31 +62,13 @@ def _smoothing_regression(tr, lay, col: int, T: int) -> np.ndarray:
 def probe(order: int, iterations: int, seed: int) -> tuple[list[tuple], float]:
     import jax
     import jax.numpy as jnp
-    import nonlinear_calibration as nc
+    from start_up_probe import bouc_wen_chains
 
-    from latentforce.estimate_particles import _mechanical_initial
-    from latentforce.inference import latent, particle_model, path_moves, pgas
-    from latentforce.io.config import config_from_dict
+    from latentforce.inference import latent, particle_model, path_moves
 
-    case = nc.QUICK_BOUC_WEN[0]._replace(order=order)
-    y, _, noise_sd, _ = nc.simulate(case, seed)
-    cfg = nc.case_config(case, "pgas", 100)
-    for sensor, sd in zip(cfg["sensors"], noise_sd):
-        sensor["noise_std"] = float(sd)
-    problem = config_from_dict(cfg, source="start_up_direction_probe")
-    params = dict(problem.fixed)
-    initial = _mechanical_initial(problem, params)
-    mask = np.ones(y.shape, bool)
-    out = pgas.run_pgas(
-        jax.random.key(seed), problem.model, params, {}, y, mask, case.dt,
-        iterations=iterations, burn_in=iterations // 2, chains=4, initial=initial, thin_draws=20,
-    )  # fmt: skip
-    paths = np.asarray(out.trajectories)
-    pm = particle_model.ParticleModel(problem.model, params, case.dt, initial=initial)
-    tr = pm.transition(params["force_variance"], params["force_lengthscale"])
-    od = latent.observation_density(pm, jnp.asarray(y), jnp.asarray(mask))
-    rm = path_moves.ResidualMove(pm, y.shape[0], 16, jnp.sqrt(jnp.diagonal(tr.Q)[pm.latent_layout.noise]))
-    T, lay, r = y.shape[0], pm.latent_layout, 2 * pm.ndof  # r: the hysteretic force in the mechanical state
+    paths, pm, tr, od = bouc_wen_chains(order, iterations, seed, "start_up_direction_probe")
+    rm = path_moves.ResidualMove(pm, paths.shape[2], 16, jnp.sqrt(jnp.diagonal(tr.Q)[pm.latent_layout.noise]))
+    T, lay, r = paths.shape[2], pm.latent_layout, 2 * pm.ndof  # r: the hysteretic force in the mechanical state
     j, s0 = rm.K * pm.nm + r, float(rm.scale_0[r])  # r0's coordinate in the moves' units (prior sds)
     col = int(np.asarray(rm.cols)[0])  # the force value among the force states
     reg = jnp.asarray(_smoothing_regression(tr, lay, col, T))

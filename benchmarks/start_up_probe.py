@@ -28,13 +28,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 RESULTS = Path(__file__).resolve().parent / "results" / "start_up_probe.md"
 
 
-def probe(order: int, iterations: int, seed: int) -> list[tuple]:
+def bouc_wen_chains(order: int, iterations: int, seed: int, source: str):
+    """``(paths, pm, tr, od)``: a short ``pgas`` run (``iterations``, half burn-in, 4 chains, hyperparameters
+    at the truth) on the Bouc-Wen record of ``nonlinear_calibration.py --system bouc-wen`` at Matérn
+    order ``order``, its stored paths ``(chains, draws, T, n)``, and the sampler's model, transition and
+    observation density of the record (the start of this probe and of ``start_up_direction_probe.py``
+    and ``line_probe.py``)."""
     import jax
     import jax.numpy as jnp
     import nonlinear_calibration as nc
 
     from latentforce.estimate_particles import _mechanical_initial
-    from latentforce.inference import latent, path_moves, pgas
+    from latentforce.inference import latent, pgas
     from latentforce.inference.particle_model import ParticleModel
     from latentforce.io.config import config_from_dict
 
@@ -43,7 +48,7 @@ def probe(order: int, iterations: int, seed: int) -> list[tuple]:
     cfg = nc.case_config(case, "pgas", 100)
     for sensor, sd in zip(cfg["sensors"], noise_sd):
         sensor["noise_std"] = float(sd)
-    problem = config_from_dict(cfg, source="start_up_probe")
+    problem = config_from_dict(cfg, source=source)
     params = dict(problem.fixed)
     initial = _mechanical_initial(problem, params)
     mask = np.ones(y.shape, bool)
@@ -51,11 +56,20 @@ def probe(order: int, iterations: int, seed: int) -> list[tuple]:
         jax.random.key(seed), problem.model, params, {}, y, mask, case.dt,
         iterations=iterations, burn_in=iterations // 2, chains=4, initial=initial, thin_draws=20,
     )  # fmt: skip
-    paths = np.asarray(out.trajectories)
     pm = ParticleModel(problem.model, params, case.dt, initial=initial)
     tr = pm.transition(params["force_variance"], params["force_lengthscale"])
     od = latent.observation_density(pm, jnp.asarray(y), jnp.asarray(mask))
-    rm = path_moves.ResidualMove(pm, y.shape[0], 16, jnp.sqrt(jnp.diagonal(tr.Q)[pm.latent_layout.noise]))
+    return np.asarray(out.trajectories), pm, tr, od
+
+
+def probe(order: int, iterations: int, seed: int) -> list[tuple]:
+    import jax
+    import jax.numpy as jnp
+
+    from latentforce.inference import path_moves
+
+    paths, pm, tr, od = bouc_wen_chains(order, iterations, seed, "start_up_probe")
+    rm = path_moves.ResidualMove(pm, paths.shape[2], 16, jnp.sqrt(jnp.diagonal(tr.Q)[pm.latent_layout.noise]))
     r = 2 * pm.ndof  # the hysteretic force in the mechanical state
     j = rm.K * pm.nm + r  # its initial offset among the moves' coordinates (prior sds)
     grid = jnp.linspace(-3.0, 3.0, 121)

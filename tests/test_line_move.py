@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_internal_move import BENCH, GP, INITIAL, SENSORS
 from test_smc import linear_problem
 
 from latentforce.inference import latent, smc
@@ -29,11 +30,6 @@ _spec = importlib.util.spec_from_file_location("line_probe", _PATH)
 line_move = importlib.util.module_from_spec(_spec)
 sys.modules["line_probe"] = line_move
 _spec.loader.exec_module(line_move)
-
-BENCH = dict(m=2.0, c=10.0, k=5e4, alpha=5e4, beta=800.0, gamma=-1100.0, nu=1.0)
-GP = dict(force_variance=2500.0, force_lengthscale=0.01)
-SENSORS = [Sensor("acceleration", 0, 1.0), Sensor("displacement", 0, 2e-5)]
-INITIAL = (np.zeros(3), np.diag([1e-5**2, 1e-3**2, 15.0**2]))
 
 
 def _bouc_wen(order: int):

@@ -402,7 +402,8 @@ def make_block(
             od = observation_density(pm_base, data.y, data.mask, jnp.diag(state.noise_var))
         else:
             od = data.od
-        reference, rwm_x, rwm_joint, acc_joint = state.reference, state.rwm.x, state.rwm_joint, jnp.full((), NOT_RUN)
+        not_run = jnp.full((), NOT_RUN)  # a move's acceptance until it runs
+        reference, rwm_x, rwm_joint, acc_joint = state.reference, state.rwm.x, state.rwm_joint, not_run
         if n_joint and (p or n_sys) and state.centre is not None and rwm_joint is not None:
             k_joint = jax.random.fold_in(state.key, smoother_move.JOINT_STREAM)
             # the joint walk's x: the hyperparameters (kept in rwm.x), then the system parameters
@@ -431,29 +432,29 @@ def make_block(
         sc = smc.sweep_constants(pm, tr, data.y, data.mask, proposal, od.R)
         out = sweep(k_sweep, sc, reference)
         path = out.trajectory
-        acc_sm = jnp.full((), NOT_RUN)
+        acc_sm = not_run
         if n_sm and state.centre is not None:
             # its own stream (folded in): a run without the move draws what it drew before
             k_sm = jax.random.fold_in(state.key, smoother_move.SMOOTHER_STREAM)
             path, accs_sm = smoother_move.smoother_move(k_sm, pm, tr, od, state.centre, path, n_sm)
             acc_sm = jnp.mean(accs_sm.astype(float))
-        rwm_lf, acc_lf = state.rwm_lf, jnp.full((), NOT_RUN)
+        rwm_lf, acc_lf = state.rwm_lf, not_run
         if n_lf:
             frame = LowFrequencyFrame(tr, basis)
             rwm_lf, path, accs_lf = lowfreq_move(
                 k_lf, rwm_lf, pm, od, frame, path, n_lf, adapt=b < burn_blocks, step0=b * n_lf, reshape_steps=lf_reshape
             )
             acc_lf = jnp.mean(accs_lf.astype(float))
-        rwm_rp, acc_rp = state.rwm_rp, jnp.full((), NOT_RUN)
+        rwm_rp, acc_rp = state.rwm_rp, not_run
         if n_rp:
             rwm_rp, path, accs_rp = residual_move(k_rp, rwm_rp, rm, pm, od, tr, path, n_rp, adapt=b < burn_blocks)
             acc_rp = jnp.mean(accs_rp.astype(float))
-        acc_int = jnp.full((), NOT_RUN)
+        acc_int = not_run
         if n_int:
             k_int = jax.random.fold_in(state.key, internal_move.INTERNAL_STREAM)
             path, accs_int = internal_move.internal_move(k_int, rm, pm, od, tr, path, n_int)
             acc_int = jnp.mean(accs_int.astype(float))
-        rwm_sys, acc_sys = state.rwm_sys, jnp.full((), NOT_RUN)
+        rwm_sys, acc_sys = state.rwm_sys, not_run
         if n_sysrp and rwm_sys is not None:
             rwm_sys, path, tr, accs_sys = system_moves.system_move(
                 jax.random.fold_in(state.key, system_moves.SYSTEM_STREAM),

@@ -360,7 +360,7 @@ def iterated_centre(
 
 class Prepared(NamedTuple):
     """The linearised model about a centre, its covariance recursion and its smoothed innovations: what
-    the smoother move's and the line move's steps share within a block (:func:`prepare`)."""
+    the smoother move's steps share (:func:`prepare`; also ``benchmarks/line_probe.py``'s)."""
 
     lin: Linearisation
     gains: _Gains
@@ -376,15 +376,7 @@ def prepare(pm, tr, od: ObservationDensity, centre) -> Prepared:
 
 
 def smoother_move(
-    key,
-    pm,
-    tr,
-    od: ObservationDensity,
-    centre,
-    path: Float[Array, "T n"],
-    n_steps: int,
-    betas=CN_BETAS,
-    prepared: Prepared | None = None,
+    key, pm, tr, od: ObservationDensity, centre, path: Float[Array, "T n"], n_steps: int, betas=CN_BETAS
 ) -> tuple[Float[Array, "T n"], Float[Array, " k"]]:
     r"""``n_steps`` Metropolis-Hastings steps from the proposal about ``centre`` (module doc).
 
@@ -393,10 +385,9 @@ def smoother_move(
     + \beta(\varepsilon^q - \hat\varepsilon)`, :math:`\varepsilon^q` a draw of the proposal
     (module doc, "Crank-Nicolson steps"); :math:`\beta = 1` is the independence step. The draws do
     not depend on the chain, so all are made at once (one filter pass, ``n_steps`` backward passes)
-    and the steps then run in order. ``prepared``: :func:`prepare` of ``centre``, where the caller
-    has it. Returns the new path and each step's acceptance (bool).
+    and the steps then run in order. Returns the new path and each step's acceptance (bool).
     """
-    lin, gains, eps_hat = prepare(pm, tr, od, centre) if prepared is None else prepared
+    lin, gains, eps_hat = prepare(pm, tr, od, centre)
     k_draw, k_acc = jax.random.split(key)
     ds = jax.vmap(lambda k: _draw_eps(k, pm, tr, lin, gains, od, eps_hat))(jax.random.split(k_draw, n_steps))
     beta = jnp.asarray([float(betas[j % len(betas)]) for j in range(int(n_steps))])
