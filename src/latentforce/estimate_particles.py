@@ -189,10 +189,10 @@ def _run_pgas(
             "log_likelihood_note": "particle-filter estimate of log p(y | theta), mean over the last sweeps",
         }
     )
-    from latentforce.inference.hyper_moves import HYPERPARAMETERS
+    from latentforce.models import is_hyper_name
     from latentforce.priors import Flat
 
-    flat = [n for n, (prior, _) in free.items() if isinstance(prior, Flat) and n in HYPERPARAMETERS]
+    flat = [n for n, (prior, _) in free.items() if isinstance(prior, Flat) and is_hyper_name(n)]
     if flat:
         record_s = len(dataset.time) * dataset.dt
         diagnostics.setdefault("warnings", []).append(

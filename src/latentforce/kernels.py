@@ -23,7 +23,9 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
+import jax.scipy.linalg  # noqa: F401  (block_diag)
 import numpy as np
 from jaxtyping import Array, Float
 from scipy import special
@@ -261,11 +263,86 @@ class Product(Kernel):
         return self.k1.decay_rate(params[0]) + self.k2.decay_rate(params[1])
 
 
+class MaternSum(Kernel):
+    r"""A sum of independent Matérn GPs, each with its own variance and lengthscale.
+
+    ``f = f_0 + f_1 + ...`` (a slow and a fast component, say). The terms' SDEs stack
+    block-diagonally; the state is then changed by :math:`x' = T x`, :math:`T` the identity with
+    the first row replaced by the sum of the blocks' first rows, so that the force itself is the
+    first state (:math:`H = e_1^\top`) as for a single Matérn (every reader of "the force
+    value" in the models and samplers relies on that). Its parameters are a :class:`KernelParams`
+    of arrays, one entry per term.
+    """
+
+    def __init__(self, terms: tuple[Matern, ...]):
+        terms = tuple(terms)
+        if len(terms) < 2 or not all(isinstance(t, Matern) for t in terms):
+            raise ValueError(f"a Matérn sum needs at least two Matérn terms, got {terms!r}")
+        self.terms = terms
+        self.dim = sum(t.dim for t in terms)
+        self.name = "+".join(t.name for t in terms)
+        self.n_terms = len(terms)
+        starts = np.cumsum([0] + [t.dim for t in terms])
+        T = np.eye(self.dim)
+        T[0, starts[1:-1]] = 1.0
+        self._T = T
+        self._Tinv = np.linalg.inv(T)  # I minus the same row entries (exact)
+
+    def __repr__(self) -> str:
+        return f"MaternSum({self.terms!r})"
+
+    def _term(self, params: KernelParams, i: int) -> KernelParams:
+        return KernelParams(jnp.reshape(params.variance, (-1,))[i], jnp.reshape(params.lengthscale, (-1,))[i])
+
+    def _block(self, mats):
+        return jax.scipy.linalg.block_diag(*mats)
+
+    def state_space(self, params: KernelParams) -> StateSpace:
+        parts = [t.state_space(self._term(params, i)) for i, t in enumerate(self.terms)]
+        T, Ti = jnp.asarray(self._T), jnp.asarray(self._Tinv)
+        F = T @ self._block([p.F for p in parts]) @ Ti
+        L = T @ self._block([p.L for p in parts])
+        Qc = self._block([p.Qc for p in parts])
+        Pinf = symmetrise(T @ self._block([p.Pinf for p in parts]) @ T.T)
+        H = jnp.zeros((1, self.dim)).at[0, 0].set(1.0)
+        return StateSpace(F, L, Qc, H, Pinf)
+
+    def discretise(self, params, dt: float):
+        """Each term's own exact, robust transition (:meth:`Kernel.discretise`), stacked and
+        changed to the summed state: a fast term never forces a slow one's Van Loan integral
+        into its overflowing regime."""
+        parts = [t.discretise(self._term(params, i), dt) for i, t in enumerate(self.terms)]
+        T, Ti = jnp.asarray(self._T), jnp.asarray(self._Tinv)
+        A = T @ self._block([a for a, _ in parts]) @ Ti
+        Q = symmetrise(T @ self._block([q for _, q in parts]) @ T.T)
+        return A, Q
+
+    def decay_rate(self, params):
+        return jnp.min(jnp.stack([t.decay_rate(self._term(params, i)) for i, t in enumerate(self.terms)]))
+
+    def covariance(self, tau, params):
+        return sum(t.covariance(tau, self._term(params, i)) for i, t in enumerate(self.terms))
+
+    def spectral_density(self, omega, params):
+        """The terms' densities summed (independent processes)."""
+        return sum(t.spectral_density(omega, self._term(params, i)) for i, t in enumerate(self.terms))
+
+
 KERNELS = {"matern12": 0, "matern32": 1, "matern52": 2, "matern72": 3}
 
 
-def kernel_from_name(name: str) -> Matern:
-    """Build a Matérn kernel from its config name (``matern12`` ... ``matern72``)."""
-    if name not in KERNELS:
+def kernel_from_name(name: str) -> Matern | MaternSum:
+    """Build a kernel from its config name: ``matern12`` ... ``matern72``, or a sum of them
+    written with ``+`` (``"matern12 + matern52"``: independent terms, each with its own
+    variance and lengthscale)."""
+    parts = [p.strip() for p in str(name).split("+")]
+    if any(p not in KERNELS for p in parts):
         raise KeyError(name)
-    return Matern(KERNELS[name])
+    if len(parts) == 1:
+        return Matern(KERNELS[parts[0]])
+    return MaternSum(tuple(Matern(KERNELS[p]) for p in parts))
+
+
+def n_terms(kernel: Kernel) -> int:
+    """How many (variance, lengthscale) pairs the kernel has: 1 for a Matérn, one per term of a sum."""
+    return int(getattr(kernel, "n_terms", 1))

@@ -9,7 +9,8 @@ absent otherwise, :mod:`latentforce.systems`.)
 
 Each latent force :math:`u_j = H_k x^{(j)}_f` is an independent GP with the
 same kernel family and hyperparameters (``force_variance``,
-``force_lengthscale`` in the parameter dict). The augmented continuous
+``force_lengthscale`` in the parameter dict; per term, ``force_variance_0`` ...,
+for a sum of kernels: :func:`hyper_names`). The augmented continuous
 model (Eq. 21-22 of ISMA 2018, Eq. 18 and 20 of Vibration 2020) is
 
 .. math::
@@ -43,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from latentforce.compile import require_x64
-from latentforce.kernels import Kernel, KernelParams
+from latentforce.kernels import Kernel, KernelParams, n_terms
 from latentforce.linalg import inv, solve_lyapunov, symmetrise, van_loan
 from latentforce.systems import System
 
@@ -189,6 +190,24 @@ class LatentLayout(NamedTuple):
         return slice(self.n_force_states, self.n)
 
 
+def hyper_names(kernel: Kernel, split: bool = False):
+    """The names of a kernel's hyperparameters in a params dict: ``force_variance``,
+    ``force_lengthscale`` for a Matérn; ``force_variance_i``, ``force_lengthscale_i`` for term
+    ``i`` (from 0) of a sum. ``split``: ``(variance names, lengthscale names)``."""
+    n = n_terms(kernel)
+    if n == 1:
+        var, ls = ("force_variance",), ("force_lengthscale",)
+    else:
+        var = tuple(f"force_variance_{i}" for i in range(n))
+        ls = tuple(f"force_lengthscale_{i}" for i in range(n))
+    return (var, ls) if split else var + ls
+
+
+def is_hyper_name(name: str) -> bool:
+    """Whether ``name`` is a force hyperparameter's (any kernel)."""
+    return re.fullmatch(r"force_(variance|lengthscale)(_\d+)?", name) is not None
+
+
 class LatentForceModel:
     """Static structure of a latent force model (numbers live in a params dict).
 
@@ -267,10 +286,30 @@ class LatentForceModel:
         return jnp.asarray(Hu)
 
     # ----- the force GP ----------------------------------------------------
+    @property
+    def hyper_names(self) -> tuple[str, ...]:
+        """The force hyperparameters' names, variances first (:func:`hyper_names`)."""
+        return hyper_names(self.kernel)
+
     def kernel_params(self, params) -> KernelParams:
+        """The kernel's numbers from ``params``: scalars for a Matérn, one entry per term of a sum."""
+        var, ls = hyper_names(self.kernel, split=True)
+        if len(var) == 1:
+            return KernelParams(jnp.asarray(params[var[0]], dtype=float), jnp.asarray(params[ls[0]], dtype=float))
         return KernelParams(
-            jnp.asarray(params["force_variance"], dtype=float), jnp.asarray(params["force_lengthscale"], dtype=float)
+            jnp.stack([jnp.asarray(params[n], dtype=float) for n in var]),
+            jnp.stack([jnp.asarray(params[n], dtype=float) for n in ls]),
         )
+
+    def with_hyper(self, params: dict, variance, lengthscale) -> dict:
+        """``params`` with the force hyperparameters set from ``(variance, lengthscale)`` (scalars,
+        or one entry per term of a sum; :meth:`kernel_params`'s inverse)."""
+        var, ls = hyper_names(self.kernel, split=True)
+        if len(var) == 1:
+            return {**params, var[0]: variance, ls[0]: lengthscale}
+        flat = lambda a: jnp.reshape(jnp.asarray(a, dtype=float), (-1,))
+        v, l_ = flat(variance), flat(lengthscale)
+        return {**params, **{n: v[i] for i, n in enumerate(var)}, **{n: l_[i] for i, n in enumerate(ls)}}
 
     def force_state_space(self, params):
         """Block-diagonal ``(F_f, W_f, H_f, Pinf_f)`` for all latent forces."""

@@ -17,7 +17,8 @@
   with the posterior mean and the CDF median (cf. Figs. 1 and 3, ISMA 2018);
 * ``joint_hyperparameters.png`` -- 2-D histogram and contours of
   (force_variance, force_lengthscale), the truth as a red x when
-  ``result.diagnostics["true_params"]`` gives it.
+  ``result.diagnostics["true_params"]`` gives it; for a kernel sum one per
+  term, ``joint_hyperparameters_0.png`` ...
 
 Every figure of a sampling run that did not converge carries "NOT
 CONVERGED" across its face and the worst R-hat and ESS at its foot
@@ -30,6 +31,7 @@ opens a window, and each figure is released once saved.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -109,8 +111,10 @@ def draw_figures(result: RunResult, fig_dir: Path) -> list[Path]:
     if result.param_draws:
         written.append(plot_traces(result, fig_dir / "traces.png"))
         written.append(plot_histograms(result, fig_dir / "histograms.png"))
-        if {"force_variance", "force_lengthscale"} <= set(result.param_draws):
-            written.append(plot_joint_hyperparameters(result, fig_dir / "joint_hyperparameters.png"))
+        # one figure per kernel term whose variance and lengthscale are both sampled ("_0", "_1" ...: a sum)
+        for term in _hyper_terms(result.param_draws):
+            if {f"force_variance{term}", f"force_lengthscale{term}"} <= set(result.param_draws):
+                written.append(plot_joint_hyperparameters(result, fig_dir / f"joint_hyperparameters{term}.png", term))
     return written
 
 
@@ -190,8 +194,14 @@ def _channel_unit(result: RunResult, column: str) -> str:
     return _QUANTITY_UNITS.get(quantity or "", "")
 
 
+def _hyper_terms(names) -> list[str]:
+    """The kernel terms' suffixes among parameter names: ``[""]`` for a Matérn, ``["_0", "_1"]`` for a sum."""
+    found = {m.group(2) or "" for n in names if (m := re.fullmatch(r"force_(variance|lengthscale)(_\d+)?", n))}
+    return sorted(found, key=lambda t: (len(t), t))
+
+
 def _param_label(name: str) -> str:
-    unit = _PARAM_UNITS.get(name)
+    unit = _PARAM_UNITS.get(re.sub(r"^(force_(variance|lengthscale))_\d+$", r"\1", name))
     return f"{name} [{unit}]" if unit else name
 
 
@@ -420,10 +430,12 @@ def _bins(n: int) -> int:
     return int(np.clip(np.sqrt(max(n, 1)), 10, 60))
 
 
-def plot_joint_hyperparameters(result: RunResult, path: Path) -> Path:
-    """Joint 2-D histogram with contours of the force variance and lengthscale."""
-    x = np.asarray(result.param_draws["force_lengthscale"], dtype=float).ravel()
-    y = np.asarray(result.param_draws["force_variance"], dtype=float).ravel()
+def plot_joint_hyperparameters(result: RunResult, path: Path, term: str = "") -> Path:
+    """Joint 2-D histogram with contours of the force variance and lengthscale (of the kernel
+    sum's term ``term``, ``"_0"``, ``"_1"`` ..., if given)."""
+    var, ls = f"force_variance{term}", f"force_lengthscale{term}"
+    x = np.asarray(result.param_draws[ls], dtype=float).ravel()
+    y = np.asarray(result.param_draws[var], dtype=float).ravel()
     ok = np.isfinite(x) & np.isfinite(y)
     x, y = x[ok], y[ok]
     fig = Figure(figsize=(6.4, 5.4))
@@ -436,10 +448,10 @@ def plot_joint_hyperparameters(result: RunResult, path: Path) -> Path:
         y_mid = 0.5 * (y_edges[1:] + y_edges[:-1])
         ax.contour(x_mid, y_mid, counts.T, levels=5, colors=_MEAN_COLOUR, linewidths=0.8)
     truth = _true_params(result)
-    if "force_lengthscale" in truth and "force_variance" in truth:
+    if ls in truth and var in truth:
         ax.plot(
-            truth["force_lengthscale"],
-            truth["force_variance"],
+            truth[ls],
+            truth[var],
             "x",
             color=_TRUTH_COLOUR,
             ms=12,
@@ -447,9 +459,10 @@ def plot_joint_hyperparameters(result: RunResult, path: Path) -> Path:
             label="truth",
         )
         ax.legend(loc="upper right")
-    ax.set_xlabel(_param_label("force_lengthscale"))
-    ax.set_ylabel(_param_label("force_variance"))
-    ax.set_title("Joint posterior of the force hyperparameters")
+    ax.set_xlabel(_param_label(ls))
+    ax.set_ylabel(_param_label(var))
+    which = f" (kernel term {term[1:]})" if term else ""
+    ax.set_title(f"Joint posterior of the force hyperparameters{which}")
     return _save(fig, path, result)
 
 

@@ -33,6 +33,9 @@ from scipy.signal import welch
 
 from latentforce.compile import jit
 from latentforce.kernels import KernelParams
+from latentforce.models import hyper_names
+
+HYPER_SPLIT = (("force_variance",), ("force_lengthscale",))
 
 __all__ = ["PSD_SAMPLES", "force_psd_table", "force_spectrum", "kalman_force_samples", "prior_psd", "welch_psd"]
 
@@ -82,7 +85,7 @@ def force_psd_table(
         table[f"psd_mean{sfx}"] = psd[:, j].mean(axis=0)
         table[f"psd_q05{sfx}"] = np.quantile(psd[:, j], 0.05, axis=0)
         table[f"psd_q95{sfx}"] = np.quantile(psd[:, j], 0.95, axis=0)
-    # composite kernels have no closed-form density here
+    # a product kernel has no closed-form density here (a Matérn sum has: the terms summed)
     table["prior_psd"] = (
         prior_psd(kernel, variance, lengthscale, freq)
         if hasattr(kernel, "spectral_density")
@@ -128,20 +131,22 @@ def _force_draws(params, initial, keys, y, mask, *, model, dt):
     return jax.lax.map(lambda k: sample_smoothed_trajectory(k, A, Q, filt)[:, idx], keys)
 
 
-def hyperparameters(result, fixed: dict) -> tuple[float, float]:
+def hyperparameters(result, fixed: dict, model=None) -> tuple:
     """The force variance and lengthscale at which the prior is drawn: the posterior median of a
-    sampled one, else its fixed value."""
-    out = []
+    sampled one, else its fixed value (for a kernel sum, arrays with one entry per term)."""
+    var_names, ls_names = hyper_names(model.kernel, split=True) if model is not None else HYPER_SPLIT
     summary = result.param_summary or {}
-    for name in ("force_variance", "force_lengthscale"):
+
+    def value(name):
         draws = result.param_draws.get(name)
         if name in summary and summary[name].get("median") is not None:
-            out.append(float(summary[name]["median"]))
-        elif draws is not None and np.size(draws):
-            out.append(float(np.median(draws)))
-        else:
-            out.append(float(fixed[name]))
-    return out[0], out[1]
+            return float(summary[name]["median"])
+        if draws is not None and np.size(draws):
+            return float(np.median(draws))
+        return float(fixed[name])
+
+    var, ls = [value(n) for n in var_names], [value(n) for n in ls_names]
+    return (var[0], ls[0]) if len(var) == 1 else (np.array(var), np.array(ls))
 
 
 def force_spectrum(key, problem, result, params: dict, y, mask, dt: float, initial=None) -> dict | None:
@@ -157,5 +162,5 @@ def force_spectrum(key, problem, result, params: dict, y, mask, dt: float, initi
             return None
         f = np.asarray(f, dtype=float)
         paths = f.reshape(-1, f.shape[2], f.shape[3])
-    variance, lengthscale = hyperparameters(result, params)
+    variance, lengthscale = hyperparameters(result, params, model)
     return force_psd_table(paths, dt, model.kernel, variance, lengthscale, truth=result.truth.get("force"))

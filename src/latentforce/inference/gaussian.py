@@ -191,7 +191,8 @@ def _build(static, numbers, params):
     initial, noise = numbers
     params = {**noise, **params}
     pm = particle_model.ParticleModel(model, params, dt, discretisation, initial)
-    tr = pm.transition(params["force_variance"], params["force_lengthscale"])
+    kp = model.kernel_params(params)
+    tr = pm.transition(kp.variance, kp.lengthscale)
     return pm, tr, model.noise_covariance(params)
 
 

@@ -53,12 +53,22 @@ class Hyper:
     that takes it serves every value).
     """
 
-    def __init__(self, params: dict, free: dict, system_names: tuple[str, ...] = ()):
-        bad = [n for n in free if n not in HYPERPARAMETERS and n not in system_names]
+    def __init__(
+        self,
+        params: dict,
+        free: dict,
+        system_names: tuple[str, ...] = (),
+        hyper_names: tuple[tuple[str, ...], tuple[str, ...]] = ((HYPERPARAMETERS[0],), (HYPERPARAMETERS[1],)),
+    ):
+        # hyper_names: (variance names, lengthscale names), one each per kernel term
+        # (models.hyper_names(kernel, split=True))
+        self.var_names, self.ls_names = tuple(hyper_names[0]), tuple(hyper_names[1])
+        all_hyper = self.var_names + self.ls_names
+        bad = [n for n in free if n not in all_hyper and n not in system_names]
         if bad:
-            raise ValueError(f"PGAS samples only {HYPERPARAMETERS + tuple(system_names)}; cannot sample {bad}")
-        self.names = tuple(n for n in HYPERPARAMETERS if n in free)
-        self.sys_names = tuple(n for n in system_names if n in free and n not in HYPERPARAMETERS)
+            raise ValueError(f"PGAS samples only {all_hyper + tuple(system_names)}; cannot sample {bad}")
+        self.names = tuple(n for n in all_hyper if n in free)
+        self.sys_names = tuple(n for n in system_names if n in free and n not in all_hyper)
         self.priors = tuple(free[n][0] for n in self.names)
         self.sys_priors = tuple(free[n][0] for n in self.sys_names)
         self.init = np.array([float(free[n][1]) for n in self.names], dtype=float)
@@ -70,15 +80,20 @@ class Hyper:
             bad = {n: v for n, v, prior in zip(names, init, priors) if not (np.isfinite(v) and (prior.signed or v > 0))}
             if bad:
                 raise ValueError(f"initial values of sampled parameters must be positive and finite, got {bad}")
-        self.fixed = {n: float(params[n]) for n in HYPERPARAMETERS}
+        self.fixed = {n: float(params[n]) for n in all_hyper}
 
     def tree_flatten(self):
-        return (self.priors, self.init, self.fixed, self.sys_priors, self.sys_init), (self.names, self.sys_names)
+        return (self.priors, self.init, self.fixed, self.sys_priors, self.sys_init), (
+            self.names,
+            self.sys_names,
+            self.var_names,
+            self.ls_names,
+        )
 
     @classmethod
     def tree_unflatten(cls, names, children):
         hyper = object.__new__(cls)
-        hyper.names, hyper.sys_names = names
+        hyper.names, hyper.sys_names, hyper.var_names, hyper.ls_names = names
         hyper.priors, hyper.init, hyper.fixed, hyper.sys_priors, hyper.sys_init = children
         return hyper
 
@@ -134,12 +149,16 @@ class Hyper:
         return jnp.exp(jnp.asarray(x, dtype=float))
 
     def values(self, x: Float[Array, " p"]):
-        """``(variance, lengthscale)`` from the unconstrained vector ``x``."""
+        """``(variance, lengthscale)`` from the unconstrained vector ``x``: scalars for a Matérn,
+        one entry per term of a kernel sum."""
         vals = dict(self.fixed)
         theta = self.to_constrained(x)
         for i, n in enumerate(self.names):
             vals[n] = theta[i]
-        return jnp.asarray(vals["force_variance"], dtype=float), jnp.asarray(vals["force_lengthscale"], dtype=float)
+        if len(self.var_names) == 1:
+            return jnp.asarray(vals[self.var_names[0]], dtype=float), jnp.asarray(vals[self.ls_names[0]], dtype=float)
+        stack = lambda names: jnp.stack([jnp.asarray(vals[n], dtype=float) for n in names])
+        return stack(self.var_names), stack(self.ls_names)
 
     def log_prior(self, x: Float[Array, " p"]) -> Float[Array, ""]:
         r""":math:`\sum_i \log p(\theta_i) + x_i`: the prior density of :math:`x = \log\theta`."""

@@ -68,7 +68,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from latentforce.compile import jit
-from latentforce.kernels import KernelParams, Matern
+from latentforce.kernels import KernelParams, Matern, n_terms
 from latentforce.linalg import cholesky, inv, solve_lyapunov, symmetrise, van_loan
 
 #: Jitter added to covariances before a Cholesky factorisation, relative to
@@ -207,7 +207,7 @@ class ParticleModel:
         return Hf @ xf
 
     def _gp_dummy(self):
-        return {**self.params, "force_variance": 1.0, "force_lengthscale": 1.0}
+        return self.model.with_hyper(self.params, _unit(self.model), _unit(self.model))
 
     def acceleration(self, z, v, u, r=None):
         r""":math:`\ddot z = M^{-1}(B u - h(z, \dot z, r))`, as ``system.acceleration`` but with
@@ -308,7 +308,7 @@ class ParticleModel:
         """
         L, G = self.layout, self.latent_layout
         A_f, Q_f, P_f = self.force_transition(variance, lengthscale)
-        prm = {**self.params, "force_variance": variance, "force_lengthscale": lengthscale}
+        prm = self.model.with_hyper(self.params, variance, lengthscale)
         F, W = self.model.continuous(prm, linear_part=True)
         A, Q = van_loan(F, W, self.dt)
         state = np.arange(L.n_state)
@@ -343,7 +343,8 @@ class ParticleModel:
             return jnp.zeros(self.nm), symmetrise(P0[self.layout.mech, self.layout.mech])
         # at the force hyperparameters in params (the CLI's start, estimate_particles._mechanical_initial);
         # unit ones only where params has none: the near-rest spread scales with the force's variance
-        m0, P0 = self.model.default_initial({"force_variance": 1.0, "force_lengthscale": 1.0, **self.params})
+        unit = self.model.with_hyper({}, _unit(self.model), _unit(self.model))
+        m0, P0 = self.model.default_initial({**unit, **self.params})
         return m0[self.layout.mech], symmetrise(P0[self.layout.mech, self.layout.mech])
 
     def path(self, g: Float[Array, "T nl"]) -> Float[Array, "T n"]:
@@ -383,6 +384,12 @@ class ParticleModel:
         H = jax.jacfwd(lambda x: self._observe(x[L.mech], x[L.force_states]))(x0)
         m1 = jnp.concatenate([self.mech0_mean, jnp.zeros(self.nfx)])
         return A_d, tr.Q[perm][:, perm], H, m1, tr.Pinf[perm][:, perm]
+
+
+def _unit(model):
+    """Unit force hyperparameters (a scalar, or one per term of a kernel sum)."""
+    n = n_terms(model.kernel)
+    return 1.0 if n == 1 else jnp.ones(n)
 
 
 def internal_noise(model, params: dict, Q_zz):

@@ -80,6 +80,7 @@ from latentforce.inference.pgas_defaults import (  # noqa: F401 (re-exported)
 from latentforce.inference.pgas_output import PGASOutput, _assemble, _verdict, convergence_diagnostics  # noqa: F401 (re-exported)
 from latentforce.inference.pgas_start import extended_kalman_smoother, init_chains
 from latentforce.inference.resume import pgas_loop_state, pgas_restore
+from latentforce.models import hyper_names
 
 
 def run_pgas(
@@ -231,7 +232,12 @@ def run_pgas(
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool) & jnp.isfinite(y)
     noise = noise_gibbs.noise_levels(model, free, mask)
-    hyper = Hyper(params, {n: v for n, v in free.items() if n not in noise.names}, model.system.param_names)
+    hyper = Hyper(
+        params,
+        {n: v for n, v in free.items() if n not in noise.names},
+        model.system.param_names,
+        hyper_names(model.kernel, split=True),
+    )
     params = {**params, **dict(zip(hyper.sys_names, hyper.sys_init))}
     d = len(hyper.joint_names)
     start_record, spread, joint_chol = None, 0.5 * np.eye(d), 0.05 * np.eye(d)

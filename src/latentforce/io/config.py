@@ -48,7 +48,7 @@ from latentforce.io.schema import (
 from latentforce.io.sensor_checks import check_sensor, validate_outputs
 from latentforce.io.system_config import BOUC_WEN_KEYS, PLANNED_SYSTEM_TYPES, SCALAR_RULES, _system  # noqa: F401
 from latentforce.kernels import KERNELS, kernel_from_name
-from latentforce.models import LatentForceModel, Sensor
+from latentforce.models import LatentForceModel, Sensor, hyper_names, is_hyper_name
 
 __all__ = [
     "DataSettings",
@@ -62,11 +62,6 @@ __all__ = [
 ]
 
 METHODS = ("kalman", "kalman-mcmc", "kalman-nuts", "pgas", "ekf", "ukf")
-# Parameters PGAS may infer (Algorithm 4, Vibration 2020, with Metropolis-within-Gibbs on the
-# force hyperparameters), besides the system's own (m, c, k, k3 ..., moved by the joint move of
-# latentforce.inference.smoother_move and the move of latentforce.inference.system_moves) and the
-# sensors' noise levels (an exact Gibbs step each, latentforce.inference.noise_gibbs).
-PGAS_FREE_OK = ("force_variance", "force_lengthscale")
 #: warm-up iterations per chain when [inference].burn_in is not given: the Kalman
 #: samplers start at the posterior's modes (Laplace), so a short warm-up adapts them
 DEFAULT_BURN_IN = {"kalman": 0, "kalman-mcmc": 500, "kalman-nuts": 300, "pgas": 1000, "ekf": 500, "ukf": 500}
@@ -171,13 +166,49 @@ def _free_key(name: str) -> str:
     if name.startswith("noise_std_"):
         return f"[[sensors]].noise_std (column {name.removeprefix('noise_std_')!r})"
     if name.startswith("force_"):
-        return f"[force].{name.removeprefix('force_')}"
+        key, _, term = name.removeprefix("force_").partition("_")
+        return f"[force].{key}[{term}]" if term else f"[force].{key}"
     kind, _, index = name.partition("_")
     if kind.startswith("element") and kind.removeprefix("element").isdigit():
         return f"[[system.elements]][{kind.removeprefix('element')}].{index}"
     if index.isdigit() and kind in _FRAME_KEYS:
         return f"[system].{_FRAME_KEYS[kind]}[{index}]"
     return f"[system].{name}"
+
+
+def _force(fail: _Fail, f, fixed: dict, free: dict):
+    """``[force]``: the kernel (a Matérn, or a sum of them written with ``+``) and its
+    hyperparameters, one number or prior table each, or a list of them (one per term) for a sum."""
+    terms = [t.strip() for t in f.kernel.split("+")]
+    for t in terms:
+        if t not in KERNELS:
+            raise fail(
+                "[force].kernel",
+                f"unknown kernel {t!r}{_did_you_mean(t, tuple(KERNELS), '{!r}')} "
+                f'Valid kernels: {", ".join(KERNELS)}, or a sum of them such as "matern12 + matern52".',
+            )
+    kernel = kernel_from_name(f.kernel)
+    names = dict(zip(("variance", "lengthscale"), hyper_names(kernel, split=True)))
+    for key, value in (("variance", f.variance), ("lengthscale", f.lengthscale)):
+        if len(terms) == 1:
+            if isinstance(value, list):
+                raise fail(
+                    f"[force].{key}",
+                    f"is a list of {len(value)} but the kernel {f.kernel!r} has one term: give one number "
+                    "or prior table (a list is for a sum of kernels, one entry per term).",
+                )
+            _split(fail, f"[force].{key}", names[key][0], value, "positive", fixed, free)
+            continue
+        if not isinstance(value, list) or len(value) != len(terms):
+            got = f"a list of {len(value)}" if isinstance(value, list) else "one value"
+            raise fail(
+                f"[force].{key}",
+                f"the kernel {f.kernel!r} is a sum of {len(terms)} terms, each with its own {key}: give a list "
+                f"of {len(terms)} (numbers or prior tables, in the kernel's order), got {got}.",
+            )
+        for i, v in enumerate(value):
+            _split(fail, f"[force].{key}[{i}]", names[key][i], v, "positive", fixed, free)
+    return kernel
 
 
 def config_from_dict(
@@ -202,16 +233,7 @@ def config_from_dict(
     free: dict[str, ParamSpec] = {}
     system = _system(fail, cfg.system, fixed, free)
 
-    f = cfg.force
-    if f.kernel not in KERNELS:
-        raise fail(
-            "[force].kernel",
-            f"unknown kernel {f.kernel!r}{_did_you_mean(f.kernel, tuple(KERNELS), '{!r}')} "
-            f"Valid kernels: {', '.join(KERNELS)}.",
-        )
-    kernel = kernel_from_name(f.kernel)
-    _split(fail, "[force].variance", "force_variance", f.variance, "positive", fixed, free)
-    _split(fail, "[force].lengthscale", "force_lengthscale", f.lengthscale, "positive", fixed, free)
+    kernel = _force(fail, cfg.force, fixed, free)
 
     sensors = []
     seen: dict[str, int] = {}
@@ -270,7 +292,11 @@ def config_from_dict(
         )
     if method == "pgas":
         for name in free:
-            if name not in PGAS_FREE_OK and name not in noise_names and name not in system.param_names:
+            # PGAS infers (Algorithm 4, Vibration 2020, with Metropolis-within-Gibbs on the force
+            # hyperparameters) those, the system's own (m, c, k, k3 ..., moved by the joint move of
+            # latentforce.inference.smoother_move and the move of latentforce.inference.system_moves)
+            # and the sensors' noise levels (an exact Gibbs step each, latentforce.inference.noise_gibbs)
+            if not is_hyper_name(name) and name not in noise_names and name not in system.param_names:
                 raise fail(
                     _free_key(name),
                     f'method "pgas" can infer the system\'s parameters, the force variance and '

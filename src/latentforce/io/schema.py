@@ -39,7 +39,22 @@ _Param = Annotated[
     Union[Annotated[float, Tag("number")], Annotated[_PriorTable, Tag("table")]],
     Discriminator(_param_kind),
 ]
-_UNION_TAGS = ("number", "table")
+_UNION_TAGS = ("number", "table", "list")
+
+
+def _param_or_list_kind(value: Any) -> str:
+    return "list" if isinstance(value, list) else _param_kind(value)
+
+
+# [force].variance / lengthscale: one parameter, or a list of them (one per term of a kernel sum)
+_ParamOrList = Annotated[
+    Union[
+        Annotated[float, Tag("number")],
+        Annotated[_PriorTable, Tag("table")],
+        Annotated[list[_Param], Tag("list")],
+    ],
+    Discriminator(_param_or_list_kind),
+]
 
 
 class _DataSection(_Strict):
@@ -85,8 +100,8 @@ class _SystemSection(_Strict):
 
 class _ForceSection(_Strict):
     kernel: str
-    variance: _Param
-    lengthscale: _Param
+    variance: _ParamOrList
+    lengthscale: _ParamOrList
 
 
 class _SensorSection(_Strict):
