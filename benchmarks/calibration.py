@@ -91,6 +91,7 @@ LEVELS = (0.5, 0.9)
 FLAG_SD = 3.0
 FLAG_P = 0.01
 LABELS = {"k": "k", "c": "c", "force_variance": "σ²", "force_lengthscale": "ℓ"}
+LABELS.update({f"force_{n}_{i}": f"{LABELS[f'force_{n}']}{i}" for n in ("variance", "lengthscale") for i in range(4)})
 SPARK = "▁▂▃▄▅▆▇█"
 
 
@@ -429,6 +430,22 @@ def cases() -> list[Case]:
             ("pgas",),
             "as bouc-wen-sbc-params, with the CLI's default initial prior (no `[initial]`: the hysteretic "
             "force's sd 14.7 N at the force's median variance, straddling the |r| kink), the records drawn from it",
+            quick=False,
+        ),
+        dataclasses.replace(
+            duffing,
+            name="duffing-sbc-sum",
+            config={
+                **DUFFING_SBC_CONFIG,
+                "force": {
+                    "kernel": "matern12 + matern52",
+                    "variance": [_lognormal(0.5, 0.5, 0.5), _lognormal(1.0, 0.5, 1.0)],
+                    "lengthscale": [2.0, _lognormal(0.3, 0.3, 0.3)],
+                },
+            },
+            description="as duffing-sbc, a kernel sum: a slow Matérn-1/2 term (ℓ 2 s fixed, σ² median 0.5 (0.5)) "
+            "and a Matérn-5/2 one (σ² median 1 (0.5), ℓ 0.3 s (0.3)), both variances and the second "
+            "lengthscale inferred",
             quick=False,
         ),
         dataclasses.replace(

@@ -227,12 +227,16 @@ def record_rows(tables: list[Table]) -> tuple[list[str], dict[str, list[int]]]:
 
 def linear_rows(tables: list[Table]) -> list[str]:
     """``linear_suite*.md`` rows as they are (its own rule, recomputed there), with the source."""
-    lines = []
+    lines, header = [], None
     for t in tables:
         if "within the rule" not in t.header:
             continue
-        if not lines:
-            lines += ["| " + " | ".join(t.header) + " | from |", "|" + "---|" * (len(t.header) + 1)]
+        if t.header != header:  # a table of its own where the columns differ (hyperparameters inferred)
+            lines += ([""] if lines else []) + [
+                "| " + " | ".join(t.header) + " | from |",
+                "|" + "---|" * (len(t.header) + 1),
+            ]
+            header = t.header
         col = t.header.index("within the rule")
         for row in t.rows:
             row = [_bold(c, i == col and c != "yes") for i, c in enumerate(row)]

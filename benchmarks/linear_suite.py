@@ -276,6 +276,11 @@ def main(argv=None) -> int:
         f"{load[0]:.2f} at the end; seed {args.seed}; samplers' max_time {max_time:g} s; reference: "
         f"`{ref_method}`. Force variance {FORCE_VARIANCE:g}, lengthscale {LENGTHSCALE:g} s"
         + (" (lognormal priors, sigma 0.5, about the truth)" if args.inferred else " (fixed at the truth)")
+        + (
+            "; a kernel sum's terms: the variance split evenly, each lengthscale ten times the next's"
+            if any("+" in o for o in orders)
+            else ""
+        )
         + f"; 1 % noise; {1 / DT:g} Hz; records cut from motion.",
         "",
         "Each state cell: NMSE of the posterior mean vs the reference's [%] / mean |sd ratio - 1| / its 95th "
