@@ -13,7 +13,7 @@ from latentforce.errors import LatentForceError
 from latentforce.inference import hyper_moves, pgas, smc
 from latentforce.inference.kalman import kalman_smoother, log_likelihood
 from latentforce.io.config import config_from_dict
-from latentforce.kernels import KernelParams, Matern, MaternSum, kernel_from_name, matern_bessel
+from latentforce.kernels import KernelParams, Matern, MaternSum, Sum, kernel_from_name, matern_bessel
 from latentforce.linalg import expm_balanced, van_loan
 from latentforce.models import LatentForceModel, Sensor, hyper_names
 from latentforce.priors import LogNormal
@@ -58,6 +58,18 @@ def test_the_sum_is_its_terms_summed_and_the_force_is_the_first_state(orders):
             _, Q_vl = van_loan(ss.F, W, dt)
             scale = np.sqrt(np.outer(np.diag(Q_vl), np.diag(Q_vl)))
             assert np.max(np.abs(np.asarray(Q) - np.asarray(Q_vl)) / scale) < 1e-7
+
+
+def test_matern_kernels_add_to_a_model_ready_sum_and_other_composites_are_refused_by_a_model():
+    """``Matern(0) + Matern(2)`` is the MaternSum a config builds (sums flatten); the general
+    ``Sum`` and ``Product`` (a tuple of parameters, the force not the first state) are refused by
+    a model with a message instead of giving a wrong force."""
+    assert Matern(0) + Matern(2) == kernel_from_name("matern12 + matern52")
+    assert (Matern(0) + Matern(2)) + Matern(1) == kernel_from_name("matern12 + matern52 + matern32")
+    assert isinstance(Matern(0) + Matern(1) * Matern(0), Sum)
+    for kernel in (Sum(Matern(0), Matern(1)), Matern(0) * Matern(1)):
+        with pytest.raises(ValueError, match="a sum of them"):
+            LatentForceModel(LinearSystem(), kernel, [Sensor("acceleration", 0, 0.1)])
 
 
 def test_a_fast_and_a_slow_term_discretise_without_overflow():

@@ -7,7 +7,7 @@ import pytest
 from jax.scipy.linalg import expm
 
 import latentforce  # noqa: F401
-from latentforce.kernels import KernelParams, Matern, kernel_from_name, matern_bessel
+from latentforce.kernels import KernelParams, Matern, Sum, kernel_from_name, matern_bessel
 from latentforce.linalg import expm as expm13
 from latentforce.linalg import expm_balanced, solve_lyapunov, van_loan
 from latentforce.models import LatentForceModel, Sensor
@@ -94,7 +94,7 @@ def test_sum_and_product_kernels():
     a, b = Matern(0), Matern(1)
     pa, pb = KernelParams(jnp.asarray(2.0), jnp.asarray(0.5)), KernelParams(jnp.asarray(1.0), jnp.asarray(2.0))
     tau = LAGS[:20]
-    s, m = a + b, a * b
+    s, m = Sum(a, b), a * b
     np.testing.assert_allclose(
         np.asarray(s.state_covariance(tau, (pa, pb))),
         closed_form(0, tau, 2.0, 0.5) + closed_form(1, tau, 1.0, 2.0),

@@ -101,6 +101,11 @@ class Kernel:
         return hash((type(self), self.name, self.dim))
 
     def __add__(self, other: "Kernel") -> "Kernel":
+        # Matérns and their sums add to a MaternSum (a model's kernel: the force its first state);
+        # anything else to the general Sum (parameters a tuple, H = [H1, H2]: not a model's kernel)
+        terms = [t for k in (self, other) for t in (k.terms if isinstance(k, MaternSum) else (k,))]
+        if all(isinstance(t, Matern) for t in terms):
+            return MaternSum(tuple(terms))
         return Sum(self, other)
 
     def __mul__(self, other: "Kernel") -> "Kernel":

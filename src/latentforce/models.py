@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from latentforce.compile import require_x64
-from latentforce.kernels import Kernel, KernelParams, n_terms
+from latentforce.kernels import Kernel, KernelParams, Matern, MaternSum, n_terms
 from latentforce.linalg import inv, solve_lyapunov, symmetrise, van_loan
 from latentforce.systems import System
 
@@ -217,6 +217,10 @@ class LatentForceModel:
 
     def __init__(self, system: System, kernel: Kernel, sensors: list[Sensor] | tuple[Sensor, ...]):
         require_x64("a latent force model")
+        if not isinstance(kernel, (Matern, MaternSum)):
+            # every reader of the force takes it as the first force state, and the parameters as
+            # one KernelParams (kernels.Sum and Product hold a tuple and H = [H1, H2])
+            raise ValueError(f"a model's kernel must be a Matérn or a sum of them (MaternSum), got {kernel!r}")
         self.system = system
         self.kernel = kernel
         self.sensors = tuple(sensors)
