@@ -450,6 +450,20 @@ def cases() -> list[Case]:
         ),
         dataclasses.replace(
             duffing,
+            name="duffing-sbc-sum-smooth",
+            config={
+                **DUFFING_SBC_CONFIG,
+                "force": {
+                    "kernel": "matern32 + matern72",
+                    "variance": [_lognormal(0.5, 0.5, 0.5), _lognormal(1.0, 0.5, 1.0)],
+                    "lengthscale": [2.0, _lognormal(0.3, 0.3, 0.3)],
+                },
+            },
+            description="as duffing-sbc-sum with smooth terms: Matérn-3/2 (ℓ 2 s fixed) plus Matérn-7/2",
+            quick=False,
+        ),
+        dataclasses.replace(
+            duffing,
             name="duffing-sbc-acc",
             config={**DUFFING_SBC_CONFIG, "sensors": DUFFING_SBC_CONFIG["sensors"][1:]},
             description="as duffing-sbc, acceleration only (the smooth-force case without a displacement channel)",
