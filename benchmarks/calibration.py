@@ -432,35 +432,35 @@ def cases() -> list[Case]:
             "force's sd 14.7 N at the force's median variance, straddling the |r| kink), the records drawn from it",
             quick=False,
         ),
-        dataclasses.replace(
-            duffing,
-            name="duffing-sbc-sum",
-            config={
-                **DUFFING_SBC_CONFIG,
-                "force": {
-                    "kernel": "matern12 + matern52",
-                    "variance": [_lognormal(0.5, 0.5, 0.5), _lognormal(1.0, 0.5, 1.0)],
-                    "lengthscale": [2.0, _lognormal(0.3, 0.3, 0.3)],
+        *(
+            dataclasses.replace(
+                duffing,
+                name=name,
+                config={
+                    **DUFFING_SBC_CONFIG,
+                    "force": {
+                        "kernel": kernel,
+                        "variance": [_lognormal(0.5, 0.5, 0.5), _lognormal(1.0, 0.5, 1.0)],
+                        "lengthscale": [2.0, _lognormal(0.3, 0.3, 0.3)],
+                    },
                 },
-            },
-            description="as duffing-sbc, a kernel sum: a slow Matérn-1/2 term (ℓ 2 s fixed, σ² median 0.5 (0.5)) "
-            "and a Matérn-5/2 one (σ² median 1 (0.5), ℓ 0.3 s (0.3)), both variances and the second "
-            "lengthscale inferred",
-            quick=False,
-        ),
-        dataclasses.replace(
-            duffing,
-            name="duffing-sbc-sum-smooth",
-            config={
-                **DUFFING_SBC_CONFIG,
-                "force": {
-                    "kernel": "matern32 + matern72",
-                    "variance": [_lognormal(0.5, 0.5, 0.5), _lognormal(1.0, 0.5, 1.0)],
-                    "lengthscale": [2.0, _lognormal(0.3, 0.3, 0.3)],
-                },
-            },
-            description="as duffing-sbc-sum with smooth terms: Matérn-3/2 (ℓ 2 s fixed) plus Matérn-7/2",
-            quick=False,
+                description=description,
+                quick=False,
+            )
+            for name, kernel, description in (
+                (
+                    "duffing-sbc-sum",
+                    "matern12 + matern52",
+                    "as duffing-sbc, a kernel sum: a slow Matérn-1/2 term (ℓ 2 s fixed, σ² median 0.5 (0.5)) "
+                    "and a Matérn-5/2 one (σ² median 1 (0.5), ℓ 0.3 s (0.3)), both variances and the second "
+                    "lengthscale inferred",
+                ),
+                (
+                    "duffing-sbc-sum-smooth",
+                    "matern32 + matern72",
+                    "as duffing-sbc-sum with smooth terms: Matérn-3/2 (ℓ 2 s fixed) plus Matérn-7/2",
+                ),
+            )
         ),
         dataclasses.replace(
             duffing,

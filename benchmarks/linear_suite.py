@@ -53,6 +53,7 @@ import latentforce
 
 latentforce.enable_x64()  # float64; XLA's small-loop threshold before JAX starts
 import jax  # noqa: E402
+from nonlinear_calibration import force_table, kernel_label  # noqa: E402  (this folder: the same sum rule)
 
 from latentforce import estimate  # noqa: E402
 from latentforce.io.config import config_from_dict  # noqa: E402
@@ -75,21 +76,8 @@ class Case(NamedTuple):
     T: int = 256
 
     @property
-    def orders(self) -> list[int]:
-        return [int(o) for o in str(self.order).split("+")]
-
-    @property
     def label(self) -> str:
-        kernel = " + ".join(f"Matérn-{2 * o + 1}/2" for o in self.orders)
-        return f"{self.system}, {kernel}, {self.sensors}, T={self.T}"
-
-    def hyperparameters(self) -> tuple:
-        """``(variance, lengthscale)``: the module's for one Matérn; for a sum, the variance split
-        evenly and each term ten times slower than the next (the last at LENGTHSCALE)."""
-        n = len(self.orders)
-        if n == 1:
-            return FORCE_VARIANCE, LENGTHSCALE
-        return [FORCE_VARIANCE / n] * n, [LENGTHSCALE * 10.0 ** (n - 1 - i) for i in range(n)]
+        return f"{self.system}, {kernel_label(self.order)}, {self.sensors}, T={self.T}"
 
 
 def system_table(case: Case) -> dict:
@@ -129,13 +117,9 @@ def case_config(case: Case, method: str, inferred: bool, max_time: float) -> dic
     inference = {"method": method}
     if method in ("pgas", "kalman-mcmc"):
         inference["max_time"] = float(max_time)
-    var, ls = case.hyperparameters()
+    force = force_table(case.order, FORCE_VARIANCE, LENGTHSCALE)  # a sum: per term (nonlinear_calibration)
     per_term = lambda v: [_hyper(x, inferred) for x in v] if isinstance(v, list) else _hyper(v, inferred)
-    force = {
-        "kernel": " + ".join(f"matern{2 * o + 1}2" for o in case.orders),
-        "variance": per_term(var),
-        "lengthscale": per_term(ls),
-    }
+    force.update(variance=per_term(force["variance"]), lengthscale=per_term(force["lengthscale"]))
     return {
         "data": {"sample_rate": 1.0 / DT},
         "system": system_table(case),

@@ -203,9 +203,13 @@ def hyper_names(kernel: Kernel, split: bool = False):
     return (var, ls) if split else var + ls
 
 
+#: a force hyperparameter's name (any kernel): the kind, then a sum's term index if any
+HYPER_NAME = re.compile(r"force_(variance|lengthscale)(_\d+)?")
+
+
 def is_hyper_name(name: str) -> bool:
     """Whether ``name`` is a force hyperparameter's (any kernel)."""
-    return re.fullmatch(r"force_(variance|lengthscale)(_\d+)?", name) is not None
+    return HYPER_NAME.fullmatch(name) is not None
 
 
 class LatentForceModel:

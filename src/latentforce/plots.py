@@ -31,12 +31,13 @@ opens a window, and each figure is released once saved.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
+
+from latentforce.models import HYPER_NAME
 
 if TYPE_CHECKING:
     from latentforce.results import RunResult
@@ -196,12 +197,13 @@ def _channel_unit(result: RunResult, column: str) -> str:
 
 def _hyper_terms(names) -> list[str]:
     """The kernel terms' suffixes among parameter names: ``[""]`` for a Matérn, ``["_0", "_1"]`` for a sum."""
-    found = {m.group(2) or "" for n in names if (m := re.fullmatch(r"force_(variance|lengthscale)(_\d+)?", n))}
+    found = {m.group(2) or "" for n in names if (m := HYPER_NAME.fullmatch(n))}
     return sorted(found, key=lambda t: (len(t), t))
 
 
 def _param_label(name: str) -> str:
-    unit = _PARAM_UNITS.get(re.sub(r"^(force_(variance|lengthscale))_\d+$", r"\1", name))
+    m = HYPER_NAME.fullmatch(name)
+    unit = _PARAM_UNITS.get(f"force_{m.group(1)}" if m else name)
     return f"{name} [{unit}]" if unit else name
 
 

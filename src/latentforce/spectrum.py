@@ -35,8 +35,6 @@ from latentforce.compile import jit
 from latentforce.kernels import KernelParams
 from latentforce.models import hyper_names
 
-HYPER_SPLIT = (("force_variance",), ("force_lengthscale",))
-
 __all__ = ["PSD_SAMPLES", "force_psd_table", "force_spectrum", "kalman_force_samples", "prior_psd", "welch_psd"]
 
 #: smoothing-distribution draws the ``kalman`` spectrum is estimated from
@@ -131,10 +129,10 @@ def _force_draws(params, initial, keys, y, mask, *, model, dt):
     return jax.lax.map(lambda k: sample_smoothed_trajectory(k, A, Q, filt)[:, idx], keys)
 
 
-def hyperparameters(result, fixed: dict, model=None) -> tuple:
+def hyperparameters(result, fixed: dict, model) -> tuple:
     """The force variance and lengthscale at which the prior is drawn: the posterior median of a
     sampled one, else its fixed value (for a kernel sum, arrays with one entry per term)."""
-    var_names, ls_names = hyper_names(model.kernel, split=True) if model is not None else HYPER_SPLIT
+    var_names, ls_names = hyper_names(model.kernel, split=True)
     summary = result.param_summary or {}
 
     def value(name):
