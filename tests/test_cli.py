@@ -301,3 +301,20 @@ def test_pgas_auto_stops_at_max_time_and_says_so(workdir):
     assert diag["iterations_setting"] == "auto" and diag["stopped"] == "max_time"
     assert 0 < diag["iterations"] < 2_000
     assert any("[t=" in w["name"] or w["name"] == "force_variance" for w in summary["convergence"]["worst"])
+
+
+def test_simulate_starts_from_the_initial_table(workdir):
+    """``simulate`` draws the start from ``[initial]`` (mechanical and force states), where a
+    config has one; it used to ignore the table and start at rest with a stationary force."""
+    import numpy as np
+    import pandas as pd
+
+    text = CONFIG.format(missing="error") + "\n[initial]\nmean = [0.5, -0.2, 3.0, 0.0]\nsd = [1e-6, 1e-6, 1e-6, 1e-6]\n"
+    (workdir / "init.toml").write_text(text)
+    code, out = invoke("simulate", "init.toml", "--out", "init.csv", "--duration", "1", "--sample-rate", "50")
+    assert code == 0, out
+    first = pd.read_csv(workdir / "init.csv").iloc[0]
+    np.testing.assert_allclose([first["displacement"], first["velocity"], first["force"]], [0.5, -0.2, 3.0], atol=1e-4)
+    # the default start is still rest
+    first = pd.read_csv(workdir / "data.csv").iloc[0]
+    assert first["displacement"] == 0.0 and first["velocity"] == 0.0

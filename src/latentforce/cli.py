@@ -262,7 +262,8 @@ def simulate(
     """Simulate measurements (with truth columns) from a configuration's model.
 
     Inferred parameters take their ``init`` values; the force is a sample of
-    the configured GP; each sensor gets its configured noise.
+    the configured GP; each sensor gets its configured noise. The structure
+    starts at rest, or from a draw of ``[initial]`` where the config has one.
     """
     import jax
 
@@ -284,7 +285,7 @@ def simulate(
     n = int(round(duration * rate)) + 1
     params = initial_params(problem)
     key_force, key_noise = jax.random.split(jax.random.key(seed))
-    sim = simulate_fn(key_force, problem.model, params, n, 1.0 / rate)
+    sim = simulate_fn(key_force, problem.model, params, n, 1.0 / rate, initial=problem.initial)
     # A sensor with a unit key: noise_std and the written channel in that unit, the model in SI.
     scales = sensor_unit_scales(problem)
     sensors = [s._replace(noise_std=s.noise_std * f) for s, f in zip(problem.model.sensors, scales)]

@@ -37,8 +37,9 @@ class Simulation(NamedTuple):
     hysteretic_force: np.ndarray | None = None
 
 
-def gp_force(key, model: LatentForceModel, params: dict, n: int, dt: float) -> jnp.ndarray:
-    """``n`` samples, spaced ``dt``, of each latent force from its stationary GP: ``(n, nforce)``."""
+def gp_force(key, model: LatentForceModel, params: dict, n: int, dt: float, x0=None) -> jnp.ndarray:
+    """``n`` samples, spaced ``dt``, of each latent force from its stationary GP: ``(n, nforce)``;
+    from the force states ``x0`` (``(nforce, kernel.dim)``) instead of a stationary draw where given."""
     kp = model.kernel_params(params)
     A, Q = model.kernel.discretise(kp, dt)
     Pinf = model.kernel.state_space(kp).Pinf
@@ -48,7 +49,9 @@ def gp_force(key, model: LatentForceModel, params: dict, n: int, dt: float) -> j
     # Q can be numerically rank deficient for long lengthscales: eigen square root.
     w, V = jnp.linalg.eigh(Q)
     sq_q = V * jnp.sqrt(jnp.clip(w, 0.0))
-    x0 = (chol_p @ jax.random.normal(key0, (d, model.nforce))).T  # (nforce, d)
+    if x0 is None:
+        x0 = (chol_p @ jax.random.normal(key0, (d, model.nforce))).T  # (nforce, d)
+    x0 = jnp.asarray(x0, dtype=float)
 
     def _step(x, k):
         x = x @ A.T + jax.random.normal(k, x.shape) @ sq_q.T
@@ -93,10 +96,10 @@ def integrate(model: LatentForceModel, params: dict, force_fine, dt_fine: float,
 
 # one compiled program each per model structure and length, the numbers as arguments
 _gp_force = functools.partial(jit, static_argnames=("model", "n", "dt"))(
-    lambda key, params, *, model, n, dt: gp_force(key, model, params, n, dt)
+    lambda key, params, x0, *, model, n, dt: gp_force(key, model, params, n, dt, x0)
 )
 _integrate = functools.partial(jit, static_argnames=("model", "dt"))(
-    lambda params, u, start, *, model, dt: integrate(model, params, u, dt, *(start or (None, None)))
+    lambda params, u, start, *, model, dt: integrate(model, params, u, dt, *(start or (None, None, None)))
 )
 
 
@@ -111,22 +114,38 @@ def simulate(
     substeps: int = 8,
     z0=None,
     v0=None,
+    initial=None,
 ) -> Simulation:
     """Simulate ``n_samples`` samples at spacing ``dt`` from rest (or ``z0, v0``).
 
-    ``force(t) -> (T_fine, nforce)`` overrides the GP force (e.g. a sine).
+    ``force(t) -> (T_fine, nforce)`` overrides the GP force (e.g. a sine). ``initial``: a
+    ``(mean, cov)`` of the whole initial state (a config's ``[initial]``, the model's state
+    layout): the start, mechanical and force states, is drawn from it (with ``fold_in(key, 1)``)
+    and the GP force runs on from the drawn force states (``z0, v0`` must then be None).
     """
     require_x64("latentforce.simulate.simulate")
     n_fine = (n_samples - 1) * substeps + 1
     dt_fine = dt / substeps
     t_fine = np.arange(n_fine) * dt_fine
+    L = model.layout
+    xf0 = r0 = None
+    if initial is not None:
+        if z0 is not None or v0 is not None:
+            raise ValueError("give either initial or z0, v0")
+        mean, cov = (np.asarray(a, dtype=float) for a in initial)
+        w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+        x = mean + (V * np.sqrt(np.clip(w, 0.0, None))) @ np.asarray(
+            jax.random.normal(jax.random.fold_in(key, 1), mean.shape)
+        )
+        z0, v0, r0 = x[L.displacement], x[L.velocity], x[L.internal]
+        xf0 = np.reshape(x[L.force_states], (model.nforce, -1))
     if force is None:
         # one compiled program: op by op, the kernel's discretisation alone compiled
         # some hundred tiny programs (about 5 s of a quick demo)
-        u_fine = _gp_force(key, numbers(params), model=model, n=n_fine, dt=float(dt_fine))
+        u_fine = _gp_force(key, numbers(params), xf0, model=model, n=n_fine, dt=float(dt_fine))
     else:
         u_fine = jnp.reshape(jnp.asarray(force(t_fine), dtype=float), (n_fine, model.nforce))
-    start = None if z0 is None and v0 is None else (z0, v0)
+    start = None if z0 is None and v0 is None else (z0, v0, r0)
     z, v, a, r = _integrate(numbers(params), u_fine, start, model=model, dt=float(dt_fine))
     pick = lambda x: np.asarray(x[::substeps])
     return Simulation(
