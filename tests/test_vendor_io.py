@@ -282,6 +282,37 @@ def test_per_sensor_paths_and_grid_step(tmp_path):
     np.testing.assert_array_equal(fine.mask[:, 1], np.arange(2 * T_FAST - 1) % 4 == 0)
 
 
+def test_cli_estimate_with_every_sensor_in_its_own_file(tmp_path, monkeypatch):
+    """No [data].path when every sensor names its own file (config.md); the CLI used to refuse
+    it ("[data].path is missing"). A resume checks every file: changing either is refused."""
+    from typer.testing import CliRunner
+
+    from latentforce.checkpoint import run_identity
+    from latentforce.cli import app
+    from latentforce.io.config import data_sources
+
+    acc, disp = _signals(3)
+    write_csv(tmp_path / "acc.csv", {"time": DT * np.arange(T_FAST), "acc": acc})
+    write_csv(tmp_path / "disp.csv", {"time": 2 * DT * np.arange(T_SLOW), "disp": disp})
+    cfg = config(None, ("acc", "disp"), units=("g", "mm"), paths=("acc.csv", "disp.csv"))
+    lines = ['[data]\nmissing = "error"\n', '[system]\ntype = "linear"\nm = 1.0\nc = 0.8\nk = 40.0\n']
+    lines.append('[force]\nkernel = "matern32"\nvariance = 4.0\nlengthscale = 0.1\n')
+    for sensor in cfg["sensors"]:
+        lines.append("[[sensors]]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in sensor.items()))
+    lines.append('[inference]\nmethod = "kalman"\n')
+    (tmp_path / "lf.toml").write_text("\n".join(lines))
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(app, ["estimate", "lf.toml", "--out", "res"])
+    assert result.exit_code == 0, result.output
+    problem = config_from_dict(cfg, source="lf.toml", base_dir=tmp_path)
+    files = data_sources(problem)
+    assert [f.name for f in files] == ["acc.csv", "disp.csv"]
+    before = run_identity(tmp_path / "lf.toml", files, 0, "kalman")
+    write_csv(tmp_path / "disp.csv", {"time": 2 * DT * np.arange(T_SLOW), "disp": disp * 1.01})
+    after = run_identity(tmp_path / "lf.toml", files, 0, "kalman")
+    assert before["data_sha256"] != after["data_sha256"] and len(after["data_files"]) == 2
+
+
 def test_nan_in_one_channel_masks_that_channel_only(tmp_path):
     acc, disp = _signals(4)
     acc[[5, 6]] = np.nan

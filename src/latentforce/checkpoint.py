@@ -155,18 +155,25 @@ def file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
-def run_identity(config_path: Path, data_path: Path, seed: int, method: str) -> dict:
-    """What a checkpoint must share with the run that resumes it (and the versions, recorded)."""
+def run_identity(config_path: Path, data_path, seed: int, method: str) -> dict:
+    """What a checkpoint must share with the run that resumes it (and the versions, recorded).
+
+    ``data_path``: the data file, or every file the run reads (``[data].path`` first, then the
+    sensors' own files): ``data`` is then the first and ``data_sha256`` covers them all."""
     import jaxlib
 
     from latentforce import __version__
 
+    paths = [Path(data_path)] if isinstance(data_path, (str, Path)) else [Path(p) for p in data_path]
+    digests = [file_digest(p) for p in paths]
+    combined = digests[0] if len(digests) == 1 else hashlib.sha256("".join(digests).encode()).hexdigest()
     return {
         "config": str(Path(config_path).resolve()),
         "config_sha256": config_digest(config_path),
         "config_content": config_content(config_path),
-        "data": str(Path(data_path).resolve()),
-        "data_sha256": file_digest(data_path),
+        "data": str(paths[0].resolve()),
+        "data_files": [str(p.resolve()) for p in paths],
+        "data_sha256": combined,
         "seed": int(seed),
         "method": method,
         "version": __version__,
@@ -396,7 +403,8 @@ def check_same_run(meta: dict, identity: dict, out_dir: Path) -> None:
         )
     if saved["data_sha256"] != identity["data_sha256"]:
         problems.append(
-            f"the data file {identity['data']!r} differs from the one the run was started with "
+            f"the data file {', '.join(map(repr, identity.get('data_files') or [identity['data']]))} differs "
+            "from the one the run was started with "
             f"({saved['data']!r}; SHA-256 {saved['data_sha256'][:12]}... then, "
             f"{identity['data_sha256'][:12]}... now)"
         )

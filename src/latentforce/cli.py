@@ -138,12 +138,12 @@ def estimate_into(
     from latentforce import checkpoint as ckpt
     from latentforce import estimate as estimate_mod
     from latentforce.io.channels import load_problem_data
-    from latentforce.io.config import data_path
+    from latentforce.io.config import data_sources
     from latentforce.results import check_out_dir, write_results
 
     if resume is None:
         check_out_dir(out, force)
-    source = data_path(problem)
+    source = data_sources(problem)
     # [data].path and the sensors' own paths; several rates on one grid; units to SI
     dataset = load_problem_data(problem)
     method = problem.inference.method
@@ -219,7 +219,9 @@ def estimate(
             raise LatentForceError("--resume continues a run and --force starts one afresh; give one of them.")
         meta, saved = ckpt.open_resume(resume)
         out = resume
-        if data is None:  # the run's own data file, wherever the config points now
+        # the run's own data file, wherever the config points now (not where the sensors name
+        # their own files: [data].path was then not set)
+        if data is None and len(meta["identity"].get("data_files") or [None]) == 1:
             data = Path(meta["identity"]["data"])
         if seed is None:
             seed = int(meta["identity"]["seed"])

@@ -57,6 +57,7 @@ __all__ = [
     "Problem",
     "config_from_dict",
     "data_path",
+    "data_sources",
     "initial_params",
     "load_config",
 ]
@@ -417,6 +418,19 @@ def data_path(problem: Problem) -> Path:
             f"{problem.config_path}: [data].path is missing; give it in the config or pass --data FILE."
         )
     return problem.data.path
+
+
+def data_sources(problem: Problem) -> tuple[Path, ...]:
+    """Every data file the problem reads: ``[data].path`` (or ``--data``) first, then the sensors'
+    own ``path`` keys (each once); the :func:`data_path` error when a sensor has no file."""
+    own = tuple(getattr(problem.data, "sensor_paths", ()) or ()) or (None,) * len(problem.columns)
+    if problem.data.path is None and (not own or any(p is None for p in own)):
+        data_path(problem)
+    out = [Path(problem.data.path)] if problem.data.path is not None else []
+    for p in own:
+        if p is not None and Path(p) not in out:
+            out.append(Path(p))
+    return tuple(out)
 
 
 def initial_params(problem: Problem) -> dict[str, float | np.ndarray]:
