@@ -108,6 +108,8 @@ BAD_CONFIGS = [
     ('column = "acc"', 'column = "accel"', ["accel", "acc"]),
     ("noise_std = 0.05", "noise_std = 0.0", ["noise_std"]),
     ('method = "kalman"', 'method = "kalman"\nparticles = ', ["line"]),
+    # a sample rate that contradicts the file's time column (20 Hz): it would rescale every frequency
+    ('time_column = "time"', "sample_rate = 100.0", ["sample_rate", "100", "0.05", "20 Hz", "data.csv"]),
 ]
 
 
@@ -169,6 +171,22 @@ def test_missing_skip_accepts_nan(workdir):
     (workdir / "skip.toml").write_text(CONFIG.format(missing="skip"))
     code, out = invoke("estimate", "skip.toml", "--out", "res")
     assert code == 0, out
+
+
+def test_missing_skip_refuses_a_channel_with_no_value(workdir):
+    """missing = "skip" with a channel that is NaN throughout: an error naming it, not a run that
+    returns the prior as if it had estimated something."""
+    rows = (workdir / "data.csv").read_text().splitlines()
+    out = [rows[0]]
+    for row in rows[1:]:
+        cells = row.split(",")
+        cells[1] = "nan"
+        out.append(",".join(cells))
+    (workdir / "data.csv").write_text("\n".join(out) + "\n")
+    (workdir / "skip.toml").write_text(CONFIG.format(missing="skip"))
+    code, out = invoke("estimate", "skip.toml", "--out", "never")
+    assert code != 0 and "Traceback" not in out and "'acc'" in out and "no finite value" in out, out
+    assert not (workdir / "never").exists()
 
 
 def test_data_override_and_unknown_demo(workdir):

@@ -101,6 +101,11 @@ def _check_file(path: Path) -> None:
 
 def _check_missing(spec: ChannelSpec, src: _Source, missing: str) -> None:
     bad = ~np.isfinite(src.raw.values)
+    if bad.all():
+        raise LatentForceError(
+            f"{src.where}: channel {spec.column!r} holds no finite value (all {bad.size} samples NaN/inf), so "
+            "it observes nothing; fix the file or remove this sensor from the config."
+        )
     if missing == "error" and bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise LatentForceError(
@@ -141,6 +146,7 @@ def _read_sources(
                 values=ds.values[:, k], t0=float(ds.time[0]), dt=float(ds.dt), unit=None, time=np.asarray(ds.time)
             )
             sources[i] = _Source(raw, where)
+            _check_missing(specs[i], sources[i], missing)
         if ds.truth:
             truths.append((np.asarray(ds.time), ds.truth))
     return sources, truths

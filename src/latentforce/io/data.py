@@ -303,6 +303,28 @@ def load_data(
         table.close()
 
 
+def _check_rate_against_time(path: Path, table: _Table, columns: list[str], sample_rate: float, T: int) -> None:
+    """A file that has a ``time`` column beside ``[data].sample_rate``: the two must agree (a wrong
+    rate silently rescales every frequency of the structure and the force)."""
+    if "time" not in table.names or "time" in columns:
+        return
+    try:
+        t = np.asarray(table.read("time"), dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        return
+    steps = np.diff(t)
+    if t.size != T or T < 2 or not np.all(np.isfinite(steps)) or not np.all(steps > 0):
+        return
+    step = float(np.median(steps))
+    if abs(step * sample_rate - 1.0) > 0.01:
+        raise _err(
+            path,
+            f"[data].sample_rate = {sample_rate:g} Hz gives a step of {1.0 / sample_rate:.6g} s, but the file's "
+            f"column 'time' steps by {step:.6g} s ({1.0 / step:.6g} Hz). Remove sample_rate to use the time "
+            'column (time_column = "time"), or correct it.',
+        )
+
+
 def _load(
     path: Path, table: _Table, columns: list[str], time_column: str | None, sample_rate: float | None, missing: str
 ) -> Dataset:
@@ -351,6 +373,7 @@ def _load(
     else:
         dt = 1.0 / float(sample_rate)
         time = np.arange(T) / float(sample_rate)
+        _check_rate_against_time(path, table, columns, sample_rate, T)
 
     values = np.column_stack([channels[n] for n in columns])
     mask = np.isfinite(values)
