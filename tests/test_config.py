@@ -129,6 +129,17 @@ def test_duffing_pgas(tmp_path):
     assert p.columns == ["acc", "disp"]
 
 
+def test_auto_iterations_need_two_chains(tmp_path):
+    """iterations = "auto" stops on R-hat, which compares chains: one chain is refused (it ran to
+    max_time and then said R-hat needs two); a fixed count with one chain is allowed."""
+    d = _edit(DUFFING, ["inference", "chains"], 1)
+    d["inference"].pop("iterations", None)
+    with pytest.raises(LatentForceError, match=r"\[inference\]\.chains.*at least 2 chains.*chains = 1"):
+        config_from_dict(d, base_dir=tmp_path)
+    d["inference"]["iterations"] = 100
+    assert config_from_dict(d, base_dir=tmp_path).inference.chains == 1
+
+
 def test_duffing_pgas_infers_system_parameters(tmp_path):
     """Any of a nonlinear system's parameters may be a prior table under pgas (k, k3 here): free,
     with its prior and init, the others fixed."""

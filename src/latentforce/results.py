@@ -160,8 +160,10 @@ def summarise_parameters(param_draws: dict[str, np.ndarray]) -> dict[str, dict[s
         return {}
     arrays = {name: _as_chain_draw(name, draws) for name, draws in param_draws.items()}
     dataset = xr.Dataset({name: (("chain", "draw"), a) for name, a in arrays.items()})
+    one_chain = min(a.shape[0] for a in arrays.values()) < 2
     with _quiet_arviz() as az:
-        r_hat = az.rhat(dataset)
+        # (arviz logs a shape warning for one chain past the quieting: NaN without asking)
+        r_hat = {name: np.nan for name in arrays} if one_chain else az.rhat(dataset)
         ess_bulk = az.ess(dataset, method="bulk")
     summary = {}
     for name, a in arrays.items():

@@ -46,7 +46,13 @@ def _stats(draws: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     a = np.moveaxis(np.asarray(draws, dtype=float), -1, 0)  # (k, chains, draws)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # constant columns give NaN with a RuntimeWarning
-        rhat = np.asarray(array_stats.rhat(a, chain_axis=-2, draw_axis=-1, method="rank"), dtype=float)
+        # R-hat compares chains: with one, NaN (the verdict says why) rather than arviz's shape
+        # warning on the user's terminal
+        rhat = (
+            np.asarray(array_stats.rhat(a, chain_axis=-2, draw_axis=-1, method="rank"), dtype=float)
+            if a.shape[-2] >= 2
+            else np.full(a.shape[:-2], np.nan)
+        )
         bulk = np.asarray(array_stats.ess(a, chain_axis=-2, draw_axis=-1, method="bulk"), dtype=float)
         tail = np.asarray(
             array_stats.ess(a, chain_axis=-2, draw_axis=-1, method="tail", prob=(0.05, 0.95)), dtype=float

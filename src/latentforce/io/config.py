@@ -304,6 +304,14 @@ def config_from_dict(
                     f"lengthscale and the sensors' noise_std; {name} is none of them: "
                     f"give it as a number.",
                 )
+    sampling = method in ("kalman-mcmc", "kalman-nuts", "pgas") or (method in ("ekf", "ukf") and free)
+    if sampling and inf.iterations == "auto" and inf.chains < 2:
+        raise fail(
+            "[inference].chains",
+            f'iterations = "auto" samples until the chains agree (R-hat <= 1.01), which needs at least 2 '
+            f"chains, but chains = {inf.chains}; give chains = 2 or more (default 4), or a fixed number of "
+            "iterations.",
+        )
     settings = InferenceSettings(
         method=method,
         particles=inf.particles,
