@@ -210,3 +210,5 @@ def test_pgas_infers_the_benchmarks_negative_gamma(tmp_path, monkeypatch):
     # mixed: not the frozen chains (R-hat 2.6-3.9, bulk ESS 4-5) of the joint move alone
     assert gamma["r_hat"] < 1.1 and gamma["ess_bulk"] > 80, gamma
     assert min(summary["diagnostics"]["acceptance_system"]) > 0.2, summary["diagnostics"]
+    # the force's hyperparameters are fixed: the headline acceptance is the system move's (it read 0)
+    assert summary["acceptance"] == summary["diagnostics"]["acceptance_system"]

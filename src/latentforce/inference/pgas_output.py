@@ -119,8 +119,12 @@ def _assemble(
     switch = info.switch_rate[:, post]
     ess = info.ess[:, post]
     fp = info.force_points[:, post]
+    # the headline acceptance per chain: the hyperparameters' random walk, or where only system
+    # parameters are sampled their move's (zeros read as a stuck sampler); none where nothing is
+    system_rate = _move_rate(info.accept_system, burn_blocks)
+    headline = accept[:, burn_in:].mean(axis=1) if hyper.names else np.asarray(system_rate, dtype=float).reshape(-1)
     diag = {
-        "acceptance": accept[:, burn_in:].mean(axis=1).tolist() if hyper.names else [],
+        "acceptance": headline.tolist(),
         "switch_rate": switch.mean(axis=1).tolist(),
         "ess_per_particle": ess.mean(axis=1).tolist(),
         "nonfinite_log_likelihood": int(np.sum(~np.isfinite(info.log_likelihood))),
@@ -136,7 +140,7 @@ def _assemble(
         "acceptance_residual": _move_rate(info.accept_residual, burn_blocks),
         "acceptance_smoother": _move_rate(info.accept_smoother, burn_blocks),
         "acceptance_joint": _move_rate(info.accept_joint, burn_blocks),
-        "acceptance_system": _move_rate(info.accept_system, burn_blocks),
+        "acceptance_system": system_rate,
         "acceptance_internal": _move_rate(info.accept_internal, burn_blocks),
     }
     if noise_names:  # per chain, per inferred channel: the independence sampler's acceptance
@@ -151,7 +155,7 @@ def _assemble(
         np.asarray(states.draws)[:, :n_draws],
         state_mean,
         state_sd,
-        accept[:, burn_in:].mean(axis=1) if hyper.names else np.zeros(chains),
+        headline,
         switch,
         ess,
         info.log_likelihood[:, post],
