@@ -4,6 +4,7 @@ import json
 import math
 import os
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -257,6 +258,15 @@ def test_every_sampling_method_writes_a_result_folder_with_its_verdict(workdir, 
     assert {"force.png", "traces.png", "histograms.png"} <= figures
     tree = az.from_netcdf(workdir / "res" / "posterior.nc")
     assert "force_variance" in tree.posterior and "force" in tree.posterior
+    if method == "pgas":  # paths every state_every-th iteration: the full chains in their own group ...
+        assert "pairs.png" in figures  # (k3 and the force variance)
+        chains = tree.parameter_chains
+        assert chains.sizes["draw"] > tree.posterior.sizes["draw"]
+        # ... from which the file gives summary.json's numbers (the thinned draws do not)
+        table = az.summary(tree, group="parameter_chains", var_names=["force_variance", "k3"], round_to="none")
+        for name in ("force_variance", "k3"):
+            assert np.isclose(table.loc[name, "mean"], summary["parameters"][name]["mean"], rtol=1e-9)
+            assert np.isclose(table.loc[name, "r_hat"], summary["parameters"][name]["r_hat"], rtol=1e-6)
     # ... with --strict the exit code says so too, and the results are written all the same.
     code, out = invoke("estimate", "m.toml", "--out", "res", "--force", "--strict")
     assert code == 3 and (workdir / "res" / "summary.json").is_file(), out

@@ -488,6 +488,7 @@ def _run_kalman_sampler(
         point_estimate=point,
         diagnostics=diagnostics,
         param_summary=summarise_parameters(out.draws),
+        param_chains={n: np.asarray(d) for n, d in out.draws.items()},
         convergence=record,
         wall_time_s=_time.perf_counter() - t0,
         **common,

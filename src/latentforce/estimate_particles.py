@@ -223,6 +223,7 @@ def _run_pgas(
         state_mean=state_mean,
         state_sd=state_sd,
         param_draws=param_draws,
+        param_chains={n: np.asarray(v) for n, v in out.theta.items()},
         path_draws=paths,
         sample_stats={"log_likelihood": ll, "switch_rate": out.switch_rate, "ess_per_particle": out.ess},
         acceptance=[float(a) for a in out.acceptance],

@@ -65,6 +65,7 @@ FIGURE_NAMES: tuple[str, ...] = (
     "paths.png",
     "traces.png",
     "histograms.png",
+    "pairs.png",
     "joint_hyperparameters.png",
     "force_psd.png",
 )
@@ -112,6 +113,8 @@ def draw_figures(result: RunResult, fig_dir: Path) -> list[Path]:
     if result.param_draws:
         written.append(plot_traces(result, fig_dir / "traces.png"))
         written.append(plot_histograms(result, fig_dir / "histograms.png"))
+        if len(result.param_draws) >= 2:
+            written.append(plot_pairs(result, fig_dir / "pairs.png"))
         # one figure per kernel term whose variance and lengthscale are both sampled ("_0", "_1" ...: a sum)
         for term in _hyper_terms(result.param_draws):
             if {f"force_variance{term}", f"force_lengthscale{term}"} <= set(result.param_draws):
@@ -377,14 +380,21 @@ def plot_paths(result: RunResult, path: Path, max_paths: int = 30) -> Path:
     return _save(fig, path, result)
 
 
+def _chains(result: RunResult) -> dict:
+    """Each sampled parameter's full post-burn-in chains (``param_chains``), or the draws stored
+    beside the trajectories where the run kept no others."""
+    return {n: result.param_chains.get(n, d) for n, d in result.param_draws.items()}
+
+
 def plot_traces(result: RunResult, path: Path) -> Path:
     """Trace of each sampled parameter, one colour per chain."""
-    names = list(result.param_draws)
+    chains = _chains(result)
+    names = list(chains)
     truth = _true_params(result)
     fig = Figure(figsize=(9, 2.2 * len(names) + 0.6))
     axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0]
     for ax, name in zip(axes, names):
-        draws = np.atleast_2d(np.asarray(result.param_draws[name], dtype=float))
+        draws = np.atleast_2d(np.asarray(chains[name], dtype=float))
         for chain, trace in enumerate(draws):
             ax.plot(trace, lw=0.6, color=f"C{chain % 10}", alpha=0.8, label=f"chain {chain}")
         if name in truth:
@@ -400,12 +410,13 @@ def plot_traces(result: RunResult, path: Path) -> Path:
 def plot_histograms(result: RunResult, path: Path) -> Path:
     """Marginal histogram and empirical CDF per parameter, with the posterior
     mean, the CDF median (where the ECDF crosses 1/2) and the truth if known."""
-    names = list(result.param_draws)
+    chains = _chains(result)
+    names = list(chains)
     truth = _true_params(result)
     fig = Figure(figsize=(10, 2.8 * len(names) + 0.6))
     axes = fig.subplots(len(names), 2, squeeze=False)
     for (ax_hist, ax_cdf), name in zip(axes, names):
-        samples = np.sort(np.asarray(result.param_draws[name], dtype=float).ravel())
+        samples = np.sort(np.asarray(chains[name], dtype=float).ravel())
         samples = samples[np.isfinite(samples)]
         mean, median = float(np.mean(samples)), float(np.median(samples))
         ax_hist.hist(samples, bins=_bins(samples.size), density=True, color="0.6", edgecolor="0.35")
@@ -436,8 +447,9 @@ def plot_joint_hyperparameters(result: RunResult, path: Path, term: str = "") ->
     """Joint 2-D histogram with contours of the force variance and lengthscale (of the kernel
     sum's term ``term``, ``"_0"``, ``"_1"`` ..., if given)."""
     var, ls = f"force_variance{term}", f"force_lengthscale{term}"
-    x = np.asarray(result.param_draws[ls], dtype=float).ravel()
-    y = np.asarray(result.param_draws[var], dtype=float).ravel()
+    chains = _chains(result)
+    x = np.asarray(chains[ls], dtype=float).ravel()
+    y = np.asarray(chains[var], dtype=float).ravel()
     ok = np.isfinite(x) & np.isfinite(y)
     x, y = x[ok], y[ok]
     fig = Figure(figsize=(6.4, 5.4))
@@ -465,6 +477,53 @@ def plot_joint_hyperparameters(result: RunResult, path: Path, term: str = "") ->
     ax.set_ylabel(_param_label(var))
     which = f" (kernel term {term[1:]})" if term else ""
     ax.set_title(f"Joint posterior of the force hyperparameters{which}")
+    return _save(fig, path, result)
+
+
+#: parameters in the pair plot at most (the first ones in the result's order)
+PAIRS_MAX = 8
+
+
+def plot_pairs(result: RunResult, path: Path) -> Path:
+    """Pair plot of the sampled parameters: each one's histogram on the diagonal, each pair's joint
+    2-D histogram below it (a ridge shows a pair the data trade against each other), truth marked."""
+    chains = _chains(result)
+    names = list(chains)[:PAIRS_MAX]
+    truth = _true_params(result)
+    samples = {n: np.asarray(chains[n], dtype=float).ravel() for n in names}
+    n = len(names)
+    fig = Figure(figsize=(2.3 * n + 0.8, 2.3 * n + 0.6))
+    axes = fig.subplots(n, n, squeeze=False)
+    for i, yname in enumerate(names):
+        for j, xname in enumerate(names):
+            ax = axes[i, j]
+            if j > i:
+                ax.set_axis_off()
+                continue
+            x = samples[xname]
+            if i == j:
+                ok = np.isfinite(x)
+                ax.hist(x[ok], bins=_bins(int(ok.sum())), color="0.6", edgecolor="0.35")
+                if xname in truth:
+                    ax.axvline(truth[xname], color=_TRUTH_COLOUR, lw=1.2, ls=":")
+                ax.set_yticks([])
+            else:
+                y = samples[yname]
+                ok = np.isfinite(x) & np.isfinite(y)
+                ax.hist2d(x[ok], y[ok], bins=_bins(int(ok.sum())) // 2 + 5, cmap="Greys")
+                if xname in truth and yname in truth:
+                    ax.plot(truth[xname], truth[yname], "x", color=_TRUTH_COLOUR, ms=8, mew=2)
+            if i == n - 1:
+                ax.set_xlabel(_param_label(xname), fontsize="small")
+            else:
+                ax.set_xticklabels([])
+            if j == 0 and i > 0:
+                ax.set_ylabel(_param_label(yname), fontsize="small")
+            elif j > 0:
+                ax.set_yticklabels([])
+            ax.tick_params(labelsize="x-small")
+    more = len(chains) - n
+    fig.suptitle("Pairs of sampled parameters" + (f" (the first {n}; {more} more not shown)" if more > 0 else ""))
     return _save(fig, path, result)
 
 

@@ -21,6 +21,12 @@ Result folder layout
         For ``method = "kalman"`` nothing is sampled: the group holds the
         smoother's ``displacement_mean``, ``displacement_sd``,
         ``velocity_mean``, ... with dims ``(time[, dof|force_index])``.
+    ``parameter_chains``
+        Where ``posterior`` holds only the parameter draws stored beside the
+        thinned trajectories: every sampled parameter's full post-burn-in
+        chains, dims ``(chain, draw)`` (``az.summary(idata,
+        group="parameter_chains")`` gives ``summary.json``'s numbers; the
+        trace, histogram and pair figures are drawn from them).
     ``observed_data``
         The measured channels by column name, dim ``time``; NaN where a
         sample was missing. Where the units are known, each carries
@@ -161,7 +167,11 @@ def write_figures(out_dir: Path, result: RunResult) -> None:
 
     fig_dir = out_dir / "figures"
     fig_dir.mkdir(exist_ok=True)
-    for stale in [fig_dir / name for name in plots.FIGURE_NAMES] + list(fig_dir.glob("output_*.png")):
+    for stale in (
+        [fig_dir / name for name in plots.FIGURE_NAMES]
+        + list(fig_dir.glob("output_*.png"))
+        + list(fig_dir.glob("joint_hyperparameters_*.png"))
+    ):
         if stale.is_file():
             stale.unlink()
     plots.draw_figures(result, fig_dir)
@@ -220,6 +230,14 @@ def _to_datatree(result: RunResult) -> xr.DataTree:
                         {"units": _unit(result, name)},
                     )
     groups["posterior"] = posterior
+    # the full chains, where the posterior group holds only the draws stored beside the
+    # trajectories: az.summary(idata, group="parameter_chains") gives summary.json's numbers
+    if result.param_chains and any(
+        np.shape(v) != np.shape(result.param_draws.get(n)) for n, v in result.param_chains.items()
+    ):
+        groups["parameter_chains"] = xr.Dataset(
+            {n: (("chain", "draw"), _as_chain_draw(n, v)) for n, v in result.param_chains.items()}
+        )
 
     if result.observed:
         observed = xr.Dataset(coords=time_coord)
@@ -438,6 +456,9 @@ def read_results(out_dir: Path) -> RunResult:
             a = np.asarray(var.values, dtype=float)
             path_draws[name] = a if a.ndim == 4 else a[..., None]
 
+    param_chains = {
+        name: np.asarray(v.values, dtype=float) for name, v in _group(tree, "parameter_chains").data_vars.items()
+    }
     sample_stats = {name: np.asarray(v.values) for name, v in _group(tree, "sample_stats").data_vars.items()}
     observed_ds = _group(tree, "observed_data")
     observed = {
@@ -484,6 +505,7 @@ def read_results(out_dir: Path) -> RunResult:
         state_mean=state_mean,
         state_sd=state_sd,
         param_draws=param_draws,
+        param_chains=param_chains,
         path_draws=path_draws,
         sample_stats=sample_stats,
         acceptance=[float(a) if a is not None else float("nan") for a in summary.get("acceptance", [])],

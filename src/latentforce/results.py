@@ -72,6 +72,9 @@ class RunResult:
     #: Parameter summaries computed from the full chains, when ``param_draws``
     #: holds only the draws aligned with ``path_draws`` (see ``posterior.nc``).
     param_summary: dict | None = None
+    #: The full post-burn-in parameter chains (name -> ``(chains, draws)``) where ``param_draws``
+    #: holds only the draws aligned with ``path_draws``; empty when they are the same.
+    param_chains: dict[str, np.ndarray] = field(default_factory=dict)
     #: The convergence record (:func:`latentforce.inference.convergence.diagnose`);
     #: None for ``kalman``, which has no sampling error.
     convergence: dict | None = None
