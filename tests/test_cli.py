@@ -346,3 +346,9 @@ def test_simulate_starts_from_the_initial_table(workdir):
     # the default start is still rest
     first = pd.read_csv(workdir / "data.csv").iloc[0]
     assert first["displacement"] == 0.0 and first["velocity"] == 0.0
+
+
+def test_help_names_the_config_keys():
+    """--help names keys as [data].path: rich read the brackets as markup and printed ".path"."""
+    code, out = invoke("estimate", "--help")
+    assert code == 0 and "[data].path" in out and "[inference].seed" in out, out

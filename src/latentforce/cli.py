@@ -21,6 +21,8 @@ from latentforce.errors import LatentForceError
 
 app = typer.Typer(
     add_completion=False,
+    # help texts name config keys as [data].path: not rich markup tags (they vanished from --help)
+    rich_markup_mode=None,
     no_args_is_help=True,
     help="Bayesian estimation of unmeasured forces and states of structures from measured response, "
     "with Gaussian-process latent force models.",

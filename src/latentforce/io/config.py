@@ -177,6 +177,17 @@ def _free_key(name: str) -> str:
     return f"[system].{name}"
 
 
+def _kernel_suggestion(name: str) -> str:
+    """ "; did you mean 'matern32'?" for a kernel name with another case, its digits swapped
+    (matern23) or a close spelling; "." when nothing is close."""
+    low = name.lower().replace("-", "").replace("_", "").replace(" ", "")
+    for valid in KERNELS:
+        digits = valid[len("matern") :]
+        if low == valid or (low.startswith("matern") and sorted(low[len("matern") :]) == sorted(digits)):
+            return f"; did you mean {valid!r}?"
+    return _did_you_mean(name, tuple(KERNELS), "{!r}")
+
+
 def _force(fail: _Fail, f, fixed: dict, free: dict):
     """``[force]``: the kernel (a Matérn, or a sum of them written with ``+``) and its
     hyperparameters, one number or prior table each, or a list of them (one per term) for a sum."""
@@ -185,7 +196,7 @@ def _force(fail: _Fail, f, fixed: dict, free: dict):
         if t not in KERNELS:
             raise fail(
                 "[force].kernel",
-                f"unknown kernel {t!r}{_did_you_mean(t, tuple(KERNELS), '{!r}')} "
+                f"unknown kernel {t!r}{_kernel_suggestion(t)} "
                 f'Valid kernels: {", ".join(KERNELS)}, or a sum of them such as "matern12 + matern52".',
             )
     kernel = kernel_from_name(f.kernel)

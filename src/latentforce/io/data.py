@@ -247,7 +247,11 @@ def _check_time(path: Path, table: _Table, name: str, t: np.ndarray) -> float:
     d = np.diff(t)
     if np.any(d <= 0):
         i = _first(d <= 0) + 1
-        raise _err(path, f"time column {name!r} is not increasing at {table.row_label(i)} ({t[i - 1]!r} then {t[i]!r})")
+        raise _err(
+            path,
+            f"time column {name!r} is not increasing at {table.row_label(i)} "
+            f"({float(t[i - 1]):.9g} then {float(t[i]):.9g})",
+        )
     dt = float(np.median(d))
     off = np.abs(d - dt) > _UNEVEN_RTOL * dt
     if off.any():
@@ -255,7 +259,7 @@ def _check_time(path: Path, table: _Table, name: str, t: np.ndarray) -> float:
         raise _err(
             path,
             f"time column {name!r} is not evenly sampled: the step before "
-            f"{table.row_label(i)} is {d[i - 1]!r} but the nominal step is {dt!r}; "
+            f"{table.row_label(i)} is {float(d[i - 1]):.9g} s but the nominal step is {dt:.9g} s; "
             f"resample the data, or give [data].sample_rate if the time stamps "
             f"are only rounded",
         )

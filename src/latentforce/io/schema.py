@@ -234,6 +234,11 @@ def _from_validation_error(source: str, exc: ValidationError) -> LatentForceErro
     if kind == "too_short" and loc == ("sensors",):
         return LatentForceError(f"{source}: at least one [[sensors]] table is required.")
     shown = "" if isinstance(err.get("input"), (dict, list)) else f" = {err.get('input')!r}"
+    if loc[:2] == ("inference", "iterations"):  # int | "auto": pydantic names the union's branch
+        return LatentForceError(
+            f'{source}: [inference].iterations{shown}: give a whole number of draws per chain (1 or more) or "auto" '
+            "(lower case: sample until converged, the default)."
+        )
     if kind == "float_type" and len(loc) >= 3 and loc[0] in ("system", "force") and loc[-1] == "number":
         msg = (
             "must be a number (known and fixed) or a prior table such as "

@@ -156,6 +156,15 @@ def resolve_unit(
                     f"quantity {quantity!r}: it has {exc}; {article} {quantity} channel needs a unit like "
                     f"{SI_UNITS[quantity]!r}"
                 )
+                # units are case-sensitive ('G' is the gravitational constant, 'g' standard gravity)
+                for other in dict.fromkeys((given.lower(), given.upper())):
+                    if other != given:
+                        try:
+                            unit_scale(other, SI_UNITS[quantity])
+                        except ValueError:
+                            continue
+                        need += f" (units are case-sensitive: did you mean {other!r}?)"
+                        break
             raise LatentForceError(f"{who}: unit {given!r} (from {origin}) does not fit {need}.{hint}") from None
         raise LatentForceError(
             f"{who}: unit {given!r} (from {origin}) is not a unit the units library (pint) knows "
