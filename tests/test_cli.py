@@ -109,6 +109,9 @@ BAD_CONFIGS = [
     ('column = "acc"', 'column = "accel"', ["accel", "acc"]),
     ("noise_std = 0.05", "noise_std = 0.0", ["noise_std"]),
     ('method = "kalman"', 'method = "kalman"\nparticles = ', ["line"]),
+    ('kernel = "matern32"', 'kernel = "matern23"', ["matern23", "did you mean 'matern32'"]),
+    ('method = "kalman"', 'method = "kalman-mcmc"\niterations = "Auto"', ["iterations", "'Auto'", '"auto"']),
+    ("noise_std = 0.05", 'noise_std = 0.05\nunit = "G"', ["'G'", "did you mean 'g'"]),
     # a sample rate that contradicts the file's time column (20 Hz): it would rescale every frequency
     ('time_column = "time"', "sample_rate = 100.0", ["sample_rate", "100", "0.05", "20 Hz", "data.csv"]),
 ]
