@@ -355,3 +355,17 @@ def test_help_names_the_config_keys():
     """--help names keys as [data].path: rich read the brackets as markup and printed ".path"."""
     code, out = invoke("estimate", "--help")
     assert code == 0 and "[data].path" in out and "[inference].seed" in out, out
+
+
+def test_a_time_column_in_milliseconds_is_warned_about(workdir):
+    """Time in ms makes the step 50 s against a 0.5 Hz structure: a finite, meaningless answer
+    unless the run says that its natural frequency is above the data's Nyquist frequency."""
+    import pandas as pd
+
+    data = pd.read_csv(workdir / "data.csv")
+    data["time"] = data["time"] * 1000.0
+    data.to_csv(workdir / "data.csv", index=False)
+    code, out = invoke("estimate", "lf.toml", "--out", "res")
+    assert code == 0 and "Nyquist" in out and "0.5033 Hz" in out and "milliseconds" in out, out
+    summary = json.loads((workdir / "res" / "summary.json").read_text())
+    assert any("Nyquist" in w for w in summary["diagnostics"]["warnings"])

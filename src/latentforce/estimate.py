@@ -140,6 +140,7 @@ def _run(
     )
     _mass_warning(problem, result)
     _weak_identification_warning(problem, result)
+    _sampling_rate_warning(problem, params0, dataset.dt, result)
     # the force spectrum's draws (kalman) from their own key, apart from the method's
     key_psd = jax.random.fold_in(key, 0x5D)
     result.force_psd = force_spectrum(key_psd, problem, result, params0, y, mask, dataset.dt, initial)
@@ -162,6 +163,35 @@ def _mass_warning(problem: Problem, result: RunResult) -> None:
             '(quantity = "force"): with only motion measured, force and mass trade off (a force '
             "twice as large on a mass twice as large gives much the same response), so the mass and "
             "the force's scale are set by their priors. Add a load cell channel to identify the mass."
+        )
+
+
+def natural_frequencies(problem: Problem, params: dict) -> np.ndarray:
+    """The structure's natural frequencies (Hz) at ``params``, linearised about rest: the
+    oscillatory eigenvalues of its mechanical state matrix, ``|lambda| / 2 pi``."""
+    model = problem.model
+    F, _ = model.continuous(numbers(params), linear_part=True)
+    mech = model.layout.mech
+    lam = np.linalg.eigvals(np.asarray(F, dtype=float)[mech, mech])
+    return np.sort(np.abs(lam[np.abs(lam.imag) > 1e-9 * np.abs(lam)]) / (2 * np.pi))
+
+
+def _sampling_rate_warning(problem: Problem, params: dict, dt: float, result: RunResult) -> None:
+    """A structure whose natural frequency is above the data's Nyquist frequency: the sample rate
+    or the time column's unit is likely wrong (time in ms gave finite, meaningless answers)."""
+    try:
+        freqs = natural_frequencies(problem, params)
+    except (TypeError, ValueError, np.linalg.LinAlgError):
+        return
+    nyquist = 0.5 / dt
+    above = freqs[freqs > nyquist]
+    if above.size:
+        result.diagnostics.setdefault("warnings", []).append(
+            f"the structure's natural frequencies {', '.join(f'{f:.4g}' for f in np.unique(above.round(6)))} Hz "
+            f"(at the parameters' fixed or init values) are above the data's Nyquist frequency, "
+            f"{nyquist:.4g} Hz (a time step of {dt:.4g} s): the record cannot resolve those modes, and the "
+            "force and states at those frequencies are aliased. Check [data].sample_rate, or that the time "
+            "column is in seconds (not milliseconds), and the system's masses and stiffnesses."
         )
 
 
