@@ -369,3 +369,19 @@ def test_a_time_column_in_milliseconds_is_warned_about(workdir):
     assert code == 0 and "Nyquist" in out and "0.5033 Hz" in out and "milliseconds" in out, out
     summary = json.loads((workdir / "res" / "summary.json").read_text())
     assert any("Nyquist" in w for w in summary["diagnostics"]["warnings"])
+
+
+@pytest.mark.parametrize(
+    "system",
+    [
+        "m = 1.0\nc = 0.0\nk = 10.0",
+        # MDOF, C = 0: the undamped modes' real parts are -1e-15, which a test of >= 0 let through
+        "M = [[2.0, 0.0], [0.0, 1.0]]\nC = [[0.0, 0.0], [0.0, 0.0]]\nK = [[3000.0, -1000.0], [-1000.0, 1000.0]]",
+    ],
+)
+def test_an_undamped_structure_is_refused_with_the_reason(workdir, system):
+    text = CONFIG.format(missing="error").replace("m = 1.0\nc = 0.4\nk = 10.0", system)
+    (workdir / "undamped.toml").write_text(text)
+    code, out = invoke("estimate", "undamped.toml", "--out", "never")
+    assert code != 0 and "Traceback" not in out, out
+    assert "not asymptotically stable" in out and "damping" in out and "[initial]" in out, out

@@ -51,11 +51,14 @@ def _check_stable(problem: Problem, params: dict) -> None:
     Minv = np.linalg.inv(M)
     F = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
     eig = np.linalg.eigvals(F)
-    if np.max(eig.real) >= 0:
+    # undamped modes have real parts of round-off size and either sign (an MDOF C = 0: -1e-15,
+    # which passed a test of >= 0 and failed later as a non-finite log-likelihood)
+    if np.max(eig.real) >= -1e-9 * max(np.max(np.abs(eig)), 1e-300):
         what = "linear system" if model.system.is_linear else "system, linearised about rest,"
         raise LatentForceError(
             f"The {what} in {problem.config_path} is not asymptotically stable (an eigenvalue "
-            f"of its state matrix has real part {np.max(eig.real):.3g} >= 0: is the damping zero or the "
+            f"of its state matrix has real part {np.max(eig.real):.3g}, zero or positive up to round-off: is "
+            "the damping zero or the "
             "stiffness singular or negative?), so its stationary distribution, the default initial state, "
             "does not exist. Add damping, or give the initial state explicitly in an [initial] section "
             "with mean and sd."
