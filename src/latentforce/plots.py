@@ -221,8 +221,12 @@ def plot_measured(result: RunResult, path: Path) -> Path:
     fig = Figure(figsize=(9, 2.4 * n + 0.6))
     axes = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
     for ax, (column, values) in zip(axes, result.observed.items()):
-        ax.plot(result.time, np.asarray(values, dtype=float), lw=0.7, color="0.2")
+        values = np.asarray(values, dtype=float)  # SI
         unit = _channel_unit(result, column)
+        known = result.units.get(column) or {}
+        if known.get("original") and known.get("scale"):  # in the unit the data came in (mm, g ...)
+            values, unit = values / float(known["scale"]), str(known["original"])
+        ax.plot(result.time, values, lw=0.7, color="0.2")
         ax.set_ylabel(f"{column} [{unit}]" if unit else column)
         ax.set_title(f"Measured channel '{column}'")
         ax.grid(alpha=0.3)

@@ -373,7 +373,9 @@ def _summary_json(result: RunResult) -> dict:
     if result.truth:
         summary["nmse"] = _nmse_by_state(result)
     if result.units:
-        summary["units"] = {"states": dict(_UNITS), "channels": dict(result.units)}
+        # the states this result has (no hysteretic force for a structure without one)
+        states = {k: v for k, v in _UNITS.items() if k in result.state_mean or k in result.path_draws}
+        summary["units"] = {"states": states, "channels": dict(result.units)}
     if result.outputs:
         summary["outputs"] = {name: {"unit": unit} for name, unit in result.outputs.items()}
     summary.update(
