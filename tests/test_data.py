@@ -164,7 +164,7 @@ def test_time_column_problems(tmp_path):
         _write_text(tmp_path, "time,acc\n0,1\n1,2\n2,3\n3.5,4\n", "uneven.csv"),
         "not evenly sampled",
         "row 3",
-        "nominal step is 1.0",
+        "is 1.5 s but the nominal step is 1 s",
     )
     _raises(_write_text(tmp_path, "time,acc\n0,1\nnan,2\n", "nantime.csv"), "'time'", "NaN")
 
