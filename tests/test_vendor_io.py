@@ -238,19 +238,11 @@ def test_cli_estimate_reads_a_uff_file(tmp_path, monkeypatch):
     from typer.testing import CliRunner
 
     from latentforce.cli import app
+    from latentforce.demos.common import to_toml
 
     acc, disp = _signals(2)
     _, names = write_vendor(tmp_path, "uff58", acc, disp)
-    cfg = config("uff58.uff", names, extra_data={})
-    lines = [
-        '[data]\npath = "uff58.uff"\n',
-        '[system]\ntype = "linear"\nm = 1.0\nc = 0.8\nk = 40.0\n',
-        '[force]\nkernel = "matern32"\nvariance = 4.0\nlengthscale = 0.1\n',
-    ]
-    for s in cfg["sensors"]:
-        lines.append("[[sensors]]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in s.items()))
-    lines.append('[inference]\nmethod = "kalman"\n')
-    (tmp_path / "lf.toml").write_text("\n".join(lines))
+    (tmp_path / "lf.toml").write_text(to_toml(config("uff58.uff", names, extra_data={})))
     monkeypatch.chdir(tmp_path)
     result = CliRunner().invoke(app, ["estimate", "lf.toml", "--out", "res"])
     assert result.exit_code == 0, result.output
@@ -289,18 +281,14 @@ def test_cli_estimate_with_every_sensor_in_its_own_file(tmp_path, monkeypatch):
 
     from latentforce.checkpoint import run_identity
     from latentforce.cli import app
+    from latentforce.demos.common import to_toml
     from latentforce.io.config import data_sources
 
     acc, disp = _signals(3)
     write_csv(tmp_path / "acc.csv", {"time": DT * np.arange(T_FAST), "acc": acc})
     write_csv(tmp_path / "disp.csv", {"time": 2 * DT * np.arange(T_SLOW), "disp": disp})
     cfg = config(None, ("acc", "disp"), units=("g", "mm"), paths=("acc.csv", "disp.csv"))
-    lines = ['[data]\nmissing = "error"\n', '[system]\ntype = "linear"\nm = 1.0\nc = 0.8\nk = 40.0\n']
-    lines.append('[force]\nkernel = "matern32"\nvariance = 4.0\nlengthscale = 0.1\n')
-    for sensor in cfg["sensors"]:
-        lines.append("[[sensors]]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in sensor.items()))
-    lines.append('[inference]\nmethod = "kalman"\n')
-    (tmp_path / "lf.toml").write_text("\n".join(lines))
+    (tmp_path / "lf.toml").write_text(to_toml(cfg))
     monkeypatch.chdir(tmp_path)
     result = CliRunner().invoke(app, ["estimate", "lf.toml", "--out", "res"])
     assert result.exit_code == 0, result.output
