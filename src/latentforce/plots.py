@@ -123,7 +123,8 @@ def draw_figures(result: RunResult, fig_dir: Path) -> list[Path]:
 
 
 def _save(fig: Figure, path: Path, result: RunResult) -> Path:
-    fig.tight_layout()
+    # room at the foot for the unconverged stamp's line (it sat on the x labels)
+    fig.tight_layout(rect=(0.0, 0.035, 1.0, 1.0) if not_converged(result) else None)
     stamp_unconverged(fig, result)
     fig.savefig(path, dpi=DPI)
     fig.clear()
