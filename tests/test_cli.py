@@ -385,3 +385,24 @@ def test_an_undamped_structure_is_refused_with_the_reason(workdir, system):
     code, out = invoke("estimate", "undamped.toml", "--out", "never")
     assert code != 0 and "Traceback" not in out, out
     assert "not asymptotically stable" in out and "damping" in out and "[initial]" in out, out
+
+
+def test_kalman_says_when_the_model_cannot_have_made_the_data(workdir):
+    """Standardised one-step prediction errors (fit_check): mean square ~1 on data simulated from
+    the config (within 4 sd of 1 over 201 samples), and a warning when the accelerations are in g
+    but labelled m/s^2, which ran without a word before (force NMSE 117 % in the review)."""
+    import math
+
+    import pandas as pd
+
+    code, out = invoke("estimate", "lf.toml", "--out", "res")
+    assert code == 0 and "does not fit" not in out, out
+    errors = json.loads((workdir / "res" / "summary.json").read_text())["diagnostics"]["prediction_errors"]
+    assert set(errors) == {"acc", "disp"}
+    for value in errors.values():
+        assert abs(value - 1.0) < 4 * math.sqrt(2 / 201), errors
+    data = pd.read_csv(workdir / "data.csv")
+    data["acc"] = data["acc"] / 9.80665
+    data.to_csv(workdir / "in_g.csv", index=False)
+    code, out = invoke("estimate", "lf.toml", "--data", "in_g.csv", "--out", "bad")
+    assert code == 0 and "does not fit" in out and "units" in out, out

@@ -260,8 +260,16 @@ def _dispatch(
                 f"model in {problem.config_path}: check the parameter values and units."
             )
         state_mean, state_sd = _smoothed_moments(problem, params0, sm.means, sm.covs)
+        from latentforce.inference import fit_check
+
+        errors = fit_check.prediction_errors(model, params0, y, mask, dataset.dt, initial)
+        diagnostics = {"prediction_errors": errors}
+        message = fit_check.warning(errors)
+        if message:
+            diagnostics["warnings"] = [message]
         result = RunResult(
             method="kalman",
+            diagnostics=diagnostics,
             state_mean=state_mean,
             state_sd=state_sd,
             param_draws={},
