@@ -140,7 +140,7 @@ def estimate_into(
     from latentforce import checkpoint as ckpt
     from latentforce import estimate as estimate_mod
     from latentforce.io.channels import load_problem_data
-    from latentforce.io.config import data_sources
+    from latentforce.io.config import data_sources, samples
     from latentforce.results import check_out_dir, write_results
 
     if resume is None:
@@ -150,8 +150,7 @@ def estimate_into(
     dataset = load_problem_data(problem)
     method = problem.inference.method
     checkpoint = None
-    sampling = method in ("kalman-mcmc", "kalman-nuts", "pgas") or (method in ("ekf", "ukf") and problem.free)
-    if sampling or resume is not None:
+    if samples(method, problem.free) or resume is not None:
         identity = ckpt.run_identity(
             problem.config_path, source, problem.inference.seed if seed is None else seed, method
         )

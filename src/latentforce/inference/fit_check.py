@@ -19,7 +19,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from latentforce.compile import jit, numbers
+from latentforce.compile import jit
+from latentforce.inference.kalman import update_channels
+from latentforce.inference.kalman_mcmc import linear_gaussian, program_arguments
 from latentforce.linalg import symmetrise
 
 #: mean squared standardised prediction error outside [1/LIMIT, LIMIT]: a warning
@@ -29,22 +31,11 @@ LIMIT = 4.0
 def standardised_innovations(A, Q, H, R, m0, P0, y, mask):
     """``(T, d)`` squared one-step prediction errors over their predicted variances, channel by
     channel in the filter's sequential order; NaN where a channel is not observed."""
-    r = jnp.diagonal(R)
 
     def _step(carry, inputs):
-        m, P = carry
         y_t, mask_t = inputs
-        out = []
-        for i in range(H.shape[0]):
-            h = H[i]
-            Ph = P @ h
-            s = h @ Ph + r[i]
-            v = y_t[i] - h @ m
-            k = jnp.where(mask_t[i], Ph / s, 0.0)
-            m = m + k * v
-            P = symmetrise(P - s * jnp.outer(k, k))
-            out.append(jnp.where(mask_t[i], v * v / s, jnp.nan))
-        return (A @ m, symmetrise(A @ P @ A.T + Q)), jnp.stack(out)
+        m, P, z2, _ = update_channels(*carry, H, R, y_t, mask_t)
+        return (A @ m, symmetrise(A @ P @ A.T + Q)), jnp.where(mask_t, z2, jnp.nan)
 
     _, z2 = jax.lax.scan(_step, (m0, P0), (jnp.where(mask, y, 0.0), mask))
     return z2
@@ -52,22 +43,13 @@ def standardised_innovations(A, Q, H, R, m0, P0, y, mask):
 
 @functools.partial(jit, static_argnames=("model", "dt"))
 def _mean_squares(params, y, mask, initial, *, model, dt):
-    from latentforce.inference.kalman_mcmc import linear_gaussian
-
     z2 = standardised_innovations(*linear_gaussian(model, params, dt, initial), y, mask)
     return jnp.nanmean(z2, axis=0)
 
 
 def prediction_errors(model, params: dict, y, mask, dt: float, initial=None) -> dict[str, float]:
     """Each channel's mean squared standardised one-step prediction error (1 where the model fits)."""
-    ms = _mean_squares(
-        numbers(model.complete(params)),
-        jnp.asarray(np.where(mask, y, 0.0)),
-        jnp.asarray(mask),
-        initial,
-        model=model,
-        dt=float(dt),
-    )
+    ms = _mean_squares(*program_arguments(model, params, y, mask), initial, model=model, dt=float(dt))
     return {s.name: float(v) for s, v in zip(model.sensors, np.asarray(ms))}
 
 

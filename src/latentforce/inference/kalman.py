@@ -52,19 +52,20 @@ class SmootherResult(NamedTuple):
     log_likelihood: Float[Array, ""]
 
 
-def _update(m, P, H, R, y, mask):
-    """Kalman update of ``N(m, P)`` with ``y``; returns filtered moments and log p(y_t | y_{1:t-1}).
+def update_channels(m, P, H, R, y, mask):
+    """Kalman update of ``N(m, P)`` with ``y``, one channel at a time; returns the filtered
+    moments and each channel's squared standardised prediction error ``v^2 / s`` and ``log s``.
 
     The sensors' noises are independent (``R`` diagonal; only its diagonal
     is read), so the channels are assimilated one scalar at a time
     (Särkkä 2013, §4.3 remark; Bierman 1977). Exactly equivalent to the joint
     update, it needs no matrix factorisation: a handful of fused vector ops
     per channel, which is what makes the recursion cheap when vmapped over
-    chains. An unobserved channel is skipped by zeroing its gain and
-    likelihood term.
+    chains. An unobserved channel is skipped by zeroing its gain (its terms
+    are returned all the same: mask them).
     """
     r = jnp.diagonal(R)
-    ll = jnp.zeros((), dtype=m.dtype)
+    z2, log_s = [], []
     for i in range(H.shape[0]):
         h = H[i]
         Ph = P @ h
@@ -73,8 +74,15 @@ def _update(m, P, H, R, y, mask):
         k = jnp.where(mask[i], Ph / s, 0.0)
         m = m + k * v
         P = symmetrise(P - s * jnp.outer(k, k))
-        ll = ll + jnp.where(mask[i], -0.5 * (v * v / s + jnp.log(s) + _LOG_2PI), 0.0)
-    return m, P, ll
+        z2.append(v * v / s)
+        log_s.append(jnp.log(s))
+    return m, P, jnp.stack(z2), jnp.stack(log_s)
+
+
+def _update(m, P, H, R, y, mask):
+    """:func:`update_channels` with log p(y_t | y_{1:t-1}) over the observed channels."""
+    m, P, z2, log_s = update_channels(m, P, H, R, y, mask)
+    return m, P, jnp.sum(jnp.where(mask, -0.5 * (z2 + log_s + _LOG_2PI), 0.0))
 
 
 def kalman_filter(

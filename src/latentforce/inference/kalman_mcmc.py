@@ -89,15 +89,13 @@ def smooth_compiled(
 ):
     """:func:`smooth` as one compiled program per model structure and record shape (the numbers
     are its arguments); ``y`` where ``mask`` is False: anything finite or not."""
-    return _smooth(
-        numbers(model.complete(params)),
-        jnp.asarray(np.where(mask, y, 0.0)),
-        jnp.asarray(mask),
-        initial,
-        model=model,
-        dt=float(dt),
-        kalman=kalman,
-    )
+    return _smooth(*program_arguments(model, params, y, mask), initial, model=model, dt=float(dt), kalman=kalman)
+
+
+def program_arguments(model: LatentForceModel, params: dict, y, mask) -> tuple:
+    """``(numbers, y, mask)`` as a program compiled per model structure takes them: every parameter
+    as a number (:meth:`LatentForceModel.complete`), ``y`` zero where not observed."""
+    return numbers(model.complete(params)), jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask)
 
 
 @functools.partial(jit, static_argnames=("model", "dt", "kalman"))

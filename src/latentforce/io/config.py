@@ -58,6 +58,7 @@ __all__ = [
     "config_from_dict",
     "data_path",
     "data_sources",
+    "samples",
     "initial_params",
     "load_config",
 ]
@@ -315,8 +316,7 @@ def config_from_dict(
                     f"lengthscale and the sensors' noise_std; {name} is none of them: "
                     f"give it as a number.",
                 )
-    sampling = method in ("kalman-mcmc", "kalman-nuts", "pgas") or (method in ("ekf", "ukf") and free)
-    if sampling and inf.iterations == "auto" and inf.chains < 2:
+    if samples(method, free) and inf.iterations == "auto" and inf.chains < 2:
         raise fail(
             "[inference].chains",
             f'iterations = "auto" samples until the chains agree (R-hat <= 1.01), which needs at least 2 '
@@ -437,6 +437,12 @@ def data_path(problem: Problem) -> Path:
             f"{problem.config_path}: [data].path is missing; give it in the config or pass --data FILE."
         )
     return problem.data.path
+
+
+def samples(method: str, free) -> bool:
+    """Whether a run of ``method`` with the inferred parameters ``free`` samples (chains, R-hat,
+    a checkpoint): the MCMC methods always, ``ekf``/``ukf`` when some parameter is inferred."""
+    return method in ("kalman-mcmc", "kalman-nuts", "pgas") or (method in ("ekf", "ukf") and bool(free))
 
 
 def data_sources(problem: Problem) -> tuple[Path, ...]:
