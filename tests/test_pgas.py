@@ -8,7 +8,7 @@ from test_smc import linear_problem
 
 import latentforce  # noqa: F401
 from latentforce.compile import jit
-from latentforce.inference import hyper_moves, latent, path_moves, pgas, pgas_start, smc, smoother_move
+from latentforce.inference import hyper_moves, latent, path_moves, pgas, pgas_start, smc, smoother_move, window_move
 from latentforce.inference.kalman import kalman_smoother
 from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor
@@ -106,7 +106,7 @@ def test_pgas_matches_kalman_smoother_for_smooth_forces_from_the_stationary_star
     # joint or system move without sampled parameters) list none rather than reading as never accepted
     assert len(out.diagnostics["acceptance_smoother"]) == 4
     assert min(out.diagnostics["acceptance_smoother"]) > 0.999, out.diagnostics["acceptance_smoother"]
-    for move in ("residual", "joint", "system", "internal"):
+    for move in ("residual", "joint", "system", "internal", "window"):
         assert out.diagnostics[f"acceptance_{move}"] == [], (move, out.diagnostics[f"acceptance_{move}"])
 
 
@@ -390,7 +390,8 @@ def test_adaptation_schedule():
 
 @pytest.mark.slow
 def test_duffing_gibbs_runs_and_converges():
-    """Full blocked Gibbs on a short Duffing problem: finite output, hyperparameter R-hat."""
+    """Full blocked Gibbs on a short Duffing problem: finite output, hyperparameter R-hat; the window
+    move made in every block (forced on: by default it waits for 2 048 samples) and reported."""
     model = LatentForceModel(Duffing(), Matern(0), [Sensor("displacement", 0, 0.01), Sensor("acceleration", 0, 0.1)])
     params = dict(m=1.0, c=0.2, k=10.0, k3=50.0, force_variance=1.0, force_lengthscale=0.5)
     pm = smc.ParticleModel(model, params, 0.02, initial=(0.0, 0.01))
@@ -414,9 +415,12 @@ def test_duffing_gibbs_runs_and_converges():
         chains=4,
         mh_steps=2,
         initial=(0.0, 0.01),
+        window=(64, 64),
     )
     assert np.all(np.isfinite(out.state_mean["force"]))
     assert max(out.diagnostics["rhat"].values()) < 1.1, out.diagnostics["rhat"]
+    accepted = out.diagnostics["acceptance_window"]
+    assert len(accepted) == 4 and min(accepted) > 0.1, accepted
     force_nmse = np.mean((out.state_mean["force"][:, 0] - xf[:, 0]) ** 2) / np.var(xf[:, 0])
     assert force_nmse < 0.2
 
@@ -844,7 +848,7 @@ def _joint_statistics(pm, tr, mask, x, y):
     )
 
 
-@pytest.mark.parametrize("kind", ["sweep", "sweep-bootstrap", "residual", "lowfreq", "smoother"])
+@pytest.mark.parametrize("kind", ["sweep", "sweep-bootstrap", "residual", "lowfreq", "smoother", "window"])
 def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joint, kind):
     """Geweke's joint-distribution check of each path move on a nonlinear model, where no exact
     posterior is available: if (x, y) is drawn from the model and x' from a kernel that leaves
@@ -852,7 +856,7 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
     E[f(x', y) - f(x, y)] = 0. The paired differences over 2000 independent draws must have
     mean zero within 4.5 standard errors.
 
-    Covered here and nowhere else: the smoother move's weight on a nonlinear model (its centre the
+    Covered here and nowhere else: the smoother and window moves' weights on a nonlinear model (the centre the
     extended Kalman smoother, a function of y alone), the sweep's second-stage weights (the optimal proposal
     linearises the stiffness about rest) and its tangent-linear ancestor weights, and the
     residual-preserving rebuild through the cubic stiffness (the move's shape comes from the
@@ -861,7 +865,8 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
     weights (the published code's error) 83 on the bootstrap sweep; without the future-data
     term Delta 23 (optimal) and 31 (bootstrap); without the second-stage weights 7 (optimal);
     the residual and low-frequency moves with their prior term scaled by 0.9, 17 and 9; the
-    smoother move with the expanded likelihood in its weight scaled by 0.9, 11. A 10 %
+    smoother move with the expanded likelihood in its weight scaled by 0.9, 11; the window move's
+    likewise, 6.8. A 10 %
     tempering of a move's likelihood is below this test's resolution (|z| < 4).
     """
     pm, tr, mask, xs, ys = duffing_joint
@@ -884,6 +889,8 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
         eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
         if kind == "smoother":
             x, acc = smoother_move.smoother_move(key, pm, tr, od, eks, x, 5)
+        elif kind == "window":  # windows of 8 with a tail of 8, re-centred about the smoother's mean
+            x, acc = window_move.window_move(key, pm, tr, od, eks, x, width=8, tail=8)
         elif kind == "residual":
             init = path_moves.residual_init(rm, pm, od, tr, eks)
             _, x, acc = path_moves.residual_move(key, init, rm, pm, od, tr, x, 30, adapt=False)

@@ -76,6 +76,7 @@ from latentforce.inference.pgas_channels import _unnamed, observe_through  # noq
 from latentforce.inference.pgas_defaults import (  # noqa: F401 (re-exported)
     default_residual_steps,
     default_smoother_steps,
+    default_window,
 )
 from latentforce.inference.pgas_output import PGASOutput, _assemble, _verdict, convergence_diagnostics  # noqa: F401 (re-exported)
 from latentforce.inference.pgas_start import extended_kalman_smoother, init_chains
@@ -114,6 +115,7 @@ def run_pgas(
     residual_modes: int = 16,
     residual_steps: int | None = None,
     smoother_steps: int | None = None,
+    window: tuple[int, int] | None = None,
     joint_steps: int = 3,
     system_steps: int = 5,
     internal_steps: int = 10,
@@ -175,8 +177,12 @@ def run_pgas(
     re-set from the chain's path where the path moves are re-shaped in the
     burn-in): exact draws for a linear system, and most proposals accepted
     where the posterior is close to Gaussian (a displacement channel), which
-    the sweep of a smooth force no longer renews. With free hyperparameters or system parameters each block starts
-    with ``joint_steps`` joint Metropolis-Hastings steps on :math:`(\theta, \text{path})`
+    the sweep of a smooth force no longer renews. On a long record the smoother move's whole-path
+    proposals accept less (their weight's variance grows with T); ``window = (width, tail)`` then
+    adds one pass of the window move after it (:mod:`latentforce.inference.window_move`: the same
+    Gaussian on one window at a time, seeing ``tail`` samples after it; ``(0, 0)`` disables; None:
+    :func:`~latentforce.inference.pgas_defaults.default_window`). With free hyperparameters or system
+    parameters each block starts with ``joint_steps`` joint Metropolis-Hastings steps on :math:`(\theta, \text{path})`
     (0 disables; three, not one: on a Duffing record with c, k3, both hyperparameters free and a
     displacement channel, three steps gave three times the parameters' ESS for 7 % more time;
     the system parameters move only here): a random walk on :math:`\theta` whose path is drawn from the same
@@ -207,7 +213,8 @@ def run_pgas(
     (the draws too, unless an unobserved channel is the one that lets the
     residual-preserving move apply, or an unobserved displacement or strain channel
     sets the path moves' default step counts,
-    :func:`~latentforce.inference.pgas_defaults.default_smoother_steps` and
+    :func:`~latentforce.inference.pgas_defaults.default_smoother_steps`,
+    :func:`~latentforce.inference.pgas_defaults.default_window` and
     :func:`~latentforce.inference.pgas_defaults.default_residual_steps`: exact moves either way, so still the same
     posterior); two runs whose models differ only in their sensors' names and
     noise then have one structure and share every compiled program.
@@ -281,6 +288,8 @@ def run_pgas(
         smoother_steps = default_smoother_steps(pm)
     if residual_steps is None:
         residual_steps = default_residual_steps(pm, smoother_steps)
+    if window is None:
+        window = default_window(pm, T, smoother_steps)
     with_rp = rm.applies and int(residual_steps) > 0
     # the block's settings (static): make_block checks the step counts, here before any compile
     block_settings = dict(
@@ -293,6 +302,7 @@ def run_pgas(
         lowfreq_steps=int(lowfreq_steps),
         residual_steps=int(residual_steps),
         smoother_steps=int(smoother_steps),
+        window=tuple(int(v) for v in window),
         joint_steps=int(joint_steps),
         system_steps=int(system_steps),
         # the start-up move where the initial prior leaves the internal states free (internal_move.free;

@@ -107,14 +107,10 @@ burn-in (at 5, 10, 20, 40 and 70 % of its MH steps), the running moments
 being restarted after each reset so that the transient from the dispersed
 start does not stretch the later proposals.
 
-**Priors.** Along that ridge the path density tends to a constant once
-:math:`\ell` exceeds the record length (a long-lengthscale Matérn-1/2 path
-is Brownian motion over the record), so the ridge's tail is held only by
-the prior: a flat prior on :math:`\sigma_f^2` contributes a factor
-:math:`\sigma_f^2 \propto \ell` in log space and puts the posterior at
-lengthscales far beyond the record (Duffing case, 0.5 s record: posterior
-median :math:`\ell` of several seconds). Use a proper prior on
-:math:`\sigma_f^2` or :math:`\ell` when the record spans few lengthscales.
+**Priors** along that ridge: ``docs/nonlinear.md``, "Hyperparameters".
+
+**Window move.** On a long record, after the smoother move, one pass of the window move
+(:mod:`latentforce.inference.window_move`; ``window = (width, tail)``, ``(0, 0)`` skips it).
 
 """
 
@@ -126,19 +122,18 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from latentforce.inference import internal_move, mcmc, noise_gibbs, particle_model, smc, smoother_move, system_moves
-from latentforce.inference.hyper_moves import (
-    Hyper,
-    adaptation_schedule,
-    mh_step,
-    noncentred_log_target,
+from latentforce.inference import (
+    internal_move,
+    mcmc,
+    noise_gibbs,
+    particle_model,
+    smc,
+    smoother_move,
+    system_moves,
+    window_move,
 )
-from latentforce.inference.latent import (
-    ObservationDensity,
-    observation_density,
-    observation_log_likelihood,
-    whiten,
-)
+from latentforce.inference.hyper_moves import Hyper, adaptation_schedule, mh_step, noncentred_log_target
+from latentforce.inference.latent import ObservationDensity, observation_density, observation_log_likelihood, whiten
 from latentforce.inference.path_moves import (
     LowFrequencyFrame,
     ResidualMove,
@@ -210,6 +205,8 @@ class BlockInfo(NamedTuple):
     accept_system: Float[Array, ""] | None = None
     # the internal states' start-up move (internal_move; NaN where it is not made)
     accept_internal: Float[Array, ""] | None = None
+    # the window move (window_move; NaN where it is not made)
+    accept_window: Float[Array, ""] | None = None
 
 
 class BlockData(NamedTuple):
@@ -273,6 +270,7 @@ def make_block(
     lowfreq_steps: int = 5,
     residual_steps: int,
     smoother_steps: int = 1,
+    window: tuple[int, int] = (0, 0),
     joint_steps: int = 1,
     system_steps: int = 0,
     internal_steps: int = 0,
@@ -356,6 +354,9 @@ def make_block(
     if n_sm < 0:
         raise ValueError(f"smoother_steps must be non-negative, got {smoother_steps}")
 
+    n_win, n_tail = (int(v) for v in window)
+    if n_win < 0 or n_tail < 0:
+        raise ValueError(f"window width and tail must be non-negative, got {window}")
     n_joint = int(joint_steps)
     if n_joint < 0:
         raise ValueError(f"joint_steps must be non-negative, got {joint_steps}")
@@ -438,6 +439,11 @@ def make_block(
             k_sm = jax.random.fold_in(state.key, smoother_move.SMOOTHER_STREAM)
             path, accs_sm = smoother_move.smoother_move(k_sm, pm, tr, od, state.centre, path, n_sm)
             acc_sm = jnp.mean(accs_sm.astype(float))
+        acc_win = not_run
+        if n_win and state.centre is not None:
+            k_win = jax.random.fold_in(state.key, window_move.WINDOW_STREAM)
+            path, accs_win = window_move.window_move(k_win, pm, tr, od, state.centre, path, n_win, n_tail)
+            acc_win = jnp.mean(accs_win.astype(float))
         rwm_lf, acc_lf = state.rwm_lf, not_run
         if n_lf:
             frame = LowFrequencyFrame(tr, basis)
@@ -590,6 +596,7 @@ def make_block(
             jnp.broadcast_to(hyper.system_array(x_sys), (k_every, n_sys)),
             acc_sys,
             acc_int,
+            acc_win,
         )
         return new, info
 

@@ -139,6 +139,7 @@ def _assemble(
         "acceptance_lowfreq": _move_rate(info.accept_lowfreq, burn_blocks),
         "acceptance_residual": _move_rate(info.accept_residual, burn_blocks),
         "acceptance_smoother": _move_rate(info.accept_smoother, burn_blocks),
+        "acceptance_window": _move_rate(info.accept_window, burn_blocks),
         "acceptance_joint": _move_rate(info.accept_joint, burn_blocks),
         "acceptance_system": system_rate,
         "acceptance_internal": _move_rate(info.accept_internal, burn_blocks),

@@ -240,15 +240,21 @@ class _Gains(NamedTuple):
     logdet: Float[Array, " T"]  # log |S_t| over the observed channels (the marginal likelihood)
 
 
+def noise_factors(pm, tr) -> tuple[Float[Array, "n nl"], Float[Array, "n nl"]]:
+    """``(L1, Lq)``: the latent's whitening factors with rows in the state's order, so that the first
+    state is ``m1 + L1 eps_1`` and each later step's noise ``Lq eps_t`` (:func:`_gains`)."""
+    G = pm.latent_layout
+    latent = np.arange(G.n)
+    perm = np.r_[latent[G.noise], latent[G.force]]  # the latent's entries in the state's order
+    return particle_model._chol(tr.Pinf)[perm], particle_model._chol(tr.Q)[perm]
+
+
 def _gains(pm, tr, lin: Linearisation, od: ObservationDensity) -> _Gains:
     """The covariance recursion of the linearised model in prediction form (Durbin & Koopman 2012,
     Sec. 4.3), its noise factored as the latent's whitening factors (state order) so that the
     draws are exactly ``colour`` of innovations (:func:`_draw`); the sensors' noise is ``od.R``."""
     R = od.R
-    G = pm.latent_layout
-    latent = np.arange(G.n)
-    perm = np.r_[latent[G.noise], latent[G.force]]  # the latent's entries in the state's order
-    L1, Lq = particle_model._chol(tr.Pinf)[perm], particle_model._chol(tr.Q)[perm]
+    L1, Lq = noise_factors(pm, tr)
     Q = Lq @ Lq.T
     mf = od.maskf
     Hm = lin.H * mf[:, :, None]
