@@ -246,6 +246,9 @@ def test_pgas_with_a_kernel_sum_matches_the_exact_smoother():
     assert min(out.diagnostics["switch_rate"]) > 0.2, out.diagnostics["switch_rate"]
 
 
+# slow-marked for CI's time (71 s, 2026-12-01); a kernel sum's posterior through pgas stays in the fast
+# suite (test_pgas_with_a_kernel_sum_matches_the_exact_smoother), its variances' SBC in the calibration suite
+@pytest.mark.slow
 def test_pgas_samples_each_terms_variance_from_the_exact_marginal_posterior():
     """Both terms' variances free (lognormal priors), lengthscales fixed: the Gibbs chain's
     log-variances against p(theta | y) by quadrature of the Kalman marginal likelihood on a grid,

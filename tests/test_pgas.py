@@ -719,6 +719,9 @@ def _duffing_acceleration_record(order):
     return pm, tr, od, eks, base
 
 
+# slow-marked for CI's time (42 s, 2026-12-01); the chains' starts are also checked by
+# test_the_chains_start_from_a_path_of_the_model and tests/test_pgas_start.py
+@pytest.mark.slow
 def test_dispersed_start_fits_data_and_spreads_the_slow_directions():
     """Chain starts (``dispersed_start``) on the acceleration-only Duffing case.
 
@@ -1159,6 +1162,9 @@ def test_observe_through_keeps_the_likelihood_and_checks_the_sensors():
         pgas.observe_through(acc_only, [("acceleration", 0)], np.ones((80, 2)), np.ones((80, 2), bool))
 
 
+# slow-marked for CI's time (71 s on the 2-core machine, 2026-12-01); the compile-once property of
+# runs of one structure is also checked in test_pgas_compile_once.py
+@pytest.mark.slow
 def test_runs_through_the_same_channels_compile_once_and_agree_with_their_own_sensors():
     """Two records with other sensors, noise and data, run through the same channels: the second
     run compiles nothing (one model structure: jax.jit's cache serves every program, the noise and

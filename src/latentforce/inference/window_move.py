@@ -287,6 +287,12 @@ def n_windows(T: int, width: int) -> int:
     return math.ceil(T / width) + 1
 
 
+def window_starts(key, T: int, width: int) -> Array:
+    """The first samples of one call's :func:`n_windows` windows: laid end to end from a random
+    offset in ``[0, width)``, the first starting ``width`` earlier (before the record, clipped)."""
+    return jax.random.randint(key, (), 0, width) + width * (jnp.arange(n_windows(T, width)) - 1)
+
+
 def window_move(
     key,
     pm: particle_model.ParticleModel,
@@ -310,7 +316,7 @@ def window_move(
     length = min(T, width + int(tail))
     K = n_windows(T, width)
     k_off, k_steps = jax.random.split(key)
-    starts = jax.random.randint(k_off, (), 0, width) + width * (jnp.arange(K) - 1)
+    starts = window_starts(k_off, T, width)
     beta = jnp.asarray([float(betas[k % len(betas)]) for k in range(K)])
     eps0 = whiten(tr, pm.latent(path))
     ll0 = observation_log_likelihood(pm, od, path)
