@@ -107,11 +107,8 @@ burn-in (at 5, 10, 20, 40 and 70 % of its MH steps), the running moments
 being restarted after each reset so that the transient from the dispersed
 start does not stretch the later proposals.
 
-**Priors** along that ridge: ``docs/nonlinear.md``, "Hyperparameters".
-
-**Window move.** On a long record, after the smoother move, one pass of the window move
-(:mod:`latentforce.inference.window_move`; ``window = (width, tail)``, ``(0, 0)`` skips it).
-
+**Priors** along that ridge: ``docs/nonlinear.md``, "Hyperparameters". **Window move**: on a long
+record, one pass after the smoother move (:mod:`latentforce.inference.window_move`; ``window``).
 """
 
 from __future__ import annotations
