@@ -415,7 +415,7 @@ def test_duffing_gibbs_runs_and_converges():
         chains=4,
         mh_steps=2,
         initial=(0.0, 0.01),
-        window=(64, 64),
+        window=64,
     )
     assert np.all(np.isfinite(out.state_mean["force"]))
     assert max(out.diagnostics["rhat"].values()) < 1.1, out.diagnostics["rhat"]
@@ -869,7 +869,8 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
     term Delta 23 (optimal) and 31 (bootstrap); without the second-stage weights 7 (optimal);
     the residual and low-frequency moves with their prior term scaled by 0.9, 17 and 9; the
     smoother move with the expanded likelihood in its weight scaled by 0.9, 11; the window move's
-    likewise, 6.8. A 10 %
+    likewise, 12 (its pin dropped from the exact target is not caught here: test_window_move's linear
+    test catches it). A 10 %
     tempering of a move's likelihood is below this test's resolution (|z| < 4).
     """
     pm, tr, mask, xs, ys = duffing_joint
@@ -892,8 +893,8 @@ def test_path_moves_keep_the_joint_distribution_of_a_nonlinear_model(duffing_joi
         eks = pgas_start.extended_kalman_smoother(pm, tr, y, mask)
         if kind == "smoother":
             x, acc = smoother_move.smoother_move(key, pm, tr, od, eks, x, 5)
-        elif kind == "window":  # windows of 8 with a tail of 8, re-centred about the smoother's mean
-            x, acc = window_move.window_move(key, pm, tr, od, eks, x, width=8, tail=8)
+        elif kind == "window":  # bridges of 8 samples, re-centred about the smoother's mean
+            x, acc = window_move.window_move(key, pm, tr, od, eks, x, width=8)
         elif kind == "residual":
             init = path_moves.residual_init(rm, pm, od, tr, eks)
             _, x, acc = path_moves.residual_move(key, init, rm, pm, od, tr, x, 30, adapt=False)

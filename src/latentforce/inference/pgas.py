@@ -115,7 +115,7 @@ def run_pgas(
     residual_modes: int = 16,
     residual_steps: int | None = None,
     smoother_steps: int | None = None,
-    window: tuple[int, int] | None = None,
+    window: int | None = None,
     joint_steps: int = 3,
     system_steps: int = 5,
     internal_steps: int = 10,
@@ -178,9 +178,9 @@ def run_pgas(
     burn-in): exact draws for a linear system, and most proposals accepted
     where the posterior is close to Gaussian (a displacement channel), which
     the sweep of a smooth force no longer renews. On a long record the smoother move's whole-path
-    proposals accept less (their weight's variance grows with T); ``window = (width, tail)`` then
-    adds one pass of the window move after it (:mod:`latentforce.inference.window_move`: the same
-    Gaussian on one window at a time, seeing ``tail`` samples after it; ``(0, 0)`` disables; None:
+    proposals accept less (their weight's variance grows with T); ``window`` (a width in samples) then
+    adds one pass of the window move after it (:mod:`latentforce.inference.window_move`: a bridge
+    through one window at a time, the path on both sides held; 0 disables; None:
     :func:`~latentforce.inference.pgas_defaults.default_window`). With free hyperparameters or system
     parameters each block starts with ``joint_steps`` joint Metropolis-Hastings steps on :math:`(\theta, \text{path})`
     (0 disables; three, not one: on a Duffing record with c, k3, both hyperparameters free and a
@@ -289,7 +289,7 @@ def run_pgas(
     if residual_steps is None:
         residual_steps = default_residual_steps(pm, smoother_steps)
     if window is None:
-        window = default_window(pm, T, smoother_steps)
+        window = default_window(pm, T, smoother_steps, tr0)
     with_rp = rm.applies and int(residual_steps) > 0
     # the block's settings (static): make_block checks the step counts, here before any compile
     block_settings = dict(
@@ -302,7 +302,7 @@ def run_pgas(
         lowfreq_steps=int(lowfreq_steps),
         residual_steps=int(residual_steps),
         smoother_steps=int(smoother_steps),
-        window=tuple(int(v) for v in window),
+        window=int(window),
         joint_steps=int(joint_steps),
         system_steps=int(system_steps),
         # the start-up move where the initial prior leaves the internal states free (internal_move.free;

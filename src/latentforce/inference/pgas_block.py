@@ -113,7 +113,7 @@ record, one pass after the smoother move (:mod:`latentforce.inference.window_mov
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -140,79 +140,7 @@ from latentforce.inference.path_moves import (
     residual_move,
 )
 from latentforce.inference.pgas_schedule import Schedule, reshape_chunks, schedule  # noqa: F401 (re-exported)
-
-
-class ChainState(NamedTuple):
-    """State of one chain between Gibbs blocks (a pytree; vmapped over chains)."""
-
-    key: Array
-    reference: Float[Array, "T n"]
-    rwm: mcmc.RWMState  # hyperparameters x = log(theta) and their centred random walk's adaptation
-    rwm_nc: mcmc.RWMState  # the non-centred (interweaving) random walk's adaptation; its x mirrors rwm.x
-    rwm_lf: mcmc.RWMState  # the low-frequency trajectory move's adaptation (x: its last coordinates)
-    rwm_rp: mcmc.RWMState  # the residual-preserving move's adaptation
-    # the latent's transition at rwm.x, carried so that a compiled block evaluates the
-    # transition at only two places (its matrix exponentials were 40 % of the program)
-    tr: particle_model.Transition
-    block: Array  # Gibbs block counter
-    # running sums over post-burn-in state samples: (z, v, u) per time
-    sum1: Float[Array, "T q"]
-    sum2: Float[Array, "T q"]
-    count: Float[Array, ""]
-    draws: Float[Array, "S T n"]  # thinned trajectories (last slot is a discard slot)
-    thin: Array  # every thin-th post-burn-in sweep is stored (doubled by run_pgas as "auto" runs on)
-    # every channel's noise variance (SI): the inferred ones drawn (noise_gibbs), the others as
-    # configured; None where no noise level is inferred (then the block uses BlockData.R)
-    noise_var: Float[Array, " d"] | None = None
-    # the smoother move's centre path (smoother_move; None: the move is not made)
-    centre: Float[Array, "T n"] | None = None
-    # the joint (theta, path) move's random walk and its adaptation (None: the move is not made)
-    rwm_joint: mcmc.RWMState | None = None
-    # the system parameters' walk with the measured motion held (system_moves; None: not made);
-    # its x follows rwm_joint.x[p:], which holds the chain's system parameters
-    rwm_sys: mcmc.RWMState | None = None
-
-
-#: a move's acceptance in :class:`BlockInfo` where the block does not make it (the output lists none)
-NOT_RUN = float("nan")
-
-
-class BlockInfo(NamedTuple):
-    theta: Float[Array, "k p"]
-    accept: Float[Array, " k"]
-    accept_noncentred: Float[Array, " k"]
-    accept_lowfreq: Float[Array, ""]
-    accept_residual: Float[Array, ""]
-    log_likelihood: Float[Array, ""]
-    switch_rate: Float[Array, ""]
-    ess: Float[Array, ""]
-    force_points: Float[Array, "P nforce"]
-    monitored: Float[Array, "M q"]  # displacement, velocity, force at the monitored times
-    # the inferred noise standard deviations (the parameters' units) held after each of the block's
-    # k MH iterations: the block's draw is made at its last iteration, the ones before hold the
-    # previous block's (so they pair with theta as the Gibbs chain's state)
-    noise: Float[Array, "k m"]
-    accept_noise: Float[Array, " m"]
-    accept_smoother: Float[Array, ""]  # the smoother move's acceptance (NaN where it is not made)
-    accept_joint: Float[Array, ""]  # the joint (theta, path) move's acceptance (NaN where it is not made)
-    # the sampled system parameters (Hyper.sys_names) after the block's joint move, repeated for its k
-    # MH iterations (they pair with theta as the Gibbs chain's state)
-    system: Float[Array, "k s"]
-    # the system parameters' move with the measured motion held (NaN where it is not made)
-    accept_system: Float[Array, ""] | None = None
-    # the internal states' start-up move (internal_move; NaN where it is not made)
-    accept_internal: Float[Array, ""] | None = None
-    # the window move (window_move; NaN where it is not made)
-    accept_window: Float[Array, ""] | None = None
-
-
-class BlockData(NamedTuple):
-    """The record and what is precomputed from it (arguments of the compiled programs)."""
-
-    y: Float[Array, "T d"]
-    mask: Array
-    od: ObservationDensity  # its R: the channels' noise covariance (its inferred entries: ChainState.noise_var)
-    ref_q: Float[Array, "T q"]  # centring of the running sums (the smoother's summary quantities)
+from latentforce.inference.pgas_state import NOT_RUN, BlockData, BlockInfo, ChainState  # noqa: F401 (re-exported)
 
 
 def _summary_quantities(pm: particle_model.ParticleModel, path: Float[Array, "T n"]):
@@ -267,7 +195,7 @@ def make_block(
     lowfreq_steps: int = 5,
     residual_steps: int,
     smoother_steps: int = 1,
-    window: tuple[int, int] = (0, 0),
+    window: int = 0,
     joint_steps: int = 1,
     system_steps: int = 0,
     internal_steps: int = 0,
@@ -351,9 +279,9 @@ def make_block(
     if n_sm < 0:
         raise ValueError(f"smoother_steps must be non-negative, got {smoother_steps}")
 
-    n_win, n_tail = (int(v) for v in window)
-    if n_win < 0 or n_tail < 0:
-        raise ValueError(f"window width and tail must be non-negative, got {window}")
+    n_win = int(window)
+    if n_win < 0:
+        raise ValueError(f"the window width must be non-negative, got {window}")
     n_joint = int(joint_steps)
     if n_joint < 0:
         raise ValueError(f"joint_steps must be non-negative, got {joint_steps}")
@@ -439,7 +367,7 @@ def make_block(
         acc_win = not_run
         if n_win and state.centre is not None:
             k_win = jax.random.fold_in(state.key, window_move.WINDOW_STREAM)
-            path, accs_win = window_move.window_move(k_win, pm, tr, od, state.centre, path, n_win, n_tail)
+            path, accs_win = window_move.window_move(k_win, pm, tr, od, state.centre, path, n_win)
             acc_win = jnp.mean(accs_win.astype(float))
         rwm_lf, acc_lf = state.rwm_lf, not_run
         if n_lf:
