@@ -44,7 +44,7 @@ def worker(T: int, window: str, iterations: int, max_time: float) -> dict:
     from latentforce.io.data import Dataset
 
     if window == "off":  # the run's own default otherwise
-        pg.default_window = lambda pm, T, smoother_steps: 0
+        pg.default_window = lambda *args: 0
     case = nc.Case(order=1, k3=4e5, sensors="acc,disp", noise=0.01, start="rest", T=T)
     y, truth, noise_sd, _ = nc.simulate(case, 0)
     cfg = nc.case_config(case, "pgas", max_time)
