@@ -13,6 +13,7 @@ Usage::
 
     PYTHONPATH=src python benchmarks/long_record.py                # T = 1 024, 2 048, 4 096 (about 25 min)
     PYTHONPATH=src python benchmarks/long_record.py --quick        # T = 2 048, fixed counts only
+    PYTHONPATH=src python benchmarks/long_record.py --order 2 --lengths 4096 --modes fixed   # Matérn-5/2
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 
-def worker(T: int, window: str, iterations: int, max_time: float) -> dict:
+def worker(T: int, window: str, iterations: int, max_time: float, order: int = 1) -> dict:
     import latentforce
 
     latentforce.enable_x64()
@@ -45,7 +46,7 @@ def worker(T: int, window: str, iterations: int, max_time: float) -> dict:
 
     if window == "off":  # the run's own default otherwise
         pg.default_window = lambda *args: 0
-    case = nc.Case(order=1, k3=4e5, sensors="acc,disp", noise=0.01, start="rest", T=T)
+    case = nc.Case(order=order, k3=4e5, sensors="acc,disp", noise=0.01, start="rest", T=T)
     y, truth, noise_sd, _ = nc.simulate(case, 0)
     cfg = nc.case_config(case, "pgas", max_time)
     for sensor, sd in zip(cfg["sensors"], noise_sd):
@@ -77,8 +78,8 @@ def worker(T: int, window: str, iterations: int, max_time: float) -> dict:
     }
 
 
-def run(T: int, window: str, iterations: int, max_time: float) -> dict:
-    args = [sys.executable, __file__, "--worker", str(T), window, str(iterations), str(max_time)]
+def run(T: int, window: str, iterations: int, max_time: float, order: int = 1) -> dict:
+    args = [sys.executable, __file__, "--worker", str(T), window, str(iterations), str(max_time), str(order)]
     env = dict(os.environ, PYTHONPATH=str(HERE.parent / "src"))
     out = subprocess.run(args, capture_output=True, text=True, env=env, check=False)
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
@@ -94,7 +95,8 @@ def table(rows, args, total: float) -> str:
         "",
         f"{time.strftime('%Y-%m-%dT%H:%M:%S')}; {platform.machine()}, {os.cpu_count()} cores, load average "
         f"{load:.2f} at the end; seed 0; one fresh process per run (compile included), one after another. "
-        "Duffing m = 1, c = 2, k = 400, k3 = 4e5 (70 % nonlinear share), Matérn-3/2 force (variance 100, "
+        "Duffing m = 1, c = 2, k = 400, k3 = 4e5 (70 % nonlinear share), "
+        f"Matérn-{2 * args.order + 1}/2 force (variance 100, "
         "lengthscale 0.05 s), acceleration + displacement at 1 % noise, hyperparameters at the truth, 4 chains.",
         "",
         "| T | window move | iterations | s | converged | max R-hat | worst bulk ESS | ESS per s "
@@ -118,24 +120,29 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="T = 2 048, fixed counts only")
     ap.add_argument("--lengths", default=None, help="comma-separated record lengths (default 1024,2048,4096)")
     ap.add_argument("--max-time", type=float, default=600.0)
+    ap.add_argument("--order", type=int, default=1, help="the force's Matérn order p (nu = p + 1/2; default 1)")
+    ap.add_argument("--modes", default=None, help='"fixed", "auto" or "fixed,auto" (default both; quick: fixed)')
     ap.add_argument("--out", type=Path, default=None)
-    ap.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        T, window, iterations, max_time = args.worker
-        print(json.dumps(worker(int(T), window, int(iterations), float(max_time))))
+        T, window, iterations, max_time, order = args.worker
+        print(json.dumps(worker(int(T), window, int(iterations), float(max_time), int(order))))
         return 0
     lengths = [int(t) for t in (args.lengths or ("2048" if args.quick else "1024,2048,4096")).split(",")]
-    modes = (1000,) if args.quick else (1000, 0)
+    names = (args.modes or ("fixed" if args.quick else "fixed,auto")).split(",")
+    modes = tuple({"fixed": 1000, "auto": 0}[m] for m in names)
     t0 = time.perf_counter()
     rows = []
     for T in lengths:
         for iterations in modes:
             for window in ("default", "off"):
                 print(f"T={T} window {window} iterations {iterations or 'auto'} ...", flush=True)
-                rows.append(((T, window, iterations), run(T, window, iterations, args.max_time)))
+                rows.append(((T, window, iterations), run(T, window, iterations, args.max_time, args.order)))
     text = table(rows, args, time.perf_counter() - t0)
-    out = args.out or HERE / "results" / ("long_record_quick.md" if args.quick else "long_record.md")
+    kernel = f"_matern{2 * args.order + 1}2" if args.order != 1 else ""
+    name = "long_record" + kernel + ("_quick" if args.quick else "")
+    out = args.out or HERE / "results" / f"{name}.md"
     out.write_text(text)
     print(text)
     print(f"written {out}")

@@ -246,6 +246,10 @@ def worker(job_path: str, out_path: str) -> None:
     from latentforce.io.data import Dataset
 
     job = json.loads(Path(job_path).read_text())
+    if job.get("window") is not None:  # a probe: the window move's width forced (0: off)
+        import latentforce.inference.pgas as pg
+
+        pg.default_window = lambda *args, width=int(job["window"]): width
     case = Case(**job["case"])
     y, truth, noise_sd, share = simulate(case, job["seed"])
     cfg = case_config(case, job["method"], job["max_time"])
@@ -297,6 +301,7 @@ def run_job(case: Case, method: str, args, tmp: Path) -> dict:
                 "max_time": args.max_time,
                 "cache": str(tmp / "cache"),
                 "wide_initial": bool(args.wide_initial),
+                "window": args.window,
             }
         )
     )
@@ -360,7 +365,8 @@ def report(rows: list[tuple[Case, str, dict]], args, total_s: float) -> str:
             "the linearised system's stationary covariance (`--wide-initial`)."
             if args.wide_initial
             else "the default (near rest)."
-        ),
+        )
+        + ("" if args.window is None else f" Window move forced to width {args.window} (`--window`)."),
         "",
         "| case | nonlinear share | method | force ±1/±2/±3 sd % | displacement ±1/±2/±3 sd % "
         "| hysteretic force ±1/±2/±3 sd % | force NMSE % "
@@ -413,6 +419,9 @@ def main(argv=None) -> int:
     parser.add_argument("--samples", type=int, default=None, help="quick mode: record length T")
     parser.add_argument("--max-time", type=float, default=None, help="pgas max_time (default 180; quick 60)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--window", type=int, default=None, help="probe: the window move's width forced (0: off; default: its rule)"
+    )
     parser.add_argument("--system", default="duffing", choices=tuple(QUICK_CASES), help="quick mode's system")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)

@@ -191,14 +191,15 @@ def test_pgas_of_the_linear_twin_matches_the_exact_smoother():
     """pgas on the Bouc-Wen model without hysteresis (its hysteretic state carried, its within-step
     noise then of rank two in (z, v, r)) against the exact smoother of the linear system with
     stiffness k + alpha: the force and displacement posteriors within a few Monte-Carlo errors.
-    The window move forced on (windows of 40) is not made: at Matérn-3/2 this model's within-step
-    noise factor has a condition number of 8.4e14, past the move's numerical limit
-    (window_move.COND_MAX; test_window_move covers the move on this model at Matérn-1/2)."""
+    The window move forced on (windows of 40) accepts every step, linear as the dynamics are (at
+    Matérn-3/2 this model's within-step noise factor has a condition number of 8.4e14; the move's
+    first proposal, through the Kalman filter's covariance form, accepted 45 % there and was kept off
+    such models)."""
     sensors = [Sensor("acceleration", 0, 1.0), Sensor("displacement", 0, 2e-5)]
     pm, y, mean, sd, _ = _twin_data(1, sensors, 80)
     out = pgas_against_exact(pm, {**LINEAR_TWIN, **GP}, y, 1.0 / FS, mean, sd, max_nmse=2e-3, window=40)
     accepted = out.diagnostics["acceptance_window"]
-    assert len(accepted) == 2 and max(accepted) == 0.0, accepted
+    assert len(accepted) == 2 and min(accepted) > 0.99, accepted
     # the hysteretic force is alpha z along every path (no hysteresis, a virgin start)
     r, z = out.state_mean["hysteretic_force"][:, 0], out.state_mean["displacement"][:, 0]
     np.testing.assert_allclose(r, LINEAR_TWIN["alpha"] * z, atol=1e-3 * np.max(np.abs(r)))

@@ -115,3 +115,15 @@ def test_derivatives_match_jax_linalg():
 
 # The samplers' programs are checked for LAPACK calls on the CLI's runs of every sampling method
 # (tests/test_cli.py, fixture ``lowered_programs`` of conftest.py), not on runs of their own here.
+
+
+def test_log_abs_det_matches_numpy_and_pivots():
+    """``log_abs_det`` against NumPy's slogdet on random, badly scaled (rows from 1e-12 to 1e3: the
+    window move's Jacobians in mixed units) and pivot-needing matrices; a singular one gives -inf."""
+    rng = np.random.default_rng(3)
+    for n in (1, 3, 7):
+        A = rng.normal(size=(n, n)) * np.logspace(-12, 3, n)[:, None]
+        np.testing.assert_allclose(linalg.log_abs_det(jnp.asarray(A)), np.linalg.slogdet(A)[1], rtol=1e-12, atol=1e-10)
+    swap = np.array([[0.0, 2.0, 1.0], [3.0, 1.0, 0.0], [1.0, 1.0, 5.0]])  # a zero first pivot
+    np.testing.assert_allclose(linalg.log_abs_det(jnp.asarray(swap)), np.linalg.slogdet(swap)[1], rtol=1e-13)
+    assert float(linalg.log_abs_det(jnp.asarray([[1.0, 2.0], [2.0, 4.0]]))) == -np.inf

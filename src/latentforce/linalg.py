@@ -306,3 +306,22 @@ def solve(A: Float[Array, "n n"], B: Float[Array, "n ..."]) -> Float[Array, "n .
 def inv(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
     """Inverse of a general square matrix (:func:`solve` with the identity)."""
     return solve(A, jnp.eye(A.shape[-1], dtype=A.dtype))
+
+
+@jax.jit
+def log_abs_det(A: Float[Array, "n n"]) -> Float[Array, ""]:
+    r""":math:`\log|\det A|` of a general square matrix: Gaussian elimination with partial pivoting,
+    the sum of the pivots' log magnitudes (``-inf`` for a singular matrix, as ``jnp.linalg.slogdet``)."""
+    n = A.shape[-1]
+    rows = jnp.arange(n)
+
+    def eliminate(k, carry):
+        M, acc = carry
+        p = jnp.argmax(jnp.where(rows >= k, jnp.abs(M[:, k]), -1.0))
+        top, piv_row = M[k], M[p]
+        M = M.at[p].set(top).at[k].set(piv_row)
+        pivot = piv_row[k]
+        factors = jnp.where(rows > k, M[:, k] / jnp.where(pivot == 0, 1.0, pivot), 0.0)
+        return M - factors[:, None] * piv_row[None, :], acc + jnp.log(jnp.abs(pivot))
+
+    return jax.lax.fori_loop(0, n, eliminate, (A, jnp.zeros((), A.dtype)))[1]

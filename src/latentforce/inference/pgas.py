@@ -289,7 +289,7 @@ def run_pgas(
     if residual_steps is None:
         residual_steps = default_residual_steps(pm, smoother_steps)
     if window is None:
-        window = default_window(pm, T, smoother_steps, tr0)
+        window = default_window(pm, T, smoother_steps)
     with_rp = rm.applies and int(residual_steps) > 0
     # the block's settings (static): make_block checks the step counts, here before any compile
     block_settings = dict(
