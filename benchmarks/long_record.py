@@ -34,36 +34,15 @@ sys.path.insert(0, str(HERE))
 
 
 def worker(T: int, window: str, iterations: int, max_time: float, order: int = 1) -> dict:
-    import latentforce
-
-    latentforce.enable_x64()
     import nonlinear_calibration as nc
 
-    import latentforce.inference.pgas as pg
-    from latentforce import estimate
-    from latentforce.io.config import config_from_dict
-    from latentforce.io.data import Dataset
-
-    if window == "off":  # the run's own default otherwise
-        pg.default_window = lambda *args: 0
     case = nc.Case(order=order, k3=4e5, sensors="acc,disp", noise=0.01, start="rest", T=T)
-    y, truth, noise_sd, _ = nc.simulate(case, 0)
-    cfg = nc.case_config(case, "pgas", max_time)
-    for sensor, sd in zip(cfg["sensors"], noise_sd):
-        sensor["noise_std"] = float(sd)
-    if iterations:
-        cfg["inference"].update(iterations=iterations, burn_in=500)
-    problem = config_from_dict(cfg, source=f"<long record T={T}>")
-    ds = Dataset(
-        time=np.arange(T) * case.dt,
-        dt=case.dt,
-        values=y,
-        mask=np.ones_like(y, dtype=bool),
-        columns=list(problem.columns),
-        truth={},
-    )
+    fixed = {"iterations": iterations, "burn_in": 500} if iterations else {}
+    # "off": the window move's width forced to 0; "default": the run's own rule
     t0 = time.perf_counter()
-    result, _ = estimate.run(problem, ds, seed=0)
+    result, truth, _ = nc.estimate_case(
+        case, "pgas", 0, max_time, window=0 if window == "off" else None, inference=fixed
+    )
     wall = time.perf_counter() - t0
     conv = dict(result.convergence or {})
     acc = (result.diagnostics or {}).get("acceptance_window") or []

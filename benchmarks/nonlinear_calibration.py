@@ -51,6 +51,7 @@ displacement, and the nonlinear share is rms(r - alpha d) / rms(k d + r) of the 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import os
@@ -236,7 +237,13 @@ def simulate(case: Case, seed: int):
     return y, truth, noise_sd, share
 
 
-def worker(job_path: str, out_path: str) -> None:
+def estimate_case(
+    case: Case, method: str, seed: int, max_time: float, *, window=None, wide_initial=False, cache=None, inference=None
+):
+    """``(result, truth, share)``: the case's record simulated at ``seed`` and run through ``estimate.run`` as a
+    user runs it. ``window``: the window move's width forced (a probe; 0: off; None: its rule); ``wide_initial``:
+    the linearised system's joint stationary prior as ``[initial]``; ``cache``: a persistent compilation cache
+    directory; ``inference``: more ``[inference]`` keys (fixed counts: ``iterations``, ``burn_in``)."""
     import latentforce
 
     latentforce.enable_x64()
@@ -245,21 +252,20 @@ def worker(job_path: str, out_path: str) -> None:
     from latentforce.io.config import config_from_dict
     from latentforce.io.data import Dataset
 
-    job = json.loads(Path(job_path).read_text())
-    if job.get("window") is not None:  # a probe: the window move's width forced (0: off)
+    if window is not None:
         import latentforce.inference.pgas as pg
 
-        pg.default_window = lambda *args, width=int(job["window"]): width
-    case = Case(**job["case"])
-    y, truth, noise_sd, share = simulate(case, job["seed"])
-    cfg = case_config(case, job["method"], job["max_time"])
+        pg.default_window = lambda *args, width=int(window): width
+    y, truth, noise_sd, share = simulate(case, seed)
+    cfg = case_config(case, method, max_time)
+    cfg["inference"].update(inference or {})
     for sensor, sd in zip(cfg["sensors"], noise_sd):
         sensor["noise_std"] = float(sd)
-    problem = config_from_dict(cfg, source=f"<{case.label} {job['method']}>")
-    if job.get("wide_initial"):  # the linearised system's joint stationary prior instead of the near-rest default
+    problem = config_from_dict(cfg, source=f"<{case.label} {method}>")
+    if wide_initial:  # the linearised system's joint stationary prior instead of the near-rest default
         _, P = problem.model.stationary_initial(dict(problem.fixed), linear_part=True)
         cfg["initial"] = {"mean": [0.0] * P.shape[0], "cov": np.asarray(P).tolist()}
-        problem = config_from_dict(cfg, source=f"<{case.label} {job['method']}>")
+        problem = config_from_dict(cfg, source=f"<{case.label} {method}>")
     T = y.shape[0]
     dataset = Dataset(
         time=np.arange(T) * case.dt,
@@ -269,8 +275,24 @@ def worker(job_path: str, out_path: str) -> None:
         columns=list(problem.columns),
         truth={},
     )
-    with persistent_cache(job["cache"]):
-        result, _ = estimate.run(problem, dataset, seed=job["seed"])
+    with persistent_cache(cache) if cache else contextlib.nullcontext():
+        result, _ = estimate.run(problem, dataset, seed=seed)
+    return result, truth, share
+
+
+def worker(job_path: str, out_path: str) -> None:
+    job = json.loads(Path(job_path).read_text())
+    case = Case(**job["case"])
+    result, truth, share = estimate_case(
+        case,
+        job["method"],
+        job["seed"],
+        job["max_time"],
+        window=job.get("window"),
+        wide_initial=bool(job.get("wide_initial")),
+        cache=job["cache"],
+    )
+    T = len(result.time)
     out = {"share": share, "wall_s": float(result.wall_time_s)}
     for state in truth:  # every column of the state (a frame's floors) pooled
         x = np.reshape(truth[state], (T, -1))

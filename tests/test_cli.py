@@ -252,6 +252,7 @@ def test_every_sampling_method_writes_a_result_folder_with_its_verdict(workdir, 
     if method == "pgas":  # a path that neither the sweep nor the smoother move renewed is named as the cause
         from latentforce.estimate_particles import LOW_SMOOTHER_ACCEPTANCE, LOW_SWITCH_RATE
 
+        assert summary["diagnostics"]["particles"] == 16  # the count the sweep ran with
         rates, accepted = summary["diagnostics"]["switch_rate"], summary["diagnostics"]["acceptance_smoother"]
         low = sum(rates) / len(rates) < LOW_SWITCH_RATE and sum(accepted) / len(accepted) < LOW_SMOOTHER_ACCEPTANCE
         assert ("hardly renewed the path" in " ".join(summary["diagnostics"]["warnings"])) == low
@@ -322,7 +323,8 @@ def test_pgas_auto_runs_until_converged_and_strict_passes(workdir):
 def test_pgas_auto_stops_at_max_time_and_says_so(workdir):
     """iterations = "auto" with a max_time too short to converge: the run stops after its first
     check, writes its results, says NOT CONVERGED and why it stopped; --strict exits 3."""
-    (workdir / "m.toml").write_text(_inferred("pgas", "burn_in = 100\nchains = 2\nmax_time = 1\n"))
+    text = _inferred("pgas", "burn_in = 100\nchains = 2\nmax_time = 1\n")
+    (workdir / "m.toml").write_text(text.replace("particles = 16\n", ""))  # particles left to "auto"
     code, out = invoke("estimate", "m.toml", "--out", "res", "--strict")
     assert code == 3, out
     assert "NOT CONVERGED" in out
@@ -331,6 +333,7 @@ def test_pgas_auto_stops_at_max_time_and_says_so(workdir):
     diag = summary["diagnostics"]
     assert diag["iterations_setting"] == "auto" and diag["stopped"] == "max_time"
     assert 0 < diag["iterations"] < 2_000
+    assert diag["particles"] == 50  # "auto" on a short record (no window move): pgas_defaults.default_particles
     assert any("[t=" in w["name"] or w["name"] == "force_variance" for w in summary["convergence"]["worst"])
 
 

@@ -88,7 +88,7 @@ def test_linear_sdof_kalman_mcmc(tmp_path):
     assert p.columns == ["acc"]
     assert p.model.sensors[0].name == "acc" and p.model.sensors[0].noise_std == 0.05
     assert p.inference.method == "kalman-mcmc" and p.inference.iterations == 200
-    assert p.inference.particles == 50 and p.inference.thin_draws == 200  # defaults
+    assert p.inference.particles is None and p.inference.thin_draws == 200  # defaults (None: "auto")
     assert p.data.path == tmp_path.resolve() / "accel.csv"
     assert p.data.time_column == "t" and p.data.sample_rate is None and p.data.missing == "error"
     assert p.config_path == path.resolve()
@@ -212,7 +212,11 @@ def test_bad_values_name_the_key():
     _bad(_edit(DUFFING, ["sensors", 1, "column"], "acc"), "[[sensors]][1].column", "already used")
     _bad(_edit(DUFFING, ["force", "kernel"], "matern42"), "[force].kernel", "matern12, matern32")
     _bad(_edit(DUFFING, ["force", "variance"], -2.0), "[force].variance", "positive")
-    _bad(_edit(DUFFING, ["inference", "particles"], 1), "[inference].particles")
+    _bad(_edit(DUFFING, ["inference", "particles"], 1), "[inference].particles = 1", "2 or more", '"auto"')
+    _bad(_edit(DUFFING, ["inference", "particles"], "many"), "[inference].particles = 'many'", "2 or more")
+    for given, settled in (("auto", None), (30, 30)):  # "auto": pgas_defaults.default_particles
+        problem = config_from_dict(_edit(DUFFING, ["inference", "particles"], given), source="c")
+        assert problem.inference.particles == settled
     _bad(_edit(DUFFING, ["inference", "method"], "mcmc"), "[inference].method", "'pgas'")
     _bad(_edit(DUFFING, ["system", "k3"], None, delete=True), "[system].k3", "required")
     _bad(_edit(DUFFING, ["sensors"], []), "[[sensors]]")

@@ -1,5 +1,7 @@
 """The re-centred smoother move of ``benchmarks/recentred_probe.py`` (a probe, not a move of the
-sampler) against exact and independent answers, so that the probe's measurements can be repeated."""
+sampler) against exact and independent answers, so that the probe's measurements can be repeated.
+Slow-marked as a whole: a benchmark probe, not code the sampler runs (41 s of the default suite on
+the 2-core CI machine, 2026-12-02)."""
 
 import importlib.util
 import sys
@@ -22,6 +24,8 @@ _spec = importlib.util.spec_from_file_location("recentred_probe", _PATH)
 recentred_move = importlib.util.module_from_spec(_spec)
 sys.modules["recentred_probe"] = recentred_move
 _spec.loader.exec_module(recentred_move)
+
+pytestmark = pytest.mark.slow
 
 
 @pytest.mark.parametrize("order", [1, 3])

@@ -181,8 +181,9 @@ def test_duffing_windows_keep_the_posterior_and_accept_most(order):
 def test_the_window_move_runs_by_default_on_long_records_with_a_displacement_channel():
     """``pgas_defaults.default_window``: on a nonlinear system with a displacement channel from
     ``WINDOW_MIN_T`` samples; not on shorter records, with acceleration alone (measured not to
-    gain), on a linear system (the smoother move is exact there) or without the smoother move."""
-    from latentforce.inference.pgas_defaults import WINDOW_MIN_T, default_window
+    gain), on a linear system (the smoother move is exact there) or without the smoother move. And
+    the sweep's particle count that goes with it."""
+    from latentforce.inference.pgas_defaults import WINDOW_MIN_T, default_particles, default_window
 
     pm_disp = _duffing(1, T=10)[0]
     pm_acc = _duffing(1, sensors=("acceleration",), T=10)[0]
@@ -192,6 +193,8 @@ def test_the_window_move_runs_by_default_on_long_records_with_a_displacement_cha
     assert default_window(pm_disp, WINDOW_MIN_T, 0) == 0
     assert default_window(pm_acc, 4 * WINDOW_MIN_T, 4) == 0
     assert default_window(pm_lin, 4 * WINDOW_MIN_T, 4) == 0
+    # the sweep's particles: fewer where the window move runs (pgas_defaults.default_particles)
+    assert default_particles(window_move.WIDTH) == 16 and default_particles(0) == 50
 
 
 def _window_chains_on(pm, tr, y, n, key):

@@ -177,7 +177,6 @@ def _run_pgas(
     record = diagnostics.pop("convergence")
     diagnostics.update(
         {
-            "particles": settings.particles,
             "iterations": iterations,
             "iterations_setting": "auto" if settings.iterations is None else settings.iterations,
             "burn_in": settings.burn_in,

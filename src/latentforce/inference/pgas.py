@@ -74,6 +74,7 @@ from latentforce.inference.pgas_block import (  # noqa: F401 (re-exported: calle
 )
 from latentforce.inference.pgas_channels import _unnamed, observe_through  # noqa: F401 (re-exported)
 from latentforce.inference.pgas_defaults import (  # noqa: F401 (re-exported)
+    default_particles,
     default_residual_steps,
     default_smoother_steps,
     default_window,
@@ -93,7 +94,7 @@ def run_pgas(
     mask,
     dt: float,
     *,
-    particles: int = 50,
+    particles: int | None = None,
     iterations: int | None = 1000,
     burn_in: int = 500,
     state_every: int = 1,
@@ -181,7 +182,9 @@ def run_pgas(
     proposals accept less (their weight's variance grows with T); ``window`` (a width in samples) then
     adds one pass of the window move after it (:mod:`latentforce.inference.window_move`: a bridge
     through one window at a time, the path on both sides held; 0 disables; None:
-    :func:`~latentforce.inference.pgas_defaults.default_window`). With free hyperparameters or system
+    :func:`~latentforce.inference.pgas_defaults.default_window`), and the sweep then runs with fewer
+    ``particles`` (None: :func:`~latentforce.inference.pgas_defaults.default_particles`, 50 and 16 with
+    the window move; the count used is ``diagnostics["particles"]``). With free hyperparameters or system
     parameters each block starts with ``joint_steps`` joint Metropolis-Hastings steps on :math:`(\theta, \text{path})`
     (0 disables; three, not one: on a Duffing record with c, k3, both hyperparameters free and a
     displacement channel, three steps gave three times the parameters' ESS for 7 % more time;
@@ -290,6 +293,8 @@ def run_pgas(
         residual_steps = default_residual_steps(pm, smoother_steps)
     if window is None:
         window = default_window(pm, T, smoother_steps)
+    if particles is None:
+        particles = default_particles(window)
     with_rp = rm.applies and int(residual_steps) > 0
     # the block's settings (static): make_block checks the step counts, here before any compile
     block_settings = dict(
@@ -447,6 +452,7 @@ def run_pgas(
         pm, hyper, states, info, ref_q, sched.burn_in, total, sched.burn_blocks, n_draws, tpoints, noise.names
     )
     out.diagnostics["thin"] = thin
+    out.diagnostics["particles"] = int(particles)
     if start_record is not None:
         out.diagnostics["start"] = start_record
     out.diagnostics["iterations_run"] = max(0, total - sched.burn_in)

@@ -74,7 +74,7 @@ class InferenceSettings(NamedTuple):
     """``[inference]`` with defaults filled in and ``method`` resolved."""
 
     method: str
-    particles: int
+    particles: int | None  # None: "auto" (pgas_defaults.default_particles)
     iterations: int | None  # None: "auto" (run until converged or max_time)
     burn_in: int
     state_every: int
@@ -325,7 +325,7 @@ def config_from_dict(
         )
     settings = InferenceSettings(
         method=method,
-        particles=inf.particles,
+        particles=None if inf.particles == "auto" else inf.particles,
         iterations=None if inf.iterations == "auto" else inf.iterations,
         burn_in=DEFAULT_BURN_IN[method] if inf.burn_in is None else inf.burn_in,
         state_every=inf.state_every,

@@ -131,7 +131,7 @@ class _InitialSection(_Strict):
 
 class _InferenceSection(_Strict):
     method: Literal["kalman", "kalman-mcmc", "kalman-nuts", "pgas", "ekf", "ukf"] | None = None
-    particles: int = Field(default=50, ge=2)
+    particles: Annotated[int, Field(ge=2)] | Literal["auto"] = "auto"
     iterations: Annotated[int, Field(ge=1)] | Literal["auto"] = "auto"
     burn_in: int | None = Field(default=None, ge=0)
     target_ess: float = Field(default=400.0, gt=0)
@@ -238,6 +238,11 @@ def _from_validation_error(source: str, exc: ValidationError) -> LatentForceErro
         return LatentForceError(
             f'{source}: [inference].iterations{shown}: give a whole number of draws per chain (1 or more) or "auto" '
             "(lower case: sample until converged, the default)."
+        )
+    if loc[:2] == ("inference", "particles"):
+        return LatentForceError(
+            f'{source}: [inference].particles{shown}: give a whole number of particles (2 or more) or "auto" '
+            "(lower case, the default: 50, or 16 where pgas runs its window move on a long record)."
         )
     if kind == "float_type" and len(loc) >= 3 and loc[0] in ("system", "force") and loc[-1] == "number":
         msg = (
