@@ -6,8 +6,9 @@ displacement at 1 % noise; hyperparameters at the truth) at each record length, 
 ``estimate.run`` as a user runs it, one fresh process per run (compile included), one run after
 another. Each length is run with the window move at its default and with it off, at fixed counts
 (1 000 iterations after 500) and "auto" (to R-hat <= 1.01 and bulk ESS >= 400, or ``--max-time``).
-The table: seconds, worst bulk ESS and R-hat, the window steps' acceptance, ESS per second, and the
-force's coverage of the truth (docs/nonlinear.md, "Long records: the window move").
+The table: the sweep's particle count (the run's default: 16 with the window move, 50 without), seconds,
+worst bulk ESS and R-hat, the window steps' acceptance, ESS per second, and the force's coverage of the
+truth (docs/nonlinear.md, "Long records: the window move" and "Long records: fewer particles").
 
 Usage::
 
@@ -53,6 +54,7 @@ def worker(T: int, window: str, iterations: int, max_time: float, order: int = 1
         "max_r_hat": conv.get("max_r_hat"),
         "min_ess": conv.get("min_ess_bulk"),
         "window_acceptance": [float(a) for a in acc],
+        "particles": int((result.diagnostics or {}).get("particles", 0)),
         "force_coverage": [float(100 * np.mean(np.abs(x - mean) <= k * sd)) for k in (1, 2, 3)],
     }
 
@@ -78,16 +80,17 @@ def table(rows, args, total: float) -> str:
         f"Matérn-{2 * args.order + 1}/2 force (variance 100, "
         "lengthscale 0.05 s), acceleration + displacement at 1 % noise, hyperparameters at the truth, 4 chains.",
         "",
-        "| T | window move | iterations | s | converged | max R-hat | worst bulk ESS | ESS per s "
+        "| T | window move | particles | iterations | s | converged | max R-hat | worst bulk ESS | ESS per s "
         "| window acceptance | force ±1/±2/±3 sd % |",
-        "|---:|---|---|---:|---|---:|---:|---:|---|---|",
+        "|---:|---|---:|---|---:|---|---:|---:|---:|---|---|",
     ]
     for (T, window, iterations), r in rows:
         acc = ", ".join(f"{a:.2f}" for a in r["window_acceptance"]) or "–"
         cov = " / ".join(f"{c:.1f}" for c in r["force_coverage"])
         its = f"{iterations} (+500)" if iterations else f'"auto" (cap {args.max_time:g} s)'
         out.append(
-            f"| {T} | {window} | {its} | {r['wall_s']:.0f} | {'yes' if r['converged'] else '**no**'} "
+            f"| {T} | {window} | {r['particles']} | {its} | {r['wall_s']:.0f} "
+            f"| {'yes' if r['converged'] else '**no**'} "
             f"| {r['max_r_hat']:.3f} | {r['min_ess']:.0f} | {r['min_ess'] / r['wall_s']:.2f} | {acc} | {cov} |"
         )
     out += ["", f"Total benchmark time {total:.0f} s.", ""]
