@@ -103,25 +103,33 @@ def _duffing_window(order, width, start, T=80):
     return pm, tr, fr, nz, seg, window_move.correction(pm, seg)
 
 
-@pytest.mark.parametrize("order", [2])
-def test_the_end_state_correction_is_a_bijection_with_the_stated_jacobian(order):
-    """The correction Phi on a Duffing window (not exact there): Phi^-1(Phi(eps)) = eps; the exact
-    path of Phi(eps) ends where the expanded model's path of eps does (mechanical states); and the
+@pytest.mark.parametrize("start", [30, 72])
+def test_the_end_state_correction_is_a_bijection_with_the_stated_jacobian(start):
+    """The correction Phi on a Duffing window (Matérn-5/2, not exact there): Phi^-1(Phi(eps)) = eps;
+    the exact path of Phi(eps) meets the constraint where the expanded model's path of eps does: the
+    pin's prediction of the mechanical states after the window, f(x_b), where a held state follows
+    (start 30), the mechanical x_b itself where the window ends the record (start 72, T = 80); and the
     log-determinant the weight uses, log|det(J_ex D)| - log|det(JD)|, is the dense Jacobian's of
     Phi^-1 (autodiff of the whole map, W x nl square)."""
-    pm, tr, fr, nz, seg, cor = _duffing_window(order, 8, 30)
-    eps = jax.random.normal(jax.random.key(order), fr.eps.shape)
+    pm, tr, fr, nz, seg, cor = _duffing_window(2, 8, start)
+    assert float(fr.pin) == (1.0 if start == 30 else 0.0)
+    eps = jax.random.normal(jax.random.key(2), fr.eps.shape)
     ep = window_move.phi(pm, tr, fr, seg, cor, eps)
     assert float(jnp.max(jnp.abs(ep - eps))) > 1e-4  # not the identity here
     np.testing.assert_allclose(window_move.phi_inverse(pm, tr, fr, seg, cor, ep), eps, atol=1e-10)
-    nm = cor.D.shape[-1]
-    np.testing.assert_allclose(
-        window_move.rollout(pm, tr, fr, ep)[-1, :nm], window_move.linear_path(seg, eps)[-1, :nm], rtol=1e-9, atol=1e-12
-    )
+    nm = seg.c.shape[1] - pm.nfx
+    x_b, lin_b = window_move.rollout(pm, tr, fr, ep)[-1], window_move.linear_path(seg, eps)[-1]
+    if start == 30:  # the whole transition into the held state: its innovation the expanded model's
+        f = jax.jacfwd(lambda x: pm.state_step(tr, x))(seg.c[-1])
+        lin_next = pm.state_step(tr, seg.c[-1]) + f @ (lin_b - seg.c[-1])
+        np.testing.assert_allclose(pm.state_step(tr, x_b), lin_next, rtol=1e-9, atol=1e-12)
+        assert float(jnp.max(jnp.abs(x_b[:nm] - lin_b[:nm]) / jnp.abs(lin_b[:nm]))) > 1e-7  # not x_b's constraint
+    else:
+        np.testing.assert_allclose(x_b[:nm], lin_b[:nm], rtol=1e-9, atol=1e-12)
     dense = jax.jacfwd(lambda e: window_move.phi_inverse(pm, tr, fr, seg, cor, e.reshape(ep.shape)).reshape(-1))(
         ep.reshape(-1)
     )
-    formula = jnp.linalg.slogdet(window_move._exact(pm, tr, fr, cor, ep)[1])[1] - jnp.linalg.slogdet(cor.JD)[1]
+    formula = jnp.linalg.slogdet(window_move._exact(pm, tr, fr, seg, cor, ep)[2])[1] - jnp.linalg.slogdet(cor.JD)[1]
     assert abs(float(formula)) > 1e-3  # not the identity's
     np.testing.assert_allclose(jnp.linalg.slogdet(dense)[1], formula, atol=1e-8)
 
@@ -318,7 +326,7 @@ def test_the_frames_windows_meet_the_pin_and_the_proposal_density_is_its_draws()
     # draws' own density, so this costs acceptance, not exactness
     assert float(jnp.std(gap)) < 0.2, np.asarray(gap)
     assert float(jnp.mean(eps_next**2)) < 3.0, float(jnp.mean(eps_next**2))  # E = 1 under the model
-    assert np.count_nonzero(np.asarray(G) == 0) == 1 and float(G[-1]) == 0  # r: dependent on z_1
+    assert G.shape == (7,) and np.count_nonzero(np.asarray(G) == 0) == 1 and float(G[-1]) == 0  # r = alpha z_1
 
 
 def test_the_window_move_calls_no_lapack():
