@@ -66,13 +66,13 @@ def default_residual_steps(pm: particle_model.ParticleModel, smoother_steps: int
 
 
 #: the shortest record given the window move by default (:func:`default_window`)
-WINDOW_MIN_T = 2048
+WINDOW_MIN_T = 1024
 
 
 def default_window(pm: particle_model.ParticleModel, T: int, smoother_steps: int) -> int:
     """The window move's width where the caller gives none: 256 samples on a nonlinear system with a
     displacement (or strain) channel, the smoother move on and at least :data:`WINDOW_MIN_T` samples
-    (2 048); else 0, no window move.
+    (1 024); else 0, no window move.
 
     Where the whole-path smoother move's acceptance falls with the record (Duffing acc + disp,
     Matérn-3/2: 0.96 at T = 256, 0.66 at 1 024, 0.24 at 4 096) the window move renews the path a
@@ -83,10 +83,12 @@ def default_window(pm: particle_model.ParticleModel, T: int, smoother_steps: int
     "auto", converged in 137 s where both others stopped unconverged at the 600 s cap
     (docs/nonlinear.md, "Long records: the window move"). At Matérn-5/2 and 7/2 on that record (fixed
     counts): R-hat 1.011 / 1.021 with it, 3.5 / 4.1 without. Acceleration alone: off (the expansion is
-    poor there, its weights' spread hundreds of nats). Below 2 048 samples: off; at T = 1 024 "auto"
-    converged in 54 s with it and 49 s without (both at their first check), and the demos' records of
-    that length (the paper's Duffing, the Silverbox window with its margins) keep the sampler they
-    were measured with.
+    poor there, its weights' spread hundreds of nats). The shortest record: measured after the
+    correction became the whole transition into the held state (2026-12-02,
+    ``benchmarks/results/window_min_t.md``, "auto", seconds to converged with / without): T = 1 024,
+    Matérn-1/2 46 / 154, 3/2 43 / 41, 5/2 50 / 52 and 48 / 52, 7/2 65 / 182 and 69 / 169 (two
+    records); T = 512, 5/2 40 / 29, 7/2 46 / 40. So on from 1 024 samples (it was 2 048 while a 7/2
+    window accepted 0.78 and T = 1 024 measured 54 / 49 s at 3/2).
     """
     on = not pm.is_linear and int(smoother_steps) > 0 and _displacement_measured(pm) and T >= WINDOW_MIN_T
     return window_move.WIDTH if on else 0
