@@ -106,3 +106,15 @@ def lowered_programs(monkeypatch):
     to check that the samplers' programs hold no LAPACK call (``latentforce.linalg`` says why) on
     runs the tests make anyway, not on runs of their own."""
     return LoweredPrograms(monkeypatch)
+
+
+def pytest_runtest_logreport(report):
+    """``LATENTFORCE_TEST_TIMES=file``: each test phase's seconds appended to ``file`` as it ends
+    (tab-separated: node id, phase, seconds), so that a run's slow tests are known while it runs
+    (``--durations`` prints only at the end, and not at all for a run stopped by a time limit)."""
+    import os
+
+    path = os.environ.get("LATENTFORCE_TEST_TIMES")
+    if path and not os.environ.get("PYTEST_XDIST_WORKER"):  # the controller writes every worker's
+        with open(path, "a", encoding="utf-8") as f:
+            f.write(f"{report.nodeid}\t{report.when}\t{report.duration:.2f}\n")

@@ -191,6 +191,9 @@ def test_gaussian_methods_infer_the_benchmarks_negative_gamma(tmp_path, monkeypa
     assert gamma["sd"] < 2000.0 / 5 and gamma["mean"] + 3 * gamma["sd"] < 0, gamma
 
 
+# slow-marked for CI's time (66 s on 2026-12-02's slow 2-core machine);
+# the negative gamma through the EKF and UKF methods stays in CI
+@pytest.mark.slow
 def test_pgas_infers_the_benchmarks_negative_gamma(tmp_path, monkeypatch):
     """pgas moves a signed system parameter in its own coordinate (start at the filter's mode, the
     re-centred joint move, the system move with the measured motion held, values in the results):
