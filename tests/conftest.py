@@ -21,6 +21,7 @@ Measured on the 2-core machine (2026-11-28, 439 tests): 1 434 s with the shared 
 
 import contextlib
 import gc
+import os
 import shutil
 import tempfile
 
@@ -112,8 +113,6 @@ def pytest_runtest_logreport(report):
     """``LATENTFORCE_TEST_TIMES=file``: each test phase's seconds appended to ``file`` as it ends
     (tab-separated: node id, phase, seconds), so that a run's slow tests are known while it runs
     (``--durations`` prints only at the end, and not at all for a run stopped by a time limit)."""
-    import os
-
     path = os.environ.get("LATENTFORCE_TEST_TIMES")
     if path and not os.environ.get("PYTEST_XDIST_WORKER"):  # the controller writes every worker's
         with open(path, "a", encoding="utf-8") as f:

@@ -270,7 +270,7 @@ def _two_dof():
     return config_from_dict(d)
 
 
-# two-dof under -m slow (35 s on 2026-12-02's slow 2-core machine)
+# two-dof under -m slow (35 s on 2026-12-02's slow 2-core machine); the sdof case stays in CI
 @pytest.mark.parametrize("which", ["sdof", pytest.param("two-dof", marks=pytest.mark.slow)])
 def test_steady_smoother_equals_the_full_smoother(which):
     from latentforce.inference import steady
