@@ -92,3 +92,28 @@ def test_a_pgas_warning_names_a_sweep_that_hardly_switched():
     # the smoother move renewed the path: the sweep's low rate is not the cause
     assert low_switch_advice(0.008, LOW_SMOOTHER_ACCEPTANCE) == "" and low_switch_advice(0.008, 0.9) == ""
     assert low_switch_advice(0.008) != ""  # acceptance unknown (no move): the advice stands
+
+
+def test_a_pgas_warning_names_the_initial_hysteretic_force_when_the_record_start_is_slow():
+    """An unconverged pgas run on a system with hysteretic states, no [initial] given, whose worst
+    three quantities include one within the record's first 5 % (by time index, before the times are
+    labelled) gets the [initial] advice; a slow quantity later only, a converged run, a system
+    without hysteresis or a given [initial] get nothing."""
+    from latentforce.estimate_particles import hysteretic_start_advice
+
+    def record(*names, converged=False):
+        return {"converged": converged, "worst": [{"name": n, "r_hat": 1.8, "ess_bulk": 6.0} for n in names]}
+
+    slow_start = record("force[t=351]", "force[t=20]", "hysteretic_force[t=0]")
+    text = hysteretic_start_advice(slow_start, True, False, 450)
+    assert "[initial]" in text and "hysteretic force" in text and "virgin" in text and "\n" not in text
+    # the first 5 % of 450 samples: indices up to 23
+    assert hysteretic_start_advice(record("force[t=23]"), True, False, 450) != ""
+    assert hysteretic_start_advice(record("force[t=24]", "velocity[t=300]"), True, False, 450) == ""
+    # only the worst three count
+    assert hysteretic_start_advice(record("a[t=200]", "b[t=300]", "c[t=400]", "force[t=0]"), True, False, 450) == ""
+    assert hysteretic_start_advice(record("force_variance", "force[t=100]"), True, False, 450) == ""
+    assert hysteretic_start_advice(slow_start, False, False, 450) == ""  # no hysteretic state
+    assert hysteretic_start_advice(slow_start, True, True, 450) == ""  # the user gave [initial]
+    converged = record("force[t=0]", converged=True)
+    assert hysteretic_start_advice(converged, True, False, 450) == ""

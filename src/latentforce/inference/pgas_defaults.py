@@ -83,8 +83,11 @@ def default_window(pm: particle_model.ParticleModel, T: int, smoother_steps: int
     "auto", converged in 137 s where both others stopped unconverged at the 600 s cap
     (docs/nonlinear.md, "Long records: the window move"). At Matérn-5/2 and 7/2 on that record (fixed
     counts): R-hat 1.011 / 1.021 with it, 3.5 / 4.1 without. Acceleration alone: off (the expansion is
-    poor there, its weights' spread hundreds of nats). The shortest record: measured after the
-    correction became the whole transition into the held state (2026-12-02,
+    poor there, its weights' spread hundreds of nats; on the paper's Duffing, T = 1 024, Matérn-1/2, forced
+    windows of 128 / 256 halved the time to converged with the hyperparameters fixed, 89 / 115 s against 206,
+    but with them inferred as ``demo duffing`` runs it all three converged at the same check, 6 000
+    iterations, in 247 / 252 s against 221; ``benchmarks/results/window_acc_only_paper.md``). The
+    shortest record: measured after the correction became the whole transition into the held state (2026-12-02,
     ``benchmarks/results/window_min_t.md``, "auto", seconds to converged with / without): T = 1 024,
     Matérn-1/2 46 / 154, 3/2 43 / 41, 5/2 50 / 52 and 48 / 52, 7/2 65 / 182 and 69 / 169 (two
     records); T = 512, 5/2 40 / 29, 7/2 46 / 40. So on from 1 024 samples (it was 2 048 while a 7/2
