@@ -6,6 +6,7 @@ every stored smoother; the adaptation by its acceptance on a narrow posterior.
 """
 
 import copy
+import time
 
 import jax
 import jax.numpy as jnp
@@ -178,6 +179,50 @@ def test_fixed_iterations_and_an_unconverged_auto_run_say_so():
     )
     assert out.draws["k"].shape == (2, 20)
     assert not out.convergence["converged"] and out.convergence["worst"]
+
+
+def test_auto_stops_on_the_verdict_it_reports(monkeypatch):
+    """An "auto" run decides to stop on the same quantities the run then reports (``finish``): the physical
+    values, not the sampling coordinates, whose folded R-hat differs (an ekf run with inferred
+    hyperparameters once stopped "converged" in the coordinates and reported R-hat 1.0104)."""
+    from latentforce.inference import convergence, kalman_mcmc
+    from latentforce.priors import LogNormal
+
+    seen = []
+
+    def diagnose(quantities, **kwargs):
+        seen.append({k: np.array(v) for k, v in quantities.items()})
+        return {"converged": True}
+
+    monkeypatch.setattr(convergence, "diagnose", diagnose)
+    rng = np.random.default_rng(0)
+
+    def run_chunk(keys, states, start_step, adapt):
+        xs = rng.standard_normal((2, 10, 1))
+        return states, xs, {"accepted": np.ones((2, 10)), "logdensity": -0.5 * xs[..., 0] ** 2}
+
+    priors = (LogNormal(0.0, 1.0),)
+    _, xs, stats = kalman_mcmc.sample_in_chunks(
+        jax.random.key(0),
+        None,
+        run_chunk,
+        ("k",),
+        priors,
+        chains=2,
+        n_chunk=10,
+        burn_total=10,
+        iterations=None,
+        target_ess=400,
+        max_time=600.0,
+        t0=time.perf_counter(),
+    )
+    assert len(seen) == 1  # stopped at the first verdict after the warm-up
+    kalman_mcmc.finish(xs, stats["logdensity"], ("k",), priors, 400)
+    loop, reported = seen
+    assert loop.keys() == reported.keys()
+    for name in loop:
+        np.testing.assert_array_equal(loop[name], reported[name])
+    assert not np.allclose(loop["k"], xs[..., 0])  # the physical values, not the coordinates
 
 
 # ----- the bounded-memory mixture ----------------------------------------------------

@@ -403,6 +403,7 @@ def run_kalman_mcmc(
         states,
         run_chunk,
         names,
+        priors,
         chains=chains,
         n_chunk=n_chunk,
         burn_total=burn_total,
@@ -468,6 +469,7 @@ def sample_in_chunks(
     states,
     run_chunk: Callable,
     names: tuple[str, ...],
+    priors: tuple[Prior, ...],
     *,
     chains: int,
     n_chunk: int,
@@ -542,9 +544,11 @@ def sample_in_chunks(
         elif fixed_total is not None:
             finished = done >= fixed_total
         else:
-            draws_x = np.concatenate(xs_all, axis=1)
-            quantities = {n: draws_x[..., i] for i, n in enumerate(names)}
-            quantities["log_posterior"] = np.concatenate(stats_all["logdensity"], axis=1)
+            # the verdict on what the run will report (finish): the physical values, whose folded
+            # R-hat differs from the sampling coordinates' (2026-12-02, an ekf run with inferred
+            # hyperparameters stopped "converged" in the sampling coordinates and reported R-hat 1.0104)
+            draws = _physical(np.concatenate(xs_all, axis=1), names, priors)
+            quantities = {**draws, "log_posterior": np.concatenate(stats_all["logdensity"], axis=1)}
             finished = (
                 convergence.diagnose(quantities, target_ess=target_ess)["converged"]
                 or _time.perf_counter() - clock0 >= max_time
@@ -564,7 +568,11 @@ def finish(
 
     # The log-likelihood part of each draw: log posterior minus log prior (cheap, exact).
     log_prior = sum(np.asarray(log_prob_coordinate(prior, jnp.asarray(xs[..., i]))) for i, prior in enumerate(priors))
-    draws = {n: np.asarray(to_value(priors[i], jnp.asarray(xs[..., i]))) for i, n in enumerate(names)}
-    quantities = dict(draws)
-    quantities["log_posterior"] = logpost
+    draws = _physical(xs, names, priors)
+    quantities = {**draws, "log_posterior": logpost}
     return draws, logpost - log_prior, convergence.diagnose(quantities, target_ess=target_ess)
+
+
+def _physical(xs: np.ndarray, names: tuple[str, ...], priors: tuple[Prior, ...]) -> dict[str, np.ndarray]:
+    """The draws ``xs`` (chains, draws, p) in the sampling coordinates as physical values by name."""
+    return {n: np.asarray(to_value(priors[i], jnp.asarray(xs[..., i]))) for i, n in enumerate(names)}

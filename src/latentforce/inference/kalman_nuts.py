@@ -178,6 +178,7 @@ def run_kalman_nuts(
         states,
         run_chunk,
         names,
+        priors,
         chains=chains,
         n_chunk=n_chunk,
         burn_total=burn_total,
