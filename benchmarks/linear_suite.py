@@ -40,6 +40,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import gc
 import itertools
 import os
 import platform
@@ -227,6 +228,11 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     lines = []
     for case in todo:
+        # each case compiles its own programs (model, kernel order, method): dropped between cases.
+        # Kept, they filled the 24 GiB machine in the 13th of 16 --inferred cases (2026-12-02:
+        # "LLVM compilation error: Cannot allocate memory", then a segmentation fault)
+        jax.clear_caches()
+        gc.collect()
         y, noise_sd = simulate(case, args.seed)
         reference = run(case, ref_method, args.inferred, y, noise_sd, args.seed, max_time)
         for method in methods:
