@@ -226,10 +226,18 @@ def record_rows(tables: list[Table]) -> tuple[list[str], dict[str, list[int]]]:
 
 
 def linear_rows(tables: list[Table]) -> list[str]:
-    """``linear_suite*.md`` rows as they are (its own rule, recomputed there), with the source."""
+    """``linear_suite*.md`` rows as they are (its own rule, recomputed there), with the source; of a
+    (case, method) run in several files, the newest file's row (a case rerun after a fix)."""
     lines, header = [], None
+    newest: dict[tuple, tuple[str, int]] = {}
+    for t in sorted(tables, key=lambda t: t.date):
+        for i, row in enumerate(t.rows):
+            newest[(tuple(t.header), row[0], row[1])] = (t.source, i)
     for t in tables:
         if "within the rule" not in t.header:
+            continue
+        rows = [r for i, r in enumerate(t.rows) if newest[(tuple(t.header), r[0], r[1])] == (t.source, i)]
+        if not rows:
             continue
         if t.header != header:  # a table of its own where the columns differ (hyperparameters inferred)
             lines += ([""] if lines else []) + [
@@ -238,7 +246,7 @@ def linear_rows(tables: list[Table]) -> list[str]:
             ]
             header = t.header
         col = t.header.index("within the rule")
-        for row in t.rows:
+        for row in rows:
             row = [_bold(c, i == col and c != "yes") for i, c in enumerate(row)]
             lines.append("| " + " | ".join(row) + f" | `{t.source}` ({t.date[:10]}) |")
     return lines

@@ -76,6 +76,31 @@ def test_the_newest_run_of_each_study_is_shown_and_the_rules_are_recomputed(tmp_
     assert "Matérn-3/2: 0 of 1, Matérn-5/2: 1 of 1" in text
 
 
+def _linear_file(path, date, rows):
+    path.write_text(
+        f"# Nonlinear methods vs the exact answer on linear systems (full)\n\n{date}; x86_64, 2 cores\n\n"
+        "| case | method | force | within the rule | converged |\n|---|---|---|---|---|\n"
+        + "".join(f"| {case} | {method} | 0.01 | {ok} | {ok} |\n" for case, method, ok in rows),
+        encoding="utf-8",
+    )
+
+
+def test_a_linear_case_rerun_in_a_newer_file_replaces_its_older_row(tmp_path):
+    """Linear-suite rows are kept as they are, but a (case, method) run again in a newer file (a case
+    rerun after a fix) shows that file's row only; the older file's other rows stay."""
+    ci = _index()
+    _linear_file(
+        tmp_path / "linear_suite_a.md", "2026-12-01T10:00:00", [("sdof", "pgas", "yes"), ("sdof", "ekf", "no")]
+    )
+    _linear_file(tmp_path / "linear_suite_b.md", "2026-12-02T10:00:00", [("sdof", "ekf", "yes")])
+    text = ci.build(tmp_path, expected=[])
+    rows = [line for line in text.splitlines() if line.startswith("| sdof |")]
+    assert len(rows) == 2, rows
+    assert any("| pgas |" in r and "linear_suite_a.md" in r for r in rows)
+    assert any("| ekf |" in r and "| yes |" in r and "linear_suite_b.md" in r for r in rows)
+    assert "**no**" not in text
+
+
 def test_the_committed_overview_is_up_to_date():
     """``benchmarks/results/calibration.md`` is what the index builds from the committed result files
     (rerun ``python benchmarks/calibration_index.py`` after adding a calibration run)."""
