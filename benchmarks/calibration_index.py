@@ -229,13 +229,12 @@ def linear_rows(tables: list[Table]) -> list[str]:
     """``linear_suite*.md`` rows as they are (its own rule, recomputed there), with the source; of a
     (case, method) run in several files, the newest file's row (a case rerun after a fix)."""
     lines, header = [], None
+    tables = [t for t in tables if "within the rule" in t.header]
     newest: dict[tuple, tuple[str, int]] = {}
     for t in sorted(tables, key=lambda t: t.date):
         for i, row in enumerate(t.rows):
             newest[(tuple(t.header), row[0], row[1])] = (t.source, i)
     for t in tables:
-        if "within the rule" not in t.header:
-            continue
         rows = [r for i, r in enumerate(t.rows) if newest[(tuple(t.header), r[0], r[1])] == (t.source, i)]
         if not rows:
             continue

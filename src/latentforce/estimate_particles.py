@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import functools
+import re
 import time as _time
 
 import numpy as np
@@ -45,6 +46,9 @@ def low_switch_advice(switch_rate: float, smoother_acceptance: float = float("na
     )
 
 
+#: a monitored quantity's time index in its name (``force[t=12]``), before :func:`_label_times`
+_TIME_INDEX = re.compile(r"\[t=(\d+)\]")
+
 #: the share of the record, from its first sample, where an unconverged pgas run's worst quantities
 #: point at the initial hysteretic force (:func:`hysteretic_start_advice`)
 START_SHARE = 0.05
@@ -62,17 +66,13 @@ def hysteretic_start_advice(record: dict, has_hysteresis: bool, initial_given: b
     1.83, bulk ESS 6, while [initial] with r0's sd 1.3 N (1 % of its peak) converged in 76-113 s over
     three records, and at Matérn-7/2 in 70 s (docs/nonlinear.md, "A start known to be virgin";
     ``benchmarks/results/nonlinear_calibration_bouc_wen_virgin.md``)."""
-    import re
-
     if not has_hysteresis or initial_given or record.get("converged", False):
         return ""
     first = max(1, int(np.ceil(START_SHARE * T)))
-    at_start = [
-        w["name"]
+    if not any(
+        (m := _TIME_INDEX.search(w["name"])) is not None and int(m.group(1)) <= first
         for w in record.get("worst", [])[:3]
-        if (m := re.search(r"\[t=(\d+)\]", w["name"])) is not None and int(m.group(1)) <= first
-    ]
-    if not at_start:
+    ):
         return ""
     return (
         " The slowest quantities include the record's first samples, where the initial hysteretic force "
@@ -86,10 +86,9 @@ def hysteretic_start_advice(record: dict, has_hysteresis: bool, initial_given: b
 
 def _label_times(record: dict, time: np.ndarray) -> dict:
     """A convergence record with ``name[t=index]`` relabelled ``name[t=time]``."""
-    import re
 
     def relabel(name):
-        return re.sub(r"\[t=(\d+)\]", lambda m: f"[t={time[int(m.group(1))]:.6g}]", name)
+        return _TIME_INDEX.sub(lambda m: f"[t={time[int(m.group(1))]:.6g}]", name)
 
     out = dict(record)
     out["worst"] = [dict(w, name=relabel(w["name"])) for w in record.get("worst", [])]
