@@ -92,6 +92,10 @@ def test_a_pgas_warning_names_a_sweep_that_hardly_switched():
     # the smoother move renewed the path: the sweep's low rate is not the cause
     assert low_switch_advice(0.008, LOW_SMOOTHER_ACCEPTANCE) == "" and low_switch_advice(0.008, 0.9) == ""
     assert low_switch_advice(0.008) != ""  # acceptance unknown (no move): the advice stands
+    # with a displacement or strain channel the advice is not to add one, but where the move fails
+    text = low_switch_advice(0.008, 0.02, displacement_measured=True)
+    assert "add a displacement sensor" not in text and "substeps" in text and "ukf" in text
+    assert low_switch_advice(0.008, 0.9, displacement_measured=True) == ""
 
 
 def test_a_pgas_warning_names_the_initial_hysteretic_force_when_the_record_start_is_slow():

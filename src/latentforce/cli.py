@@ -275,6 +275,7 @@ def simulate(
     from latentforce.io.data import write_data
     from latentforce.simulate import measure, truth_columns
     from latentforce.simulate import simulate as simulate_fn
+    from latentforce.substeps import needed as needed_substeps
 
     problem = load_config(config)
     if out.exists() and not force:
@@ -288,7 +289,9 @@ def simulate(
     n = int(round(duration * rate)) + 1
     params = initial_params(problem)
     key_force, key_noise = jax.random.split(jax.random.key(seed))
-    sim = simulate_fn(key_force, problem.model, params, n, 1.0 / rate, initial=problem.initial)
+    # at least 8 RK4 steps a sample, more where the structure's rate needs them (latentforce.substeps)
+    fine = 8 if problem.model.system.is_linear else max(8, needed_substeps(problem.model, params, 1.0 / rate))
+    sim = simulate_fn(key_force, problem.model, params, n, 1.0 / rate, initial=problem.initial, substeps=fine)
     # A sensor with a unit key: noise_std and the written channel in that unit, the model in SI.
     scales = sensor_unit_scales(problem)
     sensors = [s._replace(noise_std=s.noise_std * f) for s, f in zip(problem.model.sensors, scales)]

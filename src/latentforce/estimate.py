@@ -14,6 +14,7 @@ from typing import Callable
 import jax
 import numpy as np
 
+from latentforce import substeps
 from latentforce.compile import call, numbers, require_x64
 from latentforce.errors import LatentForceError
 from latentforce.estimate_particles import PGAS_AUTO_ITERATIONS, _mechanical_initial, _run_pgas  # noqa: F401
@@ -21,6 +22,7 @@ from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_c
 from latentforce.io.channels import channel_units, noise_in_si
 from latentforce.io.config import Problem
 from latentforce.io.data import Dataset
+from latentforce.models import LatentForceModel
 from latentforce.outputs import gaussian_moments, output_matrix
 from latentforce.outputs import split as split_outputs
 from latentforce.outputs import units as output_units
@@ -124,6 +126,7 @@ def _run(
     for name, spec in problem.free.items():
         params0[name] = spec.init
     _check_stable(problem, params0)
+    problem, substeps_warning = _stable_substeps(problem, params0, dataset.dt)
     observed = {c: np.where(mask[:, i], y[:, i], np.nan) for i, c in enumerate(dataset.columns)}
     truth = _truth(model, dataset)
     fixed_record = {k: (float(v) if np.ndim(v) == 0 else np.asarray(v).tolist()) for k, v in problem.fixed.items()}
@@ -141,6 +144,10 @@ def _run(
     result, extras = _dispatch(
         key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels, checkpoint
     )
+    if substeps_warning:
+        result.diagnostics.setdefault("warnings", []).append(substeps_warning)
+    if not problem.model.system.is_linear:
+        result.diagnostics["substeps"] = int(problem.model.system.substeps)
     _mass_warning(problem, result)
     _weak_identification_warning(problem, result)
     _sampling_rate_warning(problem, params0, dataset.dt, result)
@@ -148,6 +155,20 @@ def _run(
     key_psd = jax.random.fold_in(key, 0x5D)
     result.force_psd = force_spectrum(key_psd, problem, result, params0, y, mask, dataset.dt, initial)
     return result, extras
+
+
+def _stable_substeps(problem: Problem, params0: dict, dt: float) -> tuple[Problem, str | None]:
+    """The problem with its nonlinear system's RK4 substeps per sample chosen for this record's step
+    (:func:`latentforce.substeps.choose`: the default count, or more where the hysteretic force's rate
+    or the structure's frequencies need them), and a warning where a fixed count falls short."""
+    model = problem.model
+    if model.system.is_linear or problem.inference.method not in ("pgas", "ekf", "ukf"):
+        return problem, None
+    n, warning = substeps.choose(model, params0, dt, problem.substeps)
+    if n != model.system.substeps:
+        system = substeps.with_substeps(model.system, n)
+        problem = problem._replace(model=LatentForceModel(system, model.kernel, model.sensors))
+    return problem, warning
 
 
 def _mass_warning(problem: Problem, result: RunResult) -> None:

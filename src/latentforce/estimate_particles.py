@@ -30,14 +30,28 @@ LOW_SWITCH_RATE = 0.1
 LOW_SMOOTHER_ACCEPTANCE = 0.05
 
 
-def low_switch_advice(switch_rate: float, smoother_acceptance: float = float("nan")) -> str:
+def low_switch_advice(
+    switch_rate: float, smoother_acceptance: float = float("nan"), displacement_measured: bool = False
+) -> str:
     """What an unconverged pgas run's warning adds when neither its sweep nor its smoother move
-    renewed the path ("" if not)."""
+    renewed the path ("" if not). ``displacement_measured``: a displacement or strain channel is
+    among the sensors, where the smoother move's linearised proposal usually renews the path, so its
+    failure points at the model's scale, not at a missing sensor."""
     if not switch_rate < LOW_SWITCH_RATE or smoother_acceptance >= LOW_SMOOTHER_ACCEPTANCE:
         return ""
-    return (
+    head = (
         f" The particle sweep hardly renewed the path (ancestor switch rate {switch_rate:.3f}), nor did "
         f"the smoother move (acceptance {smoother_acceptance:.3f}); running longer helps little then. "
+    )
+    if displacement_measured:
+        return head + (
+            "With a displacement (or strain) channel that move usually accepts most of its proposals; here "
+            "its linearisation about the path is poor: a nonlinearity strong on the scale of the record's "
+            "motion, or a mechanical step too coarse for the structure's rate (a [system].substeps fixed "
+            "below the need is warned about; diagnostics.substeps gives the count used). Compare with "
+            'method = "ukf" and with a Matérn-1/2 force model.'
+        )
+    return head + (
         "This is the known weakness of a smooth force (Matérn-3/2 or smoother) on a nonlinear system "
         "seen without a displacement channel (docs/nonlinear.md): add a displacement sensor if one can "
         "be had (with one, pgas converged and was calibrated at every Matérn order on our Duffing "
@@ -250,7 +264,9 @@ def _run_pgas(
         switch = float(np.mean(out.switch_rate)) if np.size(out.switch_rate) else float("nan")
         smoother = out.diagnostics.get("acceptance_smoother")
         smoother = float(np.mean(smoother)) if smoother else float("nan")
-        diagnostics.setdefault("warnings", []).append(message + low_switch_advice(switch, smoother) + start_advice)
+        measured = any(s.quantity in ("displacement", "strain") for s in model.sensors)
+        advice = low_switch_advice(switch, smoother, measured)
+        diagnostics.setdefault("warnings", []).append(message + advice + start_advice)
     truth = common["truth"]
     if truth:
         from latentforce.results import coverage

@@ -68,6 +68,10 @@ class System:
     def __hash__(self) -> int:
         return hash(self._key())
 
+    def internal_bound(self, params: Params):
+        """Per internal state, a bound on its magnitude that its own rate enforces (inf: none)."""
+        return jnp.full(self.n_internal, jnp.inf)
+
     def input_matrix(self) -> jnp.ndarray:
         B = np.zeros((self.ndof, self.nforce))
         for j, dof in enumerate(self.force_dofs):
@@ -242,6 +246,17 @@ def signed_power(r, nu):
     return jnp.sign(r) * p, p
 
 
+def saturation(alpha, beta, gamma, nu):
+    r"""The hysteretic force's bound on a loading branch, :math:`(\alpha / (\beta + \gamma))^{1/\nu}`
+    (there :math:`\dot r = \dot z (\alpha - (\beta + \gamma) |r|^\nu)`, whichever the direction);
+    inf where :math:`\beta + \gamma \le 0` (the branch stiffens without bound)."""
+    s = jnp.asarray(beta, dtype=float) + jnp.asarray(gamma, dtype=float)
+    safe = jnp.where(s > 0, s, 1.0)
+    return jnp.where(
+        s > 0, (jnp.abs(jnp.asarray(alpha, dtype=float)) / safe) ** (1.0 / jnp.asarray(nu, dtype=float)), jnp.inf
+    )
+
+
 #: the largest relative tangent deviation :meth:`System.tangent_deviation` reports. The Bouc-Wen
 #: benchmark's loops reach 7.6 (a tangent of 1.1e5 to 4.8e5 N/m against alpha = 5e4 at |r| = 200 N),
 #: but with the cap at 10 instead of 1 its demo's pgas run lost its ancestor switching (0.26 ->
@@ -292,6 +307,9 @@ class BoucWen(System):
 
     def internal_linear(self, params):
         return jnp.ones((1, 1)), jnp.reshape(jnp.asarray(params["alpha"], dtype=float), (1, 1))
+
+    def internal_bound(self, params):
+        return saturation(params["alpha"], params["beta"], params["gamma"], params["nu"])[None]
 
     def tangent_deviation(self, params, r_sd):
         # d(rdot)/d(zdot) = alpha - (beta sign(zdot r) + gamma) |r|^nu: off alpha by at most
@@ -401,6 +419,10 @@ class NonlinearMDOF(System):
     def internal_linear(self, params):
         S = self._incidence(self._hysteretic)
         return S, self._values(params, self._hysteretic, "alpha")[:, None] * S.T
+
+    def internal_bound(self, params):
+        get = lambda key: self._values(params, self._hysteretic, key)
+        return saturation(get("alpha"), get("beta"), get("gamma"), get("nu"))
 
     def tangent_deviation(self, params, r_sd):
         if not self._hysteretic:

@@ -120,6 +120,8 @@ class Problem(NamedTuple):
     #: priors carried over from earlier result folders, by config key (``prior = "posterior"``)
     carried: dict = {}
     outputs: tuple = ()  # latentforce.outputs.OutputSpec per [[outputs]] table
+    #: ``[system].substeps`` as given (None: chosen per record, :func:`latentforce.substeps.choose`)
+    substeps: int | None = None
 
 
 # ----- stage 2: meaning ------------------------------------------------------
@@ -389,6 +391,7 @@ def config_from_dict(
         config_path=Path(source),
         carried=carried,
         outputs=outputs,
+        substeps=cfg.system.substeps,
     )
 
 
