@@ -141,3 +141,14 @@ def test_simulate_steps_as_finely_as_the_rate_needs(tmp_path, monkeypatch):
     r = np.loadtxt(tmp_path / "d.csv", delimiter=",", skiprows=1, usecols=header.index("hysteretic_force"))
     bound = float(saturation(STIFF["alpha"], STIFF["beta"], STIFF["gamma"], STIFF["nu"]))
     assert np.all(np.isfinite(r)) and np.abs(r).max() <= bound * (1 + 1e-6), (np.abs(r).max(), bound)
+
+
+def test_an_unstable_linearisation_keeps_the_count():
+    """A double-well Duffing (k < 0) has no stationary sds to scale the probes by (it runs from an
+    [initial] start): the rule keeps the system's count, or the config's, without a warning."""
+    model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
+    params = dict(m=1.0, c=20.0, k=-1e4, k3=1e9, force_variance=20.0, force_lengthscale=0.1)
+    assert np.isnan(S.stiffness(model, params))
+    assert S.choose(model, params, 1.0 / 2048.0, None) == (1, None)
+    assert S.choose(model, params, 1.0 / 2048.0, 3) == (3, None)
+    assert S.needed(model, params, 1.0 / 2048.0) == 1

@@ -60,22 +60,45 @@ def _probe_jacobians(params, signs, *, model):
     return jax.vmap(jax.jacfwd(rate))(probes)
 
 
+def _linearisation_stable(model, params: dict) -> bool:
+    """Whether the structure linearised about rest is asymptotically stable, so that its stationary
+    sds exist to scale the probes (a double-well Duffing, k < 0, or an undamped one has none)."""
+    M, C, K = (np.asarray(a, dtype=float) for a in model.system.linear_part(numbers(params)))
+    n = M.shape[0]
+    try:
+        Minv = np.linalg.inv(M)
+    except np.linalg.LinAlgError:
+        return False
+    F = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
+    eig = np.linalg.eigvals(F)
+    return bool(np.all(np.isfinite(eig)) and np.max(eig.real) < -1e-9 * max(np.max(np.abs(eig)), 1e-300))
+
+
 def stiffness(model, params: dict) -> float:
     """rho: the largest modulus of an eigenvalue of the mechanical rate's Jacobian (1/s) over probe
     states: each displacement and velocity at 0 or +-3 of its stationary sd under the system
     linearised about rest (at ``params``, the force's hyperparameters included), each hysteretic
     force at 0 or +-3 sds of its linear-part value, but no further than the bound its rate allows
-    (``system.internal_bound``: the loading branch's saturation)."""
+    (``system.internal_bound``: the loading branch's saturation). NaN where that linearisation is
+    not stable (no stationary sds to scale the probes by): :func:`choose` then keeps the count."""
+    if not _linearisation_stable(model, params):
+        return float("nan")
     signs = np.random.default_rng(0).integers(-1, 2, size=(N_PROBES, model.layout.n_mech)).astype(float)
     J = np.asarray(_probe_jacobians(numbers(params), signs, model=model))
     rho = np.max(np.abs(np.linalg.eigvals(J))) if np.all(np.isfinite(J)) else np.inf
     return float(rho)
 
 
-def needed(model, params: dict, dt: float) -> int:
-    """The fewest substeps with ``dt / n * stiffness <= STEP_BOUND`` (uncapped)."""
-    rho = stiffness(model, params)
+def _count(rho: float, dt: float) -> int:
+    """The fewest substeps with ``dt / n * rho <= STEP_BOUND`` (uncapped; one past the cap for an infinite rho)."""
     return max(1, math.ceil(dt * rho / STEP_BOUND)) if math.isfinite(rho) else MAX_SUBSTEPS + 1
+
+
+def needed(model, params: dict, dt: float) -> int:
+    """The fewest substeps with ``dt / n * stiffness <= STEP_BOUND`` (uncapped), or the system's own
+    count where :func:`stiffness` has no answer."""
+    rho = stiffness(model, params)
+    return int(model.system.substeps) if math.isnan(rho) else _count(rho, dt)
 
 
 def with_substeps(system, n: int):
@@ -90,8 +113,10 @@ def choose(model, params: dict, dt: float, given: int | None) -> tuple[int, str 
     ``[system].substeps``) with a warning if it falls short of :func:`needed`; else the system's
     default count or the need, whichever is larger, capped at :data:`MAX_SUBSTEPS` (with a warning
     when the cap falls short)."""
-    need = needed(model, params, dt)
     rho = stiffness(model, params)
+    if math.isnan(rho):  # no scale to probe at (an unstable linearisation, started from [initial])
+        return (int(given) if given is not None else int(model.system.substeps)), None
+    need = _count(rho, dt)
     why = (
         f"the mechanical rate's fastest eigenvalue reaches {rho:.4g} 1/s at the probe states (the structure "
         f"linearised about rest at the parameters' fixed or init values, {PROBE_SDS:g} stationary sds), "
