@@ -35,6 +35,7 @@ Usage::
     python benchmarks/nonlinear_calibration.py --quick --system bouc-wen --orders 0,1   # the benchmark oscillator
     python benchmarks/nonlinear_calibration.py --quick --system bouc-wen --orders 2 --start virgin   # r0 known
     python benchmarks/nonlinear_calibration.py --quick --system frame --orders 0,1   # 3-storey frame, brace
+    python benchmarks/nonlinear_calibration.py --quick --system bouc-wen-smooth --orders 0,1,2,3 --start virgin
     python benchmarks/nonlinear_calibration.py --quick --orders 0+2   # a kernel sum: slow Matérn-1/2 + fast 5/2
 
 ``--system bouc-wen``: the Bouc-Wen oscillator of the Noël & Schoukens benchmark
@@ -42,6 +43,8 @@ Usage::
 displacement); the hysteretic force's coverage is reported beside the force's and the
 displacement's, and the nonlinear share is rms(r - alpha z) / rms(k z + r).
 
+``--system bouc-wen-smooth``: a Bouc-Wen oscillator whose loop saturates fast (nu = 2), stiff at 500 Hz
+(500 samples, velocity and displacement; ``latentforce/substeps.py``).
 ``--system frame``: ``latentforce demo frame``'s 3-storey shear frame with a Bouc-Wen brace
 between floors 0 and 1 (100 Hz, 400 samples, accelerometers on floors 0 and 2; ``--sensors``
 names channels as quantity and floor, ``acc0,acc2,disp1``); coverage pools every floor's
@@ -72,6 +75,10 @@ FORCE_VARIANCE = 100.0
 #: the Bouc-Wen benchmark (Noël & Schoukens 2016) at its sample rate, with demo bouc-wen's force scale
 BW_SYSTEM = dict(m=2.0, c=10.0, k=5.0e4, alpha=5.0e4, beta=800.0, gamma=-1100.0, nu=1.0)
 BW_DT, BW_VARIANCE = 1.0 / 750.0, 2500.0
+#: a smooth, fast-saturating loop (nu = 2; r bounded by (alpha / (beta + gamma))^(1/2) = 5.3 N) at 500 Hz:
+#: its rate is stiff there, 18 RK4 substeps a sample by the rule of ``latentforce/substeps.py`` (4 before)
+BWS_SYSTEM = dict(m=2.0, c=10.0, k=5.0e4, alpha=5.0e4, beta=1000.0, gamma=800.0, nu=2.0)
+BWS_DT = 1.0 / 500.0
 #: the Vibration 2020 paper's Duffing (Section 3) at its 2048 Hz, with a GP force of the whitened-NUTS
 #: probe's scale: the issue on nonlinear posteriors' own first case (Matérn-3/2, acceleration only)
 PAPER_SYSTEM = dict(m=1.0, c=20.0, k=1.0e4)
@@ -120,7 +127,7 @@ class Case(NamedTuple):
 
     @property
     def dt(self) -> float:
-        return {"bouc-wen": BW_DT, "paper": PAPER_DT}.get(self.system, DT)
+        return {"bouc-wen": BW_DT, "bouc-wen-smooth": BWS_DT, "paper": PAPER_DT}.get(self.system, DT)
 
     @property
     def label(self) -> str:
@@ -129,9 +136,10 @@ class Case(NamedTuple):
                 f"Frame, {kernel_label(self.order)}, {self.sensors}, {100 * self.noise:g} % noise, "
                 f"{self.start}, T={self.T}"
             )
-        if self.system == "bouc-wen":
+        if self.system in ("bouc-wen", "bouc-wen-smooth"):
             return (
-                f"Bouc-Wen, {kernel_label(self.order)}, {self.sensors}, {100 * self.noise:g} % noise, "
+                f"Bouc-Wen{' nu=2' if self.system == 'bouc-wen-smooth' else ''}, "
+                f"{kernel_label(self.order)}, {self.sensors}, {100 * self.noise:g} % noise, "
                 f"{self.start}, T={self.T}"
             )
         return ("Paper's Duffing (2048 Hz), " if self.system == "paper" else "") + (
@@ -144,11 +152,22 @@ QUICK = [Case(order=1, k3=4e5, sensors="acc,disp", noise=0.01, start="rest", T=2
 QUICK_BOUC_WEN = [
     Case(order=0, k3=0.0, sensors="acc,disp", noise=0.01, start="rest", T=450, lengthscale=0.01, system="bouc-wen")
 ]
+QUICK_BOUC_WEN_SMOOTH = [
+    Case(
+        order=2, k3=0.0, sensors="vel,disp", noise=0.01, start="rest", T=500, lengthscale=0.02, system="bouc-wen-smooth"
+    )
+]
 QUICK_FRAME = [Case(order=0, k3=0.0, sensors="acc0,acc2", noise=0.01, start="rest", T=400, system="frame")]
 QUICK_PAPER = [
     Case(order=1, k3=PAPER_K3, sensors="acc", noise=0.01, start="rest", T=1024, lengthscale=0.02, system="paper")
 ]
-QUICK_CASES = {"duffing": QUICK, "bouc-wen": QUICK_BOUC_WEN, "frame": QUICK_FRAME, "paper": QUICK_PAPER}
+QUICK_CASES = {
+    "duffing": QUICK,
+    "bouc-wen": QUICK_BOUC_WEN,
+    "bouc-wen-smooth": QUICK_BOUC_WEN_SMOOTH,
+    "frame": QUICK_FRAME,
+    "paper": QUICK_PAPER,
+}
 
 
 def grid() -> list[Case]:
@@ -187,11 +206,13 @@ def case_config(case: Case, method: str, max_time: float) -> dict:
             "sensors": sensors,
             "inference": inference,
         }
-    bw, paper = case.system == "bouc-wen", case.system == "paper"
+    bw, paper = case.system in ("bouc-wen", "bouc-wen-smooth"), case.system == "paper"
     system = {"type": "duffing", **case.duffing, "k3": case.k3}
     return {
         "data": {"sample_rate": 1.0 / case.dt},
-        "system": {"type": "bouc-wen", **BW_SYSTEM} if bw else system,
+        "system": {"type": "bouc-wen", **(BWS_SYSTEM if case.system == "bouc-wen-smooth" else BW_SYSTEM)}
+        if bw
+        else system,
         "force": force_table(
             case.order, BW_VARIANCE if bw else (PAPER_VARIANCE if paper else FORCE_VARIANCE), case.lengthscale
         ),
@@ -207,11 +228,14 @@ def simulate(case: Case, seed: int):
     from latentforce.io.config import config_from_dict
     from latentforce.simulate import clean_signal
     from latentforce.simulate import simulate as run_sim
+    from latentforce.substeps import needed as needed_substeps
 
     problem = config_from_dict(case_config(case, "pgas", 1.0))
     model = problem.model
     lead = 500 if case.start == "moving" else 0
-    sim = run_sim(jax.random.key(seed), model, dict(problem.fixed), case.T + lead, case.dt, substeps=16)
+    # 16 RK4 steps a sample, or as many as the system's rate needs (latentforce.substeps)
+    fine = max(16, needed_substeps(model, dict(problem.fixed), case.dt))
+    sim = run_sim(jax.random.key(seed), model, dict(problem.fixed), case.T + lead, case.dt, substeps=fine)
     z = sim.displacement[lead:, 0]
     clean = np.stack([clean_signal(sim, s)[lead:] for s in model.sensors], axis=1)
     noise_sd = case.noise * clean.std(axis=0)
@@ -228,7 +252,7 @@ def simulate(case: Case, seed: int):
         k = frame.SYSTEM["stiffnesses"][max(brace["dofs"])]
         share = float(np.std(r - brace["alpha"] * drift) / np.std(k * drift + r))
         return y, truth, noise_sd, share
-    if case.system == "bouc-wen":
+    if case.system in ("bouc-wen", "bouc-wen-smooth"):
         r = sim.hysteretic_force[lead:, 0]
         truth["hysteretic_force"] = r
         share = float(np.std(r - BW_SYSTEM["alpha"] * z) / np.std(BW_SYSTEM["k"] * z + r))
@@ -381,11 +405,14 @@ def cov_cell(c: dict) -> str:
     return " / ".join(cells)
 
 
+SYSTEM_NAMES = {"bouc-wen": "Bouc-Wen", "bouc-wen-smooth": "Bouc-Wen (nu = 2)", "frame": "MDOF frame"}
+
+
 def report(rows: list[tuple[Case, str, dict]], args, total_s: float) -> str:
     load = os.getloadavg()
     lines = [
         f"# Calibration of the nonlinear methods on "
-        f"{ {'bouc-wen': 'Bouc-Wen', 'frame': 'MDOF frame'}.get(args.system, 'Duffing') } "
+        f"{SYSTEM_NAMES.get(args.system, 'Duffing')} "
         f"records ({'quick' if args.quick else 'full'})",
         "",
         f"{time.strftime('%Y-%m-%dT%H:%M:%S')}; {platform.machine()}, {os.cpu_count()} cores, load average "
@@ -393,6 +420,9 @@ def report(rows: list[tuple[Case, str, dict]], args, total_s: float) -> str:
         + {
             "bouc-wen": "Bouc-Wen benchmark oscillator (m = 2, c = 10, k = 5e4, alpha = 5e4, beta = 800, "
             f"gamma = -1100, nu = 1) at 750 Hz, force variance {BW_VARIANCE:g}",
+            "bouc-wen-smooth": "Bouc-Wen oscillator with a smooth, fast-saturating loop (m = 2, c = 10, k = 5e4, "
+            "alpha = 5e4, beta = 1000, gamma = 800, nu = 2; r within 5.3 N) at 500 Hz, force variance "
+            f"{BW_VARIANCE:g}; RK4 substeps chosen by the rule (18)",
             "frame": "demo frame's 3-storey shear frame (5 kg, 1e4 N/m, 10 N s/m per storey; Bouc-Wen brace "
             "between floors 0 and 1: alpha = 1e4, beta = 60, gamma = 20, nu = 1) at 100 Hz, force at the top, "
             "variance 2500; displacement coverage pools the three floors",

@@ -313,3 +313,22 @@ def test_cli_writes_the_hysteretic_force_and_the_hysteresis_loop(tmp_path, monke
     assert json.loads((tmp_path / "res" / "summary.json").read_text())["method"] == "ekf"
     for name in ("hysteretic_force.png", "hysteresis.png"):
         assert (tmp_path / "res" / "figures" / name).stat().st_size > 10_000
+
+
+def test_the_default_start_keeps_a_saturating_hysteretic_force_within_its_bound():
+    """A loop that saturates at (alpha / (beta + gamma))^(1/nu): the default start's sd of r is held to
+    half of that bound (it was 6.2 N against a bound of 5.3 N), its correlations scaled with it; the
+    benchmark's loop, which stiffens, has no bound and keeps its start."""
+    from latentforce.systems import saturation
+
+    smooth = dict(BENCH, beta=1000.0, gamma=800.0, nu=2.0)
+    gp = dict(force_variance=2500.0, force_lengthscale=0.02)
+    model = LatentForceModel(BoucWen(), Matern(2), [Sensor("velocity", 0, 0.002)])
+    _, P = (np.asarray(a) for a in model.default_initial({**smooth, **gp}))
+    bound = float(saturation(smooth["alpha"], smooth["beta"], smooth["gamma"], smooth["nu"]))
+    i = model.layout.index("hysteretic_force")[0]
+    np.testing.assert_allclose(np.sqrt(P[i, i]), 0.5 * bound, rtol=1e-9)
+    assert np.all(np.linalg.eigvalsh(P) > -1e-9 * np.max(np.abs(P)))
+    # the unbounded benchmark: as before (r follows alpha z, plus its independent part)
+    _, Pb = (np.asarray(a) for a in model.default_initial({**BENCH, **gp}))
+    assert np.sqrt(Pb[i, i]) > 0.5 * bound
