@@ -30,7 +30,7 @@ import numpy as np
 from latentforce.compile import jit, numbers
 
 #: the largest h * rho the chosen count allows: RK4's factor at h lambda = -1 is 0.375 against
-#: exp(-1) = 0.368, and on the imaginary axis |R(i)| = 0.9986 (the stability bounds are ~2.8)
+#: exp(-1) = 0.368, and on the imaginary axis |R(i)| = 0.994 (the stability bounds are ~2.8)
 STEP_BOUND = 1.0
 #: the most substeps a sample's step takes (the config's limit)
 MAX_SUBSTEPS = 64
