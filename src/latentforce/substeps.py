@@ -13,8 +13,9 @@ smoother move accepted 0-5 % of its proposals and the run ended at R-hat 1.5-2.6
 NMSE 0.4 %), against 46-51 % and R-hat 1.13 at 16 substeps (NMSE 0.01 %), same record and cap.
 
 So where the config does not fix ``substeps``, :func:`choose` takes the default's count or, if more
-are needed, the fewest that keep ``h * rho <= STEP_BOUND``, rho the largest Jacobian eigenvalue
-modulus over probe states (:func:`stiffness`); a fixed count below that need gets a warning.
+are needed, the fewest that keep h |lambda| <= 1 for every real Jacobian eigenvalue lambda over probe
+states and <= 0.5 for every oscillatory one (whose RK4 error is numerical damping: :func:`demand`);
+a fixed count below that need gets a warning.
 """
 
 from __future__ import annotations
@@ -29,9 +30,14 @@ import numpy as np
 
 from latentforce.compile import jit, numbers
 
-#: the largest h * rho the chosen count allows: RK4's factor at h lambda = -1 is 0.375 against
-#: exp(-1) = 0.368, and on the imaginary axis |R(i)| = 0.994 (the stability bounds are ~2.8)
+#: the largest h |lambda| the chosen count allows for a real (decaying) eigenvalue: RK4's factor at
+#: h lambda = -1 is 0.375 against exp(-1) = 0.368 (the stability bounds are ~2.8)
 STEP_BOUND = 1.0
+#: ... and for an oscillatory one (|Im| > |Re|), where RK4's error is numerical damping: |R(iy)| is
+#: about 1 - y^6/144, 0.9969 at y = 0.89, Silverbox's h omega at one substep, which took 2 % off its
+#: damping c (2.216e-4 against 2.260e-4 at two substeps and from the exact discretisation of
+#: kalman-mcmc's linear model; ``demo silverbox --quick``, 2026-12-03); 1.1e-4 per step at 0.5
+OSCILLATION_BOUND = 0.5
 #: the most substeps a sample's step takes (the config's limit)
 MAX_SUBSTEPS = 64
 #: probe states reach this many stationary sds of the linearised system
@@ -74,6 +80,26 @@ def _linearisation_stable(model, params: dict) -> bool:
     return bool(np.all(np.isfinite(eig)) and np.max(eig.real) < -1e-9 * max(np.max(np.abs(eig)), 1e-300))
 
 
+def _eigenvalues(model, params: dict) -> np.ndarray | None:
+    """The mechanical rate's Jacobian eigenvalues at every probe state (None: no scale to probe at)."""
+    if not _linearisation_stable(model, params):
+        return None
+    signs = np.random.default_rng(0).integers(-1, 2, size=(N_PROBES, model.layout.n_mech)).astype(float)
+    J = np.asarray(_probe_jacobians(numbers(params), signs, model=model))
+    return np.linalg.eigvals(J).ravel() if np.all(np.isfinite(J)) else np.array([np.inf])
+
+
+def demand(model, params: dict) -> float:
+    """The substeps a unit of time needs: the largest |lambda| / bound over the probe states'
+    eigenvalues, the bound :data:`OSCILLATION_BOUND` for an oscillatory one, :data:`STEP_BOUND`
+    otherwise (NaN as :func:`stiffness`)."""
+    lam = _eigenvalues(model, params)
+    if lam is None:
+        return float("nan")
+    bound = np.where(np.abs(lam.imag) > np.abs(lam.real), OSCILLATION_BOUND, STEP_BOUND)
+    return float(np.max(np.abs(lam) / bound))
+
+
 def stiffness(model, params: dict) -> float:
     """rho: the largest modulus of an eigenvalue of the mechanical rate's Jacobian (1/s) over probe
     states: each displacement and velocity at 0 or +-3 of its stationary sd under the system
@@ -81,24 +107,21 @@ def stiffness(model, params: dict) -> float:
     force at 0 or +-3 sds of its linear-part value, but no further than the bound its rate allows
     (``system.internal_bound``: the loading branch's saturation). NaN where that linearisation is
     not stable (no stationary sds to scale the probes by): :func:`choose` then keeps the count."""
-    if not _linearisation_stable(model, params):
-        return float("nan")
-    signs = np.random.default_rng(0).integers(-1, 2, size=(N_PROBES, model.layout.n_mech)).astype(float)
-    J = np.asarray(_probe_jacobians(numbers(params), signs, model=model))
-    rho = np.max(np.abs(np.linalg.eigvals(J))) if np.all(np.isfinite(J)) else np.inf
-    return float(rho)
+    lam = _eigenvalues(model, params)
+    return float("nan") if lam is None else float(np.max(np.abs(lam)))
 
 
-def _count(rho: float, dt: float) -> int:
-    """The fewest substeps with ``dt / n * rho <= STEP_BOUND`` (uncapped; one past the cap for an infinite rho)."""
-    return max(1, math.ceil(dt * rho / STEP_BOUND)) if math.isfinite(rho) else MAX_SUBSTEPS + 1
+def _count(rate: float, dt: float) -> int:
+    """The fewest substeps ``n`` with ``dt / n * rate <= 1``, ``rate`` from :func:`demand` (uncapped; one
+    past the cap for an infinite rate)."""
+    return max(1, math.ceil(dt * rate)) if math.isfinite(rate) else MAX_SUBSTEPS + 1
 
 
 def needed(model, params: dict, dt: float) -> int:
-    """The fewest substeps with ``dt / n * stiffness <= STEP_BOUND`` (uncapped), or the system's own
-    count where :func:`stiffness` has no answer."""
-    rho = stiffness(model, params)
-    return int(model.system.substeps) if math.isnan(rho) else _count(rho, dt)
+    """The fewest substeps keeping every probe eigenvalue within its bound (:func:`demand`; uncapped),
+    or the system's own count where there is no answer."""
+    rate = demand(model, params)
+    return int(model.system.substeps) if math.isnan(rate) else _count(rate, dt)
 
 
 def with_substeps(system, n: int):
@@ -113,14 +136,15 @@ def choose(model, params: dict, dt: float, given: int | None) -> tuple[int, str 
     ``[system].substeps``) with a warning if it falls short of :func:`needed`; else the system's
     default count or the need, whichever is larger, capped at :data:`MAX_SUBSTEPS` (with a warning
     when the cap falls short)."""
-    rho = stiffness(model, params)
-    if math.isnan(rho):  # no scale to probe at (an unstable linearisation, started from [initial])
+    rate = demand(model, params)
+    if math.isnan(rate):  # no scale to probe at (an unstable linearisation, started from [initial])
         return (int(given) if given is not None else int(model.system.substeps)), None
-    need = _count(rho, dt)
+    need = _count(rate, dt)
     why = (
-        f"the mechanical rate's fastest eigenvalue reaches {rho:.4g} 1/s at the probe states (the structure "
-        f"linearised about rest at the parameters' fixed or init values, {PROBE_SDS:g} stationary sds), "
-        f"so an RK4 step of {dt:.4g} s needs {need} substeps to keep h |lambda| <= {STEP_BOUND:g}"
+        f"the mechanical rate's fastest eigenvalue reaches {stiffness(model, params):.4g} 1/s at the probe "
+        f"states (the structure linearised about rest at the parameters' fixed or init values, {PROBE_SDS:g} "
+        f"stationary sds), so an RK4 step of {dt:.4g} s needs {need} substeps to keep h |lambda| <= "
+        f"{STEP_BOUND:g} ({OSCILLATION_BOUND:g} for an oscillation)"
     )
     if given is not None:
         if given >= need:
