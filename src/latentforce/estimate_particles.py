@@ -147,6 +147,7 @@ def _run_pgas(
     """Particle Gibbs (``pgas``) for any system; packs the sampler output into a RunResult."""
     from latentforce.inference import convergence
     from latentforce.inference.pgas import run_pgas
+    from latentforce.inference.pgas_defaults import DISPLACEMENT_CHANNELS
 
     model = problem.model
     settings = problem.inference
@@ -264,7 +265,7 @@ def _run_pgas(
         switch = float(np.mean(out.switch_rate)) if np.size(out.switch_rate) else float("nan")
         smoother = out.diagnostics.get("acceptance_smoother")
         smoother = float(np.mean(smoother)) if smoother else float("nan")
-        measured = any(s.quantity in ("displacement", "strain") for s in model.sensors)
+        measured = any(s.quantity in DISPLACEMENT_CHANNELS for s in model.sensors)
         advice = low_switch_advice(switch, smoother, measured)
         diagnostics.setdefault("warnings", []).append(message + advice + start_advice)
     truth = common["truth"]

@@ -89,15 +89,18 @@ def _eigenvalues(model, params: dict) -> np.ndarray | None:
     return np.linalg.eigvals(J).ravel() if np.all(np.isfinite(J)) else np.array([np.inf])
 
 
-def demand(model, params: dict) -> float:
-    """The substeps a unit of time needs: the largest |lambda| / bound over the probe states'
-    eigenvalues, the bound :data:`OSCILLATION_BOUND` for an oscillatory one, :data:`STEP_BOUND`
-    otherwise (NaN as :func:`stiffness`)."""
-    lam = _eigenvalues(model, params)
+def _demand_of(lam: np.ndarray | None) -> float:
     if lam is None:
         return float("nan")
     bound = np.where(np.abs(lam.imag) > np.abs(lam.real), OSCILLATION_BOUND, STEP_BOUND)
     return float(np.max(np.abs(lam) / bound))
+
+
+def demand(model, params: dict) -> float:
+    """The substeps a unit of time needs: the largest |lambda| / bound over the probe states'
+    eigenvalues, the bound :data:`OSCILLATION_BOUND` for an oscillatory one, :data:`STEP_BOUND`
+    otherwise (NaN as :func:`stiffness`)."""
+    return _demand_of(_eigenvalues(model, params))
 
 
 def stiffness(model, params: dict) -> float:
@@ -136,12 +139,13 @@ def choose(model, params: dict, dt: float, given: int | None) -> tuple[int, str 
     ``[system].substeps``) with a warning if it falls short of :func:`needed`; else the system's
     default count or the need, whichever is larger, capped at :data:`MAX_SUBSTEPS` (with a warning
     when the cap falls short)."""
-    rate = demand(model, params)
+    lam = _eigenvalues(model, params)  # once: the rule and the message both read them
+    rate = _demand_of(lam)
     if math.isnan(rate):  # no scale to probe at (an unstable linearisation, started from [initial])
         return (int(given) if given is not None else int(model.system.substeps)), None
     need = _count(rate, dt)
     why = (
-        f"the mechanical rate's fastest eigenvalue reaches {stiffness(model, params):.4g} 1/s at the probe "
+        f"the mechanical rate's fastest eigenvalue reaches {np.max(np.abs(lam)):.4g} 1/s at the probe "
         f"states (the structure linearised about rest at the parameters' fixed or init values, {PROBE_SDS:g} "
         f"stationary sds), so an RK4 step of {dt:.4g} s needs {need} substeps to keep h |lambda| <= "
         f"{STEP_BOUND:g} ({OSCILLATION_BOUND:g} for an oscillation)"
