@@ -28,6 +28,7 @@ from latentforce.outputs import split as split_outputs
 from latentforce.outputs import units as output_units
 from latentforce.results import RunResult, summarise_parameters
 from latentforce.spectrum import force_spectrum
+from latentforce.systems import linearised_stability
 
 
 def _truth(model, dataset: Dataset) -> dict[str, np.ndarray]:
@@ -48,14 +49,8 @@ def _check_stable(problem: Problem, params: dict) -> None:
     if problem.initial is not None:
         return
     # the linear part's (z, zdot) dynamics (internal states follow r = R_z z there, models.py)
-    M, C, K = (np.asarray(a, dtype=float) for a in model.system.linear_part(numbers(params)))
-    n = M.shape[0]
-    Minv = np.linalg.inv(M)
-    F = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
-    eig = np.linalg.eigvals(F)
-    # undamped modes have real parts of round-off size and either sign (an MDOF C = 0: -1e-15,
-    # which passed a test of >= 0 and failed later as a non-finite log-likelihood)
-    if np.max(eig.real) >= -1e-9 * max(np.max(np.abs(eig)), 1e-300):
+    eig, stable = linearised_stability(model.system, numbers(params))
+    if not stable:
         what = "linear system" if model.system.is_linear else "system, linearised about rest,"
         raise LatentForceError(
             f"The {what} in {problem.config_path} is not asymptotically stable (an eigenvalue "

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from latentforce.compile import jit, numbers
+from latentforce.systems import linearised_stability
 
 #: the largest h |lambda| the chosen count allows for a real (decaying) eigenvalue: RK4's factor at
 #: h lambda = -1 is 0.375 against exp(-1) = 0.368 (the stability bounds are ~2.8)
@@ -69,15 +70,7 @@ def _probe_jacobians(params, signs, *, model):
 def _linearisation_stable(model, params: dict) -> bool:
     """Whether the structure linearised about rest is asymptotically stable, so that its stationary
     sds exist to scale the probes (a double-well Duffing, k < 0, or an undamped one has none)."""
-    M, C, K = (np.asarray(a, dtype=float) for a in model.system.linear_part(numbers(params)))
-    n = M.shape[0]
-    try:
-        Minv = np.linalg.inv(M)
-    except np.linalg.LinAlgError:
-        return False
-    F = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
-    eig = np.linalg.eigvals(F)
-    return bool(np.all(np.isfinite(eig)) and np.max(eig.real) < -1e-9 * max(np.max(np.abs(eig)), 1e-300))
+    return linearised_stability(model.system, numbers(params))[1]
 
 
 def _eigenvalues(model, params: dict) -> np.ndarray | None:

@@ -246,6 +246,22 @@ def signed_power(r, nu):
     return jnp.sign(r) * p, p
 
 
+def linearised_stability(system, params: Params) -> tuple[np.ndarray, bool]:
+    """The eigenvalues of ``system``'s (z, zdot) state matrix linearised about rest (its linear part),
+    and whether they are all in the open left half-plane. Undamped modes have real parts of round-off
+    size and either sign (an MDOF C = 0: -1e-15, which passed a test of >= 0 and failed later as a
+    non-finite log-likelihood), so the test is relative; a singular M is unstable."""
+    M, C, K = (np.asarray(a, dtype=float) for a in system.linear_part(params))
+    n = M.shape[0]
+    try:
+        Minv = np.linalg.inv(M)
+    except np.linalg.LinAlgError:
+        return np.full(2 * n, np.nan), False
+    eig = np.linalg.eigvals(np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]]))
+    stable = bool(np.all(np.isfinite(eig)) and np.max(eig.real) < -1e-9 * max(np.max(np.abs(eig)), 1e-300))
+    return eig, stable
+
+
 def saturation(alpha, beta, gamma, nu):
     r"""The hysteretic force's bound on a loading branch, :math:`(\alpha / (\beta + \gamma))^{1/\nu}`
     (there :math:`\dot r = \dot z (\alpha - (\beta + \gamma) |r|^\nu)`, whichever the direction);
