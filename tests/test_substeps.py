@@ -173,3 +173,54 @@ def test_an_oscillation_gets_the_tighter_bound():
         return float(np.hypot(x[0], x[1] / omega))
 
     assert 1 - amplitude_after(1) > 0.2 and 1 - amplitude_after(2) < 0.02
+
+
+def test_the_need_is_read_over_the_posterior_draws():
+    """Draws of beta and gamma spread from the init values to the truth: the need is the stiffest
+    draw's (the truth's 18), and the draw is named."""
+    model = _model(DEFAULT_BOUC_WEN_SUBSTEPS)
+    fixed = {k: v for k, v in {**STIFF, **GP}.items() if k not in ("beta", "gamma")}
+    draws = {"beta": np.linspace(100.0, 1000.0, 10).reshape(2, 5), "gamma": np.linspace(80.0, 800.0, 10).reshape(2, 5)}
+    need, at = S.needed_over_posterior(model, fixed, draws, 1.0 / FS)
+    assert need == S.needed(model, {**STIFF, **GP}, 1.0 / FS) and at == {"beta": 1000.0, "gamma": 800.0}
+    assert S.needed(model, {**fixed, "beta": 100.0, "gamma": 80.0}, 1.0 / FS) < need
+    assert S.needed_over_posterior(model, fixed, {}, 1.0 / FS) == (DEFAULT_BOUC_WEN_SUBSTEPS, None)
+
+
+def _posterior_at_truth(problem, *args):
+    """What a sampler's pass returns, its beta and gamma draws at the truth (stiffer than the init)."""
+    from latentforce.results import RunResult
+
+    draws = {"beta": np.full((2, 8), STIFF["beta"]), "gamma": np.full((2, 8), STIFF["gamma"])}
+    seen.append(int(problem.model.system.substeps))
+    return RunResult("ekf", np.zeros(3), 1, 1, {}, {}, draws, {}, {}, [], 0.0, {}), {}
+
+
+seen: list[int] = []
+
+
+@pytest.mark.parametrize("fixed_count", [None, 6])
+def test_a_posterior_stiffer_than_the_init_values_reruns_at_its_need(monkeypatch, fixed_count):
+    """beta and gamma inferred from init values that need 6 substeps, their posterior at the truth,
+    which needs 18: ``estimate`` reruns once at 18 and records both counts; a count fixed in the
+    config is kept and warned about, naming the draw."""
+    prior = lambda init: {"prior": "lognormal", "mu": float(np.log(500.0)), "sigma": 1.0, "init": init}  # noqa: E731
+    extra = {} if fixed_count is None else {"substeps": fixed_count}
+    problem = _config(beta=prior(100.0), gamma=prior(80.0), **extra)
+    low = S.needed(problem.model, {**STIFF, **GP, "beta": 100.0, "gamma": 80.0}, 1.0 / FS)
+    need = S.needed(problem.model, {**STIFF, **GP}, 1.0 / FS)
+    assert low == 6 < need == 18
+    y = np.zeros((11, 1))
+    dataset = Dataset(np.arange(11) / FS, 1.0 / FS, y, np.ones_like(y, dtype=bool), ["vel"], {})
+    monkeypatch.setattr(estimate, "_dispatch", lambda key, problem, *a: _posterior_at_truth(problem))
+    monkeypatch.setattr(estimate, "force_spectrum", lambda *a: None)
+    seen.clear()
+    result, _ = estimate.run(problem, dataset)
+    warnings = result.diagnostics.get("warnings", [])
+    if fixed_count is None:
+        assert seen == [low, need] and result.diagnostics["substeps"] == need
+        assert result.diagnostics["substeps_first_pass"] == low
+        assert not any("RK4 substeps" in w for w in warnings), warnings
+    else:
+        assert seen == [fixed_count] and result.diagnostics["substeps"] == fixed_count
+        assert any("beta = 1000, gamma = 800" in w and f"needs {need} RK4 substeps" in w for w in warnings), warnings

@@ -139,8 +139,20 @@ def _run(
     result, extras = _dispatch(
         key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels, checkpoint
     )
-    if substeps_warning:
-        result.diagnostics.setdefault("warnings", []).append(substeps_warning)
+    rerun, recheck_warning = _posterior_substeps(problem, result, dataset.dt)
+    if rerun is not None:  # once: the count is then chosen at the posterior the data give
+        getattr(progress, "close", lambda: None)()  # the rerun's bar starts anew
+        used = int(problem.model.system.substeps)
+        problem = rerun
+        # not checkpointed: a run killed here resumes the first pass's finished loop and reruns this
+        result, extras = _dispatch(
+            key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels, None
+        )
+        result.diagnostics["substeps_first_pass"] = used
+        _, recheck_warning = _posterior_substeps(problem, result, dataset.dt, rerun=False)
+    for warning in (substeps_warning, recheck_warning):
+        if warning:
+            result.diagnostics.setdefault("warnings", []).append(warning)
     if not problem.model.system.is_linear:
         result.diagnostics["substeps"] = int(problem.model.system.substeps)
     _mass_warning(problem, result)
@@ -164,6 +176,48 @@ def _stable_substeps(problem: Problem, params0: dict, dt: float) -> tuple[Proble
         system = substeps.with_substeps(model.system, n)
         problem = problem._replace(model=LatentForceModel(system, model.kernel, model.sensors))
     return problem, warning
+
+
+def _posterior_substeps(
+    problem: Problem, result: RunResult, dt: float, rerun: bool = True
+) -> tuple[Problem | None, str | None]:
+    """``(problem to rerun, warning)`` once a nonlinear run with sampled parameters is done: the count
+    was chosen at the init values, and the posterior may sit where the structure's rate needs more
+    (:func:`latentforce.substeps.needed_over_posterior`). A chosen count that falls short gives the
+    problem with the posterior's need (the cap's at most) to rerun; a count the config fixed, or one at
+    the cap, or any count after the rerun (``rerun=False``), a warning. Measured (ekf, the nu = 2
+    loop of ``tests/test_substeps.py`` with beta and gamma inferred from init 100 and 80): 6 substeps
+    chosen at the init values, 28 needed over the posterior's draws (18 at the truth); 45 s, then
+    102 s for the rerun."""
+    model = problem.model
+    if model.system.is_linear or problem.inference.method not in ("pgas", "ekf", "ukf") or not problem.free:
+        return None, None
+    chains = result.param_chains or result.param_draws
+    draws = {k: chains[k] for k in problem.free if k in chains}
+    used = int(model.system.substeps)
+    need, at = substeps.needed_over_posterior(model, dict(problem.fixed), draws, dt)
+    if at is None or need <= used:
+        return None, None
+    where = ", ".join(f"{k} = {v:.4g}" for k, v in at.items())
+    if rerun and problem.substeps is None and used < substeps.MAX_SUBSTEPS:
+        system = substeps.with_substeps(model.system, min(need, substeps.MAX_SUBSTEPS))
+        return problem._replace(model=LatentForceModel(system, model.kernel, model.sensors)), None
+    if problem.substeps is not None:
+        what = "[system].substeps"
+    elif used >= substeps.MAX_SUBSTEPS:
+        what = f"the cap of {substeps.MAX_SUBSTEPS} substeps"
+    else:
+        what = "chosen at the first pass's posterior, and the run was done twice already"
+    return None, (
+        f"the posterior reaches parameters ({where}) where the structure's rate needs {need} RK4 substeps a "
+        f"sample, more than the {used} this run used ({what}): its mechanical step there may be inaccurate "
+        "or unstable. "
+        + (
+            "Leave substeps out to have the count chosen, or raise it."
+            if problem.substeps is not None
+            else "A higher sample rate or tighter priors on the system's parameters are the remedy."
+        )
+    )
 
 
 def _mass_warning(problem: Problem, result: RunResult) -> None:

@@ -16,6 +16,11 @@ So where the config does not fix ``substeps``, :func:`choose` takes the default'
 are needed, the fewest that keep h |lambda| <= 1 for every real Jacobian eigenvalue lambda over probe
 states and <= 0.5 for every oscillatory one (whose RK4 error is numerical damping: :func:`demand`);
 a fixed count below that need gets a warning.
+
+The count is chosen at the parameters' fixed or init values; a sampled stiffness, Bouc-Wen key or
+force variance may move the posterior where more are needed. :func:`needed_over_posterior` reads
+that need over the run's draws, and ``estimate`` reruns once with it (the config's own count is only
+warned about).
 """
 
 from __future__ import annotations
@@ -118,6 +123,30 @@ def needed(model, params: dict, dt: float) -> int:
     or the system's own count where there is no answer."""
     rate = demand(model, params)
     return int(model.system.substeps) if math.isnan(rate) else _count(rate, dt)
+
+
+#: posterior draws (evenly spread over the chains) at which :func:`needed_over_posterior` probes
+N_POSTERIOR_PROBES = 64
+
+
+def needed_over_posterior(model, fixed: dict, draws: dict, dt: float) -> tuple[int, dict | None]:
+    """``(need, at)``: the largest :func:`needed` over :data:`N_POSTERIOR_PROBES` draws evenly spread
+    over ``draws`` (name -> array of draws of the sampled parameters, any shape with the draws
+    flattened), the other parameters at ``fixed``; ``at`` holds the sampled values of the draw that
+    needs it (None with no draws). One compiled program serves every draw."""
+    names = [k for k, v in draws.items() if np.size(v)]
+    if not names:
+        return int(model.system.substeps), None
+    flat = {k: np.asarray(draws[k], dtype=float).reshape(-1) for k in names}
+    size = min(v.size for v in flat.values())
+    best, at = -math.inf, None
+    for i in np.unique(np.linspace(0, size - 1, min(N_POSTERIOR_PROBES, size)).astype(int)):
+        values = {k: float(flat[k][i]) for k in names}
+        rate = demand(model, {**fixed, **values})
+        at = values if at is None else at
+        if rate > best:  # NaN (no scale to probe at) never wins
+            best, at = rate, values
+    return (int(model.system.substeps) if best == -math.inf else _count(best, dt)), at
 
 
 def with_substeps(system, n: int):
