@@ -71,6 +71,20 @@ def test_a_constant_quantity_is_left_out_of_the_verdict():
     assert record["converged"] and np.isnan(convergence.quantity_stats({"p": np.ones((4, 10))})["p"]["r_hat"])
 
 
+def test_a_chain_that_diverged_to_nan_is_not_converged_and_named():
+    """A NaN path's R-hat is NaN like a constant's: without its own check it would leave the verdict
+    and the three good chains alone would say converged."""
+    rng = np.random.default_rng(6)
+    force = _iid(rng)
+    force[2, 300:] = np.nan  # chain 2 diverged a third of the way in
+    record = convergence.diagnose({"k": _iid(rng)}, {"force[t=1]": force, "force[t=2]": _iid(rng)})
+    assert not record["converged"]
+    assert "non-finite draws in 1 quantities (force[t=1]) on chain(s) 2" in record["reason"]
+    assert "a chain diverged" in convergence.warning_message(record, "pgas")
+    # states that only inform (Kalman methods) do not decide, NaN or not
+    assert convergence.diagnose({"k": _iid(rng)}, {"force[t=1]": force}, states_decide=False)["converged"]
+
+
 @pytest.mark.parametrize("T,n", [(5, 24), (1000, 24), (10, 3)])
 def test_monitored_times_are_spread_and_unique(T, n):
     times = convergence.monitored_times(T, n)

@@ -104,6 +104,23 @@ def test_a_point_where_the_optimiser_stopped_short_is_no_mode():
     assert len(record["rejected"]) == 1 and not record["rejected"][0]["hessian_definite"]
 
 
+def test_the_laplace_covariance_factors_when_curvatures_span_many_decades():
+    """A rough likelihood gave curvatures of 1e15-1e18 beside flat and saddle
+    directions; the covariance handed to the chain starts must still factor
+    (before the variance floor, 64 of these 200 failed Cholesky)."""
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        V, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        curvature = np.array([10 ** rng.uniform(14, 18), 0.0, -(10 ** rng.uniform(-3, 0))])
+        cov, _ = laplace._laplace_cov(-(V * curvature) @ V.T)
+        assert np.all(np.isfinite(cov)) and np.allclose(cov, cov.T)
+        np.linalg.cholesky(cov)
+        # The sharply curved direction keeps a small variance.
+        assert V[:, 0] @ cov @ V[:, 0] < 1e-10 * np.abs(cov).max()
+    cov, ok = laplace._laplace_cov(-np.diag([4.0, 0.25]))
+    assert ok and np.allclose(cov, np.diag([0.25, 4.0]))
+
+
 def test_chains_start_dispersed_around_the_mode_of_a_long_record():
     """On a long record the posterior is narrow: the optimiser's mode is where the
     chains start, within a few Laplace sd, never at ``init`` (which is far off)."""

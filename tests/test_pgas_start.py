@@ -47,3 +47,19 @@ def test_pinned_directions_get_spread_posterior_sds_and_none_more_than_a_prior_s
 def test_spread_one_starts_from_the_linearised_posterior_itself():
     C, _ = _cov(np.array([1e-7, 1e-3, 0.2, 1.0]), seed=2)
     np.testing.assert_allclose(np.asarray(dispersal_cov(jnp.asarray(C), 1.0)), C, rtol=1e-8, atol=1e-15)
+
+
+def test_a_start_without_a_definite_mode_gets_a_moderate_diagonal_shape():
+    """Where the filter's mode search fails (a rough likelihood: the 3-storey frame with a stiff cubic
+    storey), the curvature at the point reached is no posterior's: its 1e-15 variances froze k3's
+    walk and its unit ones spread starts by a factor of 40. The fallback is a diagonal whose log-space
+    sds lie between a walk step (0.05) and a start spread (0.5)."""
+    from latentforce.inference import pgas_mode
+
+    C, _ = _cov([1e-15, 1.0, 1.0], seed=2)
+    F = pgas_mode.fallback_cov(C)
+    sd = np.sqrt(np.diag(F))
+    assert np.all(F == np.diag(np.diag(F))) and np.all((0.05 <= sd) & (sd <= 0.5))
+    np.linalg.cholesky(F)
+    # a diagonal already in range is kept
+    np.testing.assert_allclose(pgas_mode.fallback_cov(np.diag([0.01, 0.04])), np.diag([0.01, 0.04]))

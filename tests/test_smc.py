@@ -291,3 +291,22 @@ def test_ancestor_information_is_exact_for_linear_model(order):
     approx = -0.5 * delta @ Lam[t] @ delta + delta @ eta[t]
     assert abs(float(brute)) > 1e-3  # the perturbation matters
     np.testing.assert_allclose(approx, brute, rtol=1e-8)
+
+
+def test_a_particle_that_overflows_gets_no_weight_and_the_path_stays_finite():
+    """At extreme parameters (a force variance of 1e12 on a stiff Duffing with 2 RK4 substeps) some
+    particles' weights are not finite: they must get none. Before, a NaN weight made every
+    resampling point pick particle 0, and a NaN path then held the chain for good (14 476 NaN
+    particle values and a NaN log-likelihood on this case). The conditional sweep (the sampler's)
+    always keeps the finite reference to resample from."""
+    from latentforce.systems import Duffing
+
+    model = LatentForceModel(Duffing(substeps=2), Matern(1), [Sensor("acceleration", 0, 0.5)])
+    params = dict(m=1.0, c=0.5, k=100.0, k3=1e6, force_variance=1e12, force_lengthscale=2e-3)
+    pm = smc.ParticleModel(model, params, 0.02, initial=(0.0, 0.1))
+    y = np.random.default_rng(0).normal(size=(60, 1)) * 100
+    sc = smc.sweep_constants(pm, pm.transition(1e12, 2e-3), y, np.ones(y.shape, bool))
+    sweep = smc.make_sweep(pm, 64, innovation=False)
+    out = jit(sweep)(jax.random.key(0), sc, jnp.zeros((60, pm.n_state)))
+    assert np.all(np.isfinite(np.asarray(out.trajectory)))
+    assert np.isfinite(float(out.info.log_likelihood))

@@ -224,3 +224,28 @@ def test_a_posterior_stiffer_than_the_init_values_reruns_at_its_need(monkeypatch
     else:
         assert seen == [fixed_count] and result.diagnostics["substeps"] == fixed_count
         assert any("beta = 1000, gamma = 800" in w and f"needs {need} RK4 substeps" in w for w in warnings), warnings
+
+
+def test_a_rerun_that_fails_leaves_the_first_pass_with_a_warning(monkeypatch):
+    """The rerun at the posterior's need is a second full run: when it raises, the first pass (minutes
+    of sampling) is still the user's result, with a warning naming the failure and the counts."""
+    prior = lambda init: {"prior": "lognormal", "mu": float(np.log(500.0)), "sigma": 1.0, "init": init}  # noqa: E731
+    problem = _config(beta=prior(100.0), gamma=prior(80.0))
+    y = np.zeros((11, 1))
+    dataset = Dataset(np.arange(11) / FS, 1.0 / FS, y, np.ones_like(y, dtype=bool), ["vel"], {})
+
+    def dispatch(key, problem, *a):
+        if seen:
+            seen.append(int(problem.model.system.substeps))
+            raise np.linalg.LinAlgError("Matrix is not positive definite")
+        return _posterior_at_truth(problem)
+
+    monkeypatch.setattr(estimate, "_dispatch", dispatch)
+    monkeypatch.setattr(estimate, "force_spectrum", lambda *a: None)
+    seen.clear()
+    result, _ = estimate.run(problem, dataset)
+    assert seen == [6, 18] and result.diagnostics["substeps"] == 6
+    assert "substeps_first_pass" not in result.diagnostics
+    (warning,) = [w for w in result.diagnostics.get("warnings", []) if "RK4 substeps" in w]
+    assert "the rerun at its need failed (LinAlgError: Matrix is not positive definite)" in warning
+    assert "needs 18 RK4 substeps" in warning and "than the 6 this run used" in warning

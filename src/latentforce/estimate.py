@@ -143,13 +143,17 @@ def _run(
     if rerun is not None:  # once: the count is then chosen at the posterior the data give
         getattr(progress, "close", lambda: None)()  # the rerun's bar starts anew
         used = int(problem.model.system.substeps)
-        problem = rerun
-        # not checkpointed: a run killed here resumes the first pass's finished loop and reruns this
-        result, extras = _dispatch(
-            key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels, None
-        )
-        result.diagnostics["substeps_first_pass"] = used
-        _, recheck_warning = _posterior_substeps(problem, result, dataset.dt, rerun=False)
+        try:
+            # not checkpointed: a run killed here resumes the first pass's finished loop and reruns this
+            second = _dispatch(key, rerun, dataset, params0, y, mask, initial, common, progress, t0, channels, None)
+        except Exception as err:  # noqa: BLE001 - the first pass is the user's result; say why it stands
+            failed = f"chosen at the init values; the rerun at its need failed ({type(err).__name__}: {err})"
+            _, recheck_warning = _posterior_substeps(problem, result, dataset.dt, rerun=False, reason=failed)
+        else:
+            problem = rerun
+            result, extras = second
+            result.diagnostics["substeps_first_pass"] = used
+            _, recheck_warning = _posterior_substeps(problem, result, dataset.dt, rerun=False)
     for warning in (substeps_warning, recheck_warning):
         if warning:
             result.diagnostics.setdefault("warnings", []).append(warning)
@@ -179,13 +183,14 @@ def _stable_substeps(problem: Problem, params0: dict, dt: float) -> tuple[Proble
 
 
 def _posterior_substeps(
-    problem: Problem, result: RunResult, dt: float, rerun: bool = True
+    problem: Problem, result: RunResult, dt: float, rerun: bool = True, reason: str | None = None
 ) -> tuple[Problem | None, str | None]:
     """``(problem to rerun, warning)`` once a nonlinear run with sampled parameters is done: the count
     was chosen at the init values, and the posterior may sit where the structure's rate needs more
     (:func:`latentforce.substeps.needed_over_posterior`). A chosen count that falls short gives the
     problem with the posterior's need (the cap's at most) to rerun; a count the config fixed, or one at
-    the cap, or any count after the rerun (``rerun=False``), a warning. Measured (ekf, the nu = 2
+    the cap, or any count after the rerun (``rerun=False``), a warning (``reason`` in place of the
+    count's origin: a rerun that failed, whose first pass then stands). Measured (ekf, the nu = 2
     loop of ``tests/test_substeps.py`` with beta and gamma inferred from init 100 and 80): 6 substeps
     chosen at the init values, 28 needed over the posterior's draws (18 at the truth); 45 s, then
     102 s for the rerun."""
@@ -202,7 +207,9 @@ def _posterior_substeps(
     if rerun and problem.substeps is None and used < substeps.MAX_SUBSTEPS:
         system = substeps.with_substeps(model.system, min(need, substeps.MAX_SUBSTEPS))
         return problem._replace(model=LatentForceModel(system, model.kernel, model.sensors)), None
-    if problem.substeps is not None:
+    if reason is not None:
+        what = reason
+    elif problem.substeps is not None:
         what = "[system].substeps"
     elif used >= substeps.MAX_SUBSTEPS:
         what = f"the cap of {substeps.MAX_SUBSTEPS} substeps"

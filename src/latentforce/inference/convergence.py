@@ -145,6 +145,18 @@ def diagnose(
         reasons.append("R-hat needs at least 2 chains")
     if n_draws < 4:
         reasons.append("too few draws")
+    # A chain that diverged (an overflowing state, a NaN path) gives NaN draws, whose R-hat is NaN like
+    # a constant's and would leave the verdict: name them instead.
+    decided = {**params, **(states or {})} if states_decide else dict(params)
+    bad = {n: ~np.isfinite(np.asarray(v, dtype=float)) for n, v in decided.items()}
+    broken = [n for n, b in bad.items() if b.any()]
+    if broken:
+        hit = sorted({int(c) for n in broken for c in np.flatnonzero(bad[n].reshape(bad[n].shape[0], -1).any(axis=1))})
+        more = ", ..." if len(broken) > 3 else ""
+        reasons.append(
+            f"non-finite draws in {len(broken)} quantities ({', '.join(broken[:3])}{more}) on chain(s) "
+            f"{', '.join(map(str, hit))} (counting from 0): a chain diverged"
+        )
     finite = [v for v in deciding.values() if np.isfinite(v["r_hat"])]
     if not finite and not reasons:
         reasons.append("no quantity varies")

@@ -198,14 +198,22 @@ def _hessian(value_and_grad: Callable, x: np.ndarray, args: tuple) -> np.ndarray
 def _laplace_cov(H: np.ndarray) -> tuple[np.ndarray, bool]:
     """Inverse of the negative Hessian; where it is not definite, unit variance in the flat directions."""
     H = 0.5 * (H + H.T)
-    if np.all(np.isfinite(H)):
-        w, V = np.linalg.eigh(-H)
-        if w.min() > 0:
-            return (V / w) @ V.T, True
+    if not np.all(np.isfinite(H)):
+        return np.eye(H.shape[0]), False
+    w, V = np.linalg.eigh(-H)
+    ok = bool(w.min() > 0)
+    if not ok:
         # Flat or saddle directions: keep the curved ones, give the rest a unit-scale sd.
         w = np.where(w > 1e-12 * max(w.max(), 1e-300), w, 1.0)
-        return (V / w) @ V.T, False
-    return np.eye(H.shape[0]), False
+    # Every caller takes a Cholesky factor or solves with this matrix. A rough
+    # likelihood (an EKF on a stiff cubic frame gave curvatures of 1e15 beside
+    # flat unit directions) makes (V / w) V^T lose definiteness in rounding
+    # (an eigenvalue of -2e-16), so variances are floored at 1e-12 of the
+    # largest: a condition number float64 factors without loss.
+    var = 1.0 / w
+    var = np.maximum(var, 1e-12 * var.max())
+    cov = (V * var) @ V.T
+    return 0.5 * (cov + cov.T), ok
 
 
 def _within(x: np.ndarray, mode: Mode, k: float) -> bool:

@@ -353,7 +353,12 @@ def make_sweep(
     def _draw(log_weights: Float[Array, "k N"], points: Float[Array, " N"]) -> Int[Array, " N"]:
         """Inverse-CDF draws: point ``j`` searches row 1 of ``log_weights`` if ``j`` is the
         reference (its ancestor-sampling draw) and ``with_as``, else row 0."""
-        w = jnp.exp(log_weights - jnp.max(log_weights, axis=1, keepdims=True))
+        # a particle whose state overflowed (an unstable RK4 step at extreme parameters) has a NaN or
+        # +inf weight: it is given none, or every point would pick particle 0 and the chain's path
+        # turn NaN for good (seen on a stiff cubic frame at a force variance of 7.5e8)
+        log_weights = jnp.where(jnp.isfinite(log_weights), log_weights, -jnp.inf)
+        top = jnp.max(log_weights, axis=1, keepdims=True)
+        w = jnp.exp(log_weights - jnp.where(jnp.isfinite(top), top, 0.0))
         cdf = jnp.dot(w, jnp.asarray(upper, dtype=w.dtype))
         cdf_j = jnp.where(is_ref[:, None], cdf[-1][None, :], cdf[0][None, :]) if with_as else cdf[0][None, :]
         target = points[:, None] * cdf_j[:, -1:]
@@ -467,6 +472,7 @@ def make_sweep(
             if first:
                 # the first step's weights: the first-stage predictive (equal over particles) and g
                 g = res_logw + g
+            g = jnp.where(jnp.isfinite(g), g, -jnp.inf)  # an overflowed particle: no weight (_draw)
             return jnp.concatenate([mech_new, xf_new], axis=1), anc, res_logw, g
 
         # the per-step inputs, in _propagate's order: step 0 below, steps 1.. in the scan
