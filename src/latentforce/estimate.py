@@ -22,7 +22,6 @@ from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_c
 from latentforce.io.channels import channel_units, noise_in_si
 from latentforce.io.config import Problem
 from latentforce.io.data import Dataset
-from latentforce.models import LatentForceModel
 from latentforce.outputs import gaussian_moments, output_matrix
 from latentforce.outputs import split as split_outputs
 from latentforce.outputs import units as output_units
@@ -121,7 +120,7 @@ def _run(
     for name, spec in problem.free.items():
         params0[name] = spec.init
     _check_stable(problem, params0)
-    problem, substeps_warning = _stable_substeps(problem, params0, dataset.dt)
+    problem, substeps_warning = substeps.for_problem(problem, params0, dataset.dt)
     observed = {c: np.where(mask[:, i], y[:, i], np.nan) for i, c in enumerate(dataset.columns)}
     truth = _truth(model, dataset)
     fixed_record = {k: (float(v) if np.ndim(v) == 0 else np.asarray(v).tolist()) for k, v in problem.fixed.items()}
@@ -139,7 +138,7 @@ def _run(
     result, extras = _dispatch(
         key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels, checkpoint
     )
-    rerun, recheck_warning = _posterior_substeps(problem, result, dataset.dt)
+    rerun, recheck_warning = substeps.recheck(problem, result, dataset.dt)
     if rerun is not None:  # once: the count is then chosen at the posterior the data give
         getattr(progress, "close", lambda: None)()  # the rerun's bar starts anew
         used = int(problem.model.system.substeps)
@@ -148,12 +147,12 @@ def _run(
             second = _dispatch(key, rerun, dataset, params0, y, mask, initial, common, progress, t0, channels, None)
         except Exception as err:  # noqa: BLE001 - the first pass is the user's result; say why it stands
             failed = f"chosen at the init values; the rerun at its need failed ({type(err).__name__}: {err})"
-            _, recheck_warning = _posterior_substeps(problem, result, dataset.dt, rerun=False, reason=failed)
+            _, recheck_warning = substeps.recheck(problem, result, dataset.dt, rerun=False, reason=failed)
         else:
             problem = rerun
             result, extras = second
             result.diagnostics["substeps_first_pass"] = used
-            _, recheck_warning = _posterior_substeps(problem, result, dataset.dt, rerun=False)
+            _, recheck_warning = substeps.recheck(problem, result, dataset.dt, rerun=False)
     for warning in (substeps_warning, recheck_warning):
         if warning:
             result.diagnostics.setdefault("warnings", []).append(warning)
@@ -166,65 +165,6 @@ def _run(
     key_psd = jax.random.fold_in(key, 0x5D)
     result.force_psd = force_spectrum(key_psd, problem, result, params0, y, mask, dataset.dt, initial)
     return result, extras
-
-
-def _stable_substeps(problem: Problem, params0: dict, dt: float) -> tuple[Problem, str | None]:
-    """The problem with its nonlinear system's RK4 substeps per sample chosen for this record's step
-    (:func:`latentforce.substeps.choose`: the default count, or more where the hysteretic force's rate
-    or the structure's frequencies need them), and a warning where a fixed count falls short."""
-    model = problem.model
-    if model.system.is_linear or problem.inference.method not in ("pgas", "ekf", "ukf"):
-        return problem, None
-    n, warning = substeps.choose(model, params0, dt, problem.substeps)
-    if n != model.system.substeps:
-        system = substeps.with_substeps(model.system, n)
-        problem = problem._replace(model=LatentForceModel(system, model.kernel, model.sensors))
-    return problem, warning
-
-
-def _posterior_substeps(
-    problem: Problem, result: RunResult, dt: float, rerun: bool = True, reason: str | None = None
-) -> tuple[Problem | None, str | None]:
-    """``(problem to rerun, warning)`` once a nonlinear run with sampled parameters is done: the count
-    was chosen at the init values, and the posterior may sit where the structure's rate needs more
-    (:func:`latentforce.substeps.needed_over_posterior`). A chosen count that falls short gives the
-    problem with the posterior's need (the cap's at most) to rerun; a count the config fixed, or one at
-    the cap, or any count after the rerun (``rerun=False``), a warning (``reason`` in place of the
-    count's origin: a rerun that failed, whose first pass then stands). Measured (ekf, the nu = 2
-    loop of ``tests/test_substeps.py`` with beta and gamma inferred from init 100 and 80): 6 substeps
-    chosen at the init values, 28 needed over the posterior's draws (18 at the truth); 45 s, then
-    102 s for the rerun."""
-    model = problem.model
-    if model.system.is_linear or problem.inference.method not in ("pgas", "ekf", "ukf") or not problem.free:
-        return None, None
-    chains = result.param_chains or result.param_draws
-    draws = {k: chains[k] for k in problem.free if k in chains}
-    used = int(model.system.substeps)
-    need, at = substeps.needed_over_posterior(model, dict(problem.fixed), draws, dt)
-    if at is None or need <= used:
-        return None, None
-    where = ", ".join(f"{k} = {v:.4g}" for k, v in at.items())
-    if rerun and problem.substeps is None and used < substeps.MAX_SUBSTEPS:
-        system = substeps.with_substeps(model.system, min(need, substeps.MAX_SUBSTEPS))
-        return problem._replace(model=LatentForceModel(system, model.kernel, model.sensors)), None
-    if reason is not None:
-        what = reason
-    elif problem.substeps is not None:
-        what = "[system].substeps"
-    elif used >= substeps.MAX_SUBSTEPS:
-        what = f"the cap of {substeps.MAX_SUBSTEPS} substeps"
-    else:
-        what = "chosen at the first pass's posterior, and the run was done twice already"
-    return None, (
-        f"the posterior reaches parameters ({where}) where the structure's rate needs {need} RK4 substeps a "
-        f"sample, more than the {used} this run used ({what}): its mechanical step there may be inaccurate "
-        "or unstable. "
-        + (
-            "Leave substeps out to have the count chosen, or raise it."
-            if problem.substeps is not None
-            else "A higher sample rate or tighter priors on the system's parameters are the remedy."
-        )
-    )
 
 
 def _mass_warning(problem: Problem, result: RunResult) -> None:

@@ -28,13 +28,19 @@ from __future__ import annotations
 import copy
 import functools
 import math
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from latentforce.compile import jit, numbers
+from latentforce.models import LatentForceModel
 from latentforce.systems import linearised_stability
+
+if TYPE_CHECKING:
+    from latentforce.io.config import Problem
+    from latentforce.results import RunResult
 
 #: the largest h |lambda| the chosen count allows for a real (decaying) eigenvalue: RK4's factor at
 #: h lambda = -1 is 0.375 against exp(-1) = 0.368 (the stability bounds are ~2.8)
@@ -187,4 +193,66 @@ def choose(model, params: dict, dt: float, given: int | None) -> tuple[int, str 
         f"{why}, more than the {MAX_SUBSTEPS} allowed; the run used {MAX_SUBSTEPS}, and its mechanical step "
         "may be inaccurate or unstable. A higher sample rate (a smaller step) or a check of the system's "
         "parameters (a stiffness or a Bouc-Wen beta, gamma far larger than meant) is the remedy."
+    )
+
+
+# ---- a run's count: chosen at the init values, rechecked at the posterior (estimate.run)
+
+
+def for_problem(problem: Problem, params0: dict, dt: float) -> tuple[Problem, str | None]:
+    """The problem with its nonlinear system's RK4 substeps per sample chosen for this record's step
+    (:func:`choose`: the default count, or more where the hysteretic force's rate
+    or the structure's frequencies need them), and a warning where a fixed count falls short."""
+    model = problem.model
+    if model.system.is_linear or problem.inference.method not in ("pgas", "ekf", "ukf"):
+        return problem, None
+    n, warning = choose(model, params0, dt, problem.substeps)
+    if n != model.system.substeps:
+        system = with_substeps(model.system, n)
+        problem = problem._replace(model=LatentForceModel(system, model.kernel, model.sensors))
+    return problem, warning
+
+
+def recheck(
+    problem: Problem, result: RunResult, dt: float, rerun: bool = True, reason: str | None = None
+) -> tuple[Problem | None, str | None]:
+    """``(problem to rerun, warning)`` once a nonlinear run with sampled parameters is done: the count
+    was chosen at the init values, and the posterior may sit where the structure's rate needs more
+    (:func:`needed_over_posterior`). A chosen count that falls short gives the
+    problem with the posterior's need (the cap's at most) to rerun; a count the config fixed, or one at
+    the cap, or any count after the rerun (``rerun=False``), a warning (``reason`` in place of the
+    count's origin: a rerun that failed, whose first pass then stands). Measured (ekf, the nu = 2
+    loop of ``tests/test_substeps.py`` with beta and gamma inferred from init 100 and 80): 6 substeps
+    chosen at the init values, 28 needed over the posterior's draws (18 at the truth); 45 s, then
+    102 s for the rerun."""
+    model = problem.model
+    if model.system.is_linear or problem.inference.method not in ("pgas", "ekf", "ukf") or not problem.free:
+        return None, None
+    chains = result.param_chains or result.param_draws
+    draws = {k: chains[k] for k in problem.free if k in chains}
+    used = int(model.system.substeps)
+    need, at = needed_over_posterior(model, dict(problem.fixed), draws, dt)
+    if at is None or need <= used:
+        return None, None
+    where = ", ".join(f"{k} = {v:.4g}" for k, v in at.items())
+    if rerun and problem.substeps is None and used < MAX_SUBSTEPS:
+        system = with_substeps(model.system, min(need, MAX_SUBSTEPS))
+        return problem._replace(model=LatentForceModel(system, model.kernel, model.sensors)), None
+    if reason is not None:
+        what = reason
+    elif problem.substeps is not None:
+        what = "[system].substeps"
+    elif used >= MAX_SUBSTEPS:
+        what = f"the cap of {MAX_SUBSTEPS} substeps"
+    else:
+        what = "chosen at the first pass's posterior, and the run was done twice already"
+    return None, (
+        f"the posterior reaches parameters ({where}) where the structure's rate needs {need} RK4 substeps a "
+        f"sample, more than the {used} this run used ({what}): its mechanical step there may be inaccurate "
+        "or unstable. "
+        + (
+            "Leave substeps out to have the count chosen, or raise it."
+            if problem.substeps is not None
+            else "A higher sample rate or tighter priors on the system's parameters are the remedy."
+        )
     )
