@@ -151,7 +151,7 @@ def diagnose(
     bad = {n: ~np.isfinite(np.asarray(v, dtype=float)) for n, v in decided.items()}
     broken = [n for n, b in bad.items() if b.any()]
     if broken:
-        hit = sorted({int(c) for n in broken for c in np.flatnonzero(bad[n].reshape(bad[n].shape[0], -1).any(axis=1))})
+        hit = sorted({int(c) for n in broken for c in np.flatnonzero(bad[n].any(axis=1))})  # (chains, draws)
         more = ", ..." if len(broken) > 3 else ""
         reasons.append(
             f"non-finite draws in {len(broken)} quantities ({', '.join(broken[:3])}{more}) on chain(s) "

@@ -67,13 +67,14 @@ FALLBACK_SD = (0.05, 0.5)
 
 
 def fallback_cov(cov) -> np.ndarray:
-    """The start's shape where the search found no definite mode: the diagonal of the curvature it
-    had, its sds clipped to :data:`FALLBACK_SD` (a walk step of 0.05 and a start spread of 0.5 in log
-    space without system parameters). Measured on a 3-storey frame with a stiff cubic storey (k3 2.5e7
-    from init 1e7, 50 Hz): the filter's log posterior at init was -1e5 with gradients of 1e11-1e13 and
-    L-BFGS did not move; the Hessian there gave variances of 1e-15 beside 1, so the chains' walk never
-    moved k3 (frozen at 1.3e6-8.8e6 on four chains for 900 sweeps, the force's variance inflating to
-    explain the data) and the unit directions spread the starts by a factor 40."""
+    """The start's shape where the search found no definite mode: the diagonal of the Laplace
+    covariance at the point it reached, its sds clipped to :data:`FALLBACK_SD` (a walk step of 0.05
+    and a start spread of 0.5 in log space without system parameters). Measured on a 3-storey frame
+    with a stiff cubic storey (k3 2.5e7 from init 1e7, 50 Hz): the filter's log posterior at init was
+    -1e5 with gradients of 1e11-1e13 and L-BFGS did not move; the Hessian there gave variances of
+    1e-15 beside 1, so the chains' walk never moved k3 (frozen at 1.3e6-8.8e6 on four chains for 900
+    sweeps, the force's variance inflating to explain the data) and the unit directions spread the
+    starts by a factor 40."""
     lo, hi = FALLBACK_SD
     return np.diag(np.clip(np.diag(np.asarray(cov, dtype=float)), lo * lo, hi * hi))
 
