@@ -80,7 +80,14 @@ def test_a_chain_that_diverged_to_nan_is_not_converged_and_named():
     record = convergence.diagnose({"k": _iid(rng)}, {"force[t=1]": force, "force[t=2]": _iid(rng)})
     assert not record["converged"]
     assert "non-finite draws in 1 quantities (force[t=1]) on chain(s) 2" in record["reason"]
-    assert "a chain diverged" in convergence.warning_message(record, "pgas")
+    assert record["diverged_chains"] == [2]
+    message = convergence.warning_message(record, "pgas", "; here HINT")
+    assert "a chain diverged" in message and "running longer does not help" in message
+    assert message.endswith("; here HINT.") and "use more particles" not in message
+    healthy = convergence.diagnose({"k": _iid(rng)}, {"force[t=1]": _iid(rng), "force[t=2]": _iid(rng)}, rhat_max=1.0)
+    assert "diverged_chains" not in healthy and "running longer does not help" not in convergence.warning_message(
+        healthy, "pgas", "; here HINT"
+    )
     # states that only inform (Kalman methods) do not decide, NaN or not
     assert convergence.diagnose({"k": _iid(rng)}, {"force[t=1]": force}, states_decide=False)["converged"]
 
@@ -135,3 +142,14 @@ def test_a_pgas_warning_names_the_initial_hysteretic_force_when_the_record_start
     assert hysteretic_start_advice(slow_start, True, True, 450) == ""  # the user gave [initial]
     converged = record("force[t=0]", converged=True)
     assert hysteretic_start_advice(converged, True, False, 450) == ""
+
+
+def test_a_negative_cubic_stiffness_is_named_where_a_model_overflowed():
+    """A softening cubic (k3 < 0: a Duffing's, an element's, fixed or among the draws) is the likely
+    cause a diverged run's message names, by its config key; positive ones are not named."""
+    from latentforce.estimate_particles import softening_hint
+
+    hint = softening_hint({"k3": -2.0e5, "element1_k3": np.array([[3.0, -1.0]]), "element0_k3": 2.5e7, "k": 1e4})
+    assert "[system].k3 = -2e+05" in hint and "[[system.elements]][1].k3 = -1" in hint
+    assert "[[system.elements]][0]" not in hint and hint.startswith("; here a cubic stiffness is negative")
+    assert softening_hint({"k3": 4e4, "element0_k3": np.array([1.0, 2.0]), "k": -1.0}) == ""

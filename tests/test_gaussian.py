@@ -233,3 +233,22 @@ def test_a_smoother_that_breaks_down_is_an_error_not_a_nan_posterior(tmp_path, m
     assert "UKF smoother broke down" in r.output and "force" in r.output and "ukf.toml" in r.output
     assert "Traceback" not in r.output
     assert not (tmp_path / "out").exists()
+
+
+def test_a_model_that_overflows_names_a_negative_cubic_stiffness(tmp_path, monkeypatch):
+    """A Duffing record estimated with k3 of the wrong sign (a softening spring far too strong for the
+    motion): the filter overflows, and the one-paragraph error names the config and the key."""
+    from typer.testing import CliRunner
+
+    from latentforce.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    runner = CliRunner()
+    (tmp_path / "ekf.toml").write_text(DUFFING_CONFIG.format(c=0.5, method="ekf", extra=""))
+    r = runner.invoke(app, ["simulate", "ekf.toml", "--out", "data.csv", "--duration", "2", "--sample-rate", "50"])
+    assert r.exit_code == 0, r.output
+    (tmp_path / "neg.toml").write_text((tmp_path / "ekf.toml").read_text().replace("k3 = 200.0", "k3 = -2e8"))
+    r = runner.invoke(app, ["estimate", "neg.toml", "--out", "out"])
+    assert r.exit_code != 0 and "Traceback" not in r.output
+    assert "log-likelihood is not finite" in r.output and "neg.toml" in r.output
+    assert "[system].k3 = -2e+08" in r.output and not (tmp_path / "out").exists()

@@ -17,7 +17,12 @@ import numpy as np
 from latentforce import substeps
 from latentforce.compile import call, numbers, require_x64
 from latentforce.errors import LatentForceError
-from latentforce.estimate_particles import PGAS_AUTO_ITERATIONS, _mechanical_initial, _run_pgas  # noqa: F401
+from latentforce.estimate_particles import (  # noqa: F401
+    PGAS_AUTO_ITERATIONS,
+    _mechanical_initial,
+    _run_pgas,
+    softening_hint,
+)
 from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_compiled, state_moments
 from latentforce.io.channels import channel_units, noise_in_si
 from latentforce.io.config import Problem
@@ -359,7 +364,8 @@ def _run_gaussian(
     if not np.isfinite(float(sm.log_likelihood)):
         raise LatentForceError(
             f"The {settings.method.upper()} log-likelihood is not finite for the configured "
-            f"model in {problem.config_path}: check the parameter values and units."
+            f"model in {problem.config_path}: check the parameter values and units"
+            f"{softening_hint(params0)}."
         )
     state_mean, state_sd = _smoothed_moments(problem, params0, sm.means, sm.covs)
     bad = [n for n in state_mean if not (np.all(np.isfinite(state_mean[n])) and np.all(np.isfinite(state_sd[n])))]
@@ -520,7 +526,7 @@ def _run_kalman_sampler(
             "dispersed starts; see diagnostics.start.modes): the chains were started in each, and the "
             "parameter and force estimates are a mixture over them (as in §6 of the ISMA 2018 paper)."
         )
-    message = convergence.warning_message(record, settings.method)
+    message = convergence.warning_message(record, settings.method, softening_hint({**problem.fixed, **out.draws}))
     if message:
         warnings_.append(message)
     if warnings_:

@@ -11,7 +11,7 @@ import numpy as np
 
 from latentforce.compile import jit, numbers
 from latentforce.errors import LatentForceError
-from latentforce.io.config import Problem
+from latentforce.io.config import Problem, _free_key
 from latentforce.io.data import Dataset
 from latentforce.outputs import path_outputs, sample_moments
 from latentforce.outputs import split as split_outputs
@@ -57,6 +57,27 @@ def low_switch_advice(
         "be had (with one, pgas converged and was calibrated at every Matérn order on our Duffing "
         "cases, benchmarks/results/nonlinear_calibration_orders.md), or compare with a Matérn-1/2 "
         'force model and with method = "ukf".'
+    )
+
+
+def softening_hint(values: dict) -> str:
+    """``"; here ..."``, naming the cubic stiffnesses (a Duffing's ``k3``, a cubic element's) that are
+    negative in ``values`` (parameter name -> a number, or an array of draws: any negative draw counts),
+    for a message on a model that overflowed; "" if none. A negative k3 is a softening spring: its
+    restoring force turns over beyond some displacement (for a Duffing, |z| = sqrt(k / |k3|)), and a
+    structure pushed past it escapes to infinity, so a model that cannot follow the data overflows."""
+    negative = []
+    for name, value in values.items():
+        if name == "k3" or name.endswith("_k3"):
+            v = np.asarray(value, dtype=float)
+            if v.size and np.nanmin(v) < 0:
+                negative.append(f"{_free_key(name)} = {np.nanmin(v):.4g}")
+    if not negative:
+        return ""
+    return (
+        f"; here a cubic stiffness is negative ({', '.join(negative)}): a softening spring, whose restoring "
+        "force turns over beyond some displacement, past which the structure escapes. Check its sign and "
+        "its unit (N/m^3)"
     )
 
 
@@ -260,8 +281,10 @@ def _run_pgas(
         record, bool(model.layout.n_internal), problem.initial is not None, len(dataset.time)
     )
     record = _label_times(record, np.asarray(dataset.time))
-    message = convergence.warning_message(record, "pgas")
-    if message:
+    message = convergence.warning_message(record, "pgas", softening_hint({**problem.fixed, **out.theta}))
+    if message and record.get("diverged_chains"):  # the mixing advice below would not apply
+        diagnostics.setdefault("warnings", []).append(message)
+    elif message:
         switch = float(np.mean(out.switch_rate)) if np.size(out.switch_rate) else float("nan")
         smoother = out.diagnostics.get("acceptance_smoother")
         smoother = float(np.mean(smoother)) if smoother else float("nan")

@@ -115,8 +115,9 @@ def diagnose(
     Returns ``{converged, max_r_hat, min_ess_bulk, min_ess_tail, target_ess,
     r_hat_max, worst: [{name, r_hat, ess_bulk, ess_tail}, ...], chains,
     draws, states: {max_r_hat, min_ess_bulk, min_ess_tail, monitored,
-    decide}}``. Fewer than 2 chains or 4 draws cannot show convergence:
-    ``converged`` is false and the reason is given.
+    decide}, diverged_chains (only where a chain has non-finite draws)}``.
+    Fewer than 2 chains or 4 draws cannot show convergence: ``converged``
+    is false and the reason is given.
     """
     stats = quantity_stats(params)
     state_stats = quantity_stats(states or {})
@@ -157,6 +158,7 @@ def diagnose(
             f"non-finite draws in {len(broken)} quantities ({', '.join(broken[:3])}{more}) on chain(s) "
             f"{', '.join(map(str, hit))} (counting from 0): a chain diverged"
         )
+        record["diverged_chains"] = hit
     finite = [v for v in deciding.values() if np.isfinite(v["r_hat"])]
     if not finite and not reasons:
         reasons.append("no quantity varies")
@@ -190,8 +192,10 @@ def diagnose(
     return record
 
 
-def warning_message(record: dict, method: str) -> str | None:
-    """A one-paragraph warning for an unconverged run (``None`` if converged)."""
+def warning_message(record: dict, method: str, hint: str = "") -> str | None:
+    """A one-paragraph warning for an unconverged run (``None`` if converged). Where a chain diverged
+    (``record["diverged_chains"]``) the advice is about the model, not about running longer, and
+    ``hint`` (a sentence naming a likely cause in the user's model, or "") follows it."""
     if record.get("converged", False):
         return None
     worst = ", ".join(
@@ -207,6 +211,13 @@ def warning_message(record: dict, method: str) -> str | None:
         "kalman-nuts": 'run longer (iterations = "auto" with a larger max_time); check '
         "diagnostics.start.modes for a posterior with several modes",
     }.get(method, "run longer")
+    if record.get("diverged_chains"):
+        advice = (
+            "running longer does not help where a chain diverged: the model's step overflowed at the values "
+            "that chain reached, so the model cannot follow the data there. Check the parameters' values and "
+            "units and that no prior reaches values the structure cannot have (a negative stiffness, an "
+            f"unstable structure){hint}"
+        )
     return (
         f"NOT CONVERGED{why}: worst max R-hat {record['max_r_hat']:.3f} (need <= {record['r_hat_max']}), "
         f"min bulk ESS {record['min_ess_bulk']:.0f} (need >= {record['target_ess']:.0f}); worst "
