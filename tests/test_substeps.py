@@ -226,6 +226,37 @@ def test_a_posterior_stiffer_than_the_init_values_reruns_at_its_need(monkeypatch
         assert any("beta = 1000, gamma = 800" in w and f"needs {need} RK4 substeps" in w for w in warnings), warnings
 
 
+@pytest.mark.parametrize("fixed_count", [None, 6])
+def test_a_posterior_within_the_rerun_bound_keeps_the_count_without_a_word(monkeypatch, fixed_count):
+    """beta and gamma 4x their init values at the posterior: the accuracy bound asks for 12 substeps
+    against the 6 used, but h |lambda| stays within RERUN_BOUND (6 would do there), so the first pass
+    stands, no rerun, no warning (a rerun doubles the user's time; short of that bound it measured no
+    change). 6x (14 needed, 7 within the bound) reruns at the accuracy bound's 14."""
+    prior = lambda init: {"prior": "lognormal", "mu": float(np.log(500.0)), "sigma": 1.0, "init": init}  # noqa: E731
+    extra = {} if fixed_count is None else {"substeps": fixed_count}
+    problem = _config(beta=prior(100.0), gamma=prior(80.0), **extra)
+    y = np.zeros((11, 1))
+    dataset = Dataset(np.arange(11) / FS, 1.0 / FS, y, np.ones_like(y, dtype=bool), ["vel"], {})
+    monkeypatch.setattr(estimate, "force_spectrum", lambda *a: None)
+    for factor, expected in ((4.0, [6]), (6.0, [6] if fixed_count else [6, 14])):
+        at = {**STIFF, **GP, "beta": 100.0 * factor, "gamma": 80.0 * factor}
+        assert S.needed(problem.model, at, 1.0 / FS) > 6  # past the accuracy bound either way
+
+        def dispatch(key, problem, *a, factor=factor):
+            from latentforce.results import RunResult
+
+            draws = {"beta": np.full((2, 8), 100.0 * factor), "gamma": np.full((2, 8), 80.0 * factor)}
+            seen.append(int(problem.model.system.substeps))
+            return RunResult("ekf", np.zeros(3), 1, 1, {}, {}, draws, {}, {}, [], 0.0, {}), {}
+
+        monkeypatch.setattr(estimate, "_dispatch", dispatch)
+        seen.clear()
+        result, _ = estimate.run(problem, dataset)
+        warned = any("RK4 substeps" in w for w in result.diagnostics.get("warnings", []))
+        assert seen == expected and result.diagnostics["substeps"] == expected[-1], (factor, seen)
+        assert warned == (factor == 6.0 and fixed_count is not None), (factor, result.diagnostics)
+
+
 def test_a_rerun_that_fails_leaves_the_first_pass_with_a_warning(monkeypatch):
     """The rerun at the posterior's need is a second full run: when it raises, the first pass (minutes
     of sampling) is still the user's result, with a warning naming the failure and the counts."""

@@ -15,12 +15,14 @@ NMSE 0.4 %), against 46-51 % and R-hat 1.13 at 16 substeps (NMSE 0.01 %), same r
 So where the config does not fix ``substeps``, :func:`choose` takes the default's count or, if more
 are needed, the fewest that keep h |lambda| <= 1 for every real Jacobian eigenvalue lambda over probe
 states and <= 0.5 for every oscillatory one (whose RK4 error is numerical damping: :func:`demand`);
-a fixed count below that need gets a warning.
+a fixed count gets a warning where it puts a real eigenvalue's h |lambda| past :data:`RERUN_BOUND`
+(or an oscillatory one's past its bound).
 
 The count is chosen at the parameters' fixed or init values; a sampled stiffness, Bouc-Wen key or
 force variance may move the posterior where more are needed. :func:`needed_over_posterior` reads
-that need over the run's draws, and ``estimate`` reruns once with it (the config's own count is only
-warned about).
+that need over the run's draws, and where the count used puts some draw past :data:`RERUN_BOUND`
+``estimate`` reruns once at the need (the config's own count is only warned about): a rerun doubles
+the user's time, and short of that bound it measured no change in the posterior.
 """
 
 from __future__ import annotations
@@ -50,6 +52,20 @@ STEP_BOUND = 1.0
 #: damping c (2.216e-4 against 2.260e-4 at two substeps and from the exact discretisation of
 #: kalman-mcmc's linear model; ``demo silverbox --quick``, 2026-12-03); 1.1e-4 per step at 0.5
 OSCILLATION_BOUND = 0.5
+#: after a run, the largest h |lambda| for a real eigenvalue that the count used may reach at the
+#: posterior's draws before ``estimate`` reruns (or warns about a fixed count): RK4's factor at
+#: h lambda = -2 is 1/3 (the fast mode still decays, without oscillating; exp(-2) = 0.135), its
+#: stability bound about 2.8. Measured (2026-12-04): a 3-storey frame with a Bouc-Wen element (alpha and
+#: beta inferred, acc + disp, 100 Hz) chose 6 substeps at the init values and needed 10 at the posterior
+#: (h |lambda| = 1.67 at 6); the run at 6 (493 s, converged) and the rerun at 10 (1 220 s in all) gave
+#: the same posterior (alpha 5 104 +- 112 against 5 107 +- 111, beta 323.6 +- 13.9 against 323.4 +- 13.7,
+#: every state's NMSE equal to 3 digits); the nu = 2 loop below (pgas, velocity + displacement, virgin
+#: [initial], 150 s cap) at 9 substeps (h |lambda| = 2) against 18: both converged (120 s, 181 s), the
+#: posterior means of force, hysteretic force and displacement 0.03 sd apart (median; 0.15 at most),
+#: their sds equal within 0.4 %, smoother move acceptance 0.96 against 0.97; at h |lambda| = 3.6 pgas
+#: failed (docs/nonlinear.md, "Substeps chosen per record"). An oscillation keeps its bound: its RK4
+#: error is damping, a bias in c
+RERUN_BOUND = 2.0
 #: the most substeps a sample's step takes (the config's limit)
 MAX_SUBSTEPS = 64
 #: probe states reach this many stationary sds of the linearised system
@@ -93,18 +109,18 @@ def _eigenvalues(model, params: dict) -> np.ndarray | None:
     return np.linalg.eigvals(J).ravel() if np.all(np.isfinite(J)) else np.array([np.inf])
 
 
-def _demand_of(lam: np.ndarray | None) -> float:
+def _demand_of(lam: np.ndarray | None, real_bound: float = STEP_BOUND) -> float:
     if lam is None:
         return float("nan")
-    bound = np.where(np.abs(lam.imag) > np.abs(lam.real), OSCILLATION_BOUND, STEP_BOUND)
+    bound = np.where(np.abs(lam.imag) > np.abs(lam.real), OSCILLATION_BOUND, real_bound)
     return float(np.max(np.abs(lam) / bound))
 
 
-def demand(model, params: dict) -> float:
+def demand(model, params: dict, real_bound: float = STEP_BOUND) -> float:
     """The substeps a unit of time needs: the largest |lambda| / bound over the probe states'
-    eigenvalues, the bound :data:`OSCILLATION_BOUND` for an oscillatory one, :data:`STEP_BOUND`
-    otherwise (NaN as :func:`stiffness`)."""
-    return _demand_of(_eigenvalues(model, params))
+    eigenvalues, the bound :data:`OSCILLATION_BOUND` for an oscillatory one, ``real_bound``
+    (:data:`STEP_BOUND`) otherwise (NaN as :func:`stiffness`)."""
+    return _demand_of(_eigenvalues(model, params), real_bound)
 
 
 def stiffness(model, params: dict) -> float:
@@ -135,11 +151,14 @@ def needed(model, params: dict, dt: float) -> int:
 N_POSTERIOR_PROBES = 64
 
 
-def needed_over_posterior(model, fixed: dict, draws: dict, dt: float) -> tuple[int, dict | None]:
+def needed_over_posterior(
+    model, fixed: dict, draws: dict, dt: float, real_bound: float = STEP_BOUND
+) -> tuple[int, dict | None]:
     """``(need, at)``: the largest :func:`needed` over :data:`N_POSTERIOR_PROBES` draws evenly spread
     over ``draws`` (name -> array of draws of the sampled parameters, any shape with the draws
-    flattened), the other parameters at ``fixed``; ``at`` holds the sampled values of the draw that
-    needs it (None with no draws). One compiled program serves every draw."""
+    flattened), the other parameters at ``fixed``, a real eigenvalue's bound ``real_bound``; ``at``
+    holds the sampled values of the draw that needs it (None with no draws). One compiled program
+    serves every draw."""
     names = [k for k, v in draws.items() if np.size(v)]
     if not names:
         return int(model.system.substeps), None
@@ -148,7 +167,7 @@ def needed_over_posterior(model, fixed: dict, draws: dict, dt: float) -> tuple[i
     best, at = -math.inf, None
     for i in np.unique(np.linspace(0, size - 1, min(N_POSTERIOR_PROBES, size)).astype(int)):
         values = {k: float(flat[k][i]) for k in names}
-        rate = demand(model, {**fixed, **values})
+        rate = demand(model, {**fixed, **values}, real_bound)
         at = values if at is None else at
         if rate > best:  # NaN (no scale to probe at) never wins
             best, at = rate, values
@@ -164,7 +183,8 @@ def with_substeps(system, n: int):
 
 def choose(model, params: dict, dt: float, given: int | None) -> tuple[int, str | None]:
     """``(substeps, warning)`` for a nonlinear model at sample step ``dt``: ``given`` (the config's
-    ``[system].substeps``) with a warning if it falls short of :func:`needed`; else the system's
+    ``[system].substeps``) with a warning if it falls short of :func:`needed` with a real eigenvalue's
+    bound :data:`RERUN_BOUND` (the step is then at risk, not only less accurate); else the system's
     default count or the need, whichever is larger, capped at :data:`MAX_SUBSTEPS` (with a warning
     when the cap falls short)."""
     lam = _eigenvalues(model, params)  # once: the rule and the message both read them
@@ -172,6 +192,7 @@ def choose(model, params: dict, dt: float, given: int | None) -> tuple[int, str 
     if math.isnan(rate):  # no scale to probe at (an unstable linearisation, started from [initial])
         return (int(given) if given is not None else int(model.system.substeps)), None
     need = _count(rate, dt)
+    tolerated = _count(_demand_of(lam, RERUN_BOUND), dt)  # a fixed count is warned about only below it
     why = (
         f"the mechanical rate's fastest eigenvalue reaches {np.max(np.abs(lam)):.4g} 1/s at the probe "
         f"states (the structure linearised about rest at the parameters' fixed or init values, {PROBE_SDS:g} "
@@ -179,7 +200,7 @@ def choose(model, params: dict, dt: float, given: int | None) -> tuple[int, str 
         f"{STEP_BOUND:g} ({OSCILLATION_BOUND:g} for an oscillation)"
     )
     if given is not None:
-        if given >= need:
+        if given >= tolerated:
             return int(given), None
         return int(given), (
             f"[system].substeps = {given} may be too few: {why}. With too few the sampler's mechanical "
@@ -218,8 +239,10 @@ def recheck(
 ) -> tuple[Problem | None, str | None]:
     """``(problem to rerun, warning)`` once a nonlinear run with sampled parameters is done: the count
     was chosen at the init values, and the posterior may sit where the structure's rate needs more
-    (:func:`needed_over_posterior`). A chosen count that falls short gives the
-    problem with the posterior's need (the cap's at most) to rerun; a count the config fixed, or one at
+    (:func:`needed_over_posterior`). A chosen count that falls short (a real eigenvalue's h |lambda|
+    past :data:`RERUN_BOUND` at some draw, or an oscillatory one's past :data:`OSCILLATION_BOUND`) gives
+    the problem with the posterior's need at the accuracy bound :data:`STEP_BOUND` (the cap's at most)
+    to rerun; a count the config fixed, or one at
     the cap, or any count after the rerun (``rerun=False``), a warning (``reason`` in place of the
     count's origin: a rerun that failed, whose first pass then stands). Measured (ekf, the nu = 2
     loop of ``tests/test_substeps.py`` with beta and gamma inferred from init 100 and 80): 6 substeps
@@ -234,6 +257,8 @@ def recheck(
     need, at = needed_over_posterior(model, dict(problem.fixed), draws, dt)
     if at is None or need <= used:
         return None, None
+    if needed_over_posterior(model, dict(problem.fixed), draws, dt, RERUN_BOUND)[0] <= used:
+        return None, None  # short of the accuracy bound, within RERUN_BOUND: kept without a word
     where = ", ".join(f"{k} = {v:.4g}" for k, v in at.items())
     if rerun and problem.substeps is None and used < MAX_SUBSTEPS:
         system = with_substeps(model.system, min(need, MAX_SUBSTEPS))
