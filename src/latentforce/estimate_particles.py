@@ -282,15 +282,15 @@ def _run_pgas(
     )
     record = _label_times(record, np.asarray(dataset.time))
     message = convergence.warning_message(record, "pgas", softening_hint({**problem.fixed, **out.theta}))
-    if message and record.get("diverged_chains"):  # the mixing advice below would not apply
-        diagnostics.setdefault("warnings", []).append(message)
-    elif message:
-        switch = float(np.mean(out.switch_rate)) if np.size(out.switch_rate) else float("nan")
-        smoother = out.diagnostics.get("acceptance_smoother")
-        smoother = float(np.mean(smoother)) if smoother else float("nan")
-        measured = any(s.quantity in DISPLACEMENT_CHANNELS for s in model.sensors)
-        advice = low_switch_advice(switch, smoother, measured)
-        diagnostics.setdefault("warnings", []).append(message + advice + start_advice)
+    if message:
+        advice = ""
+        if not record.get("diverged_chains"):  # a diverged chain's advice is the model's (in message)
+            switch = float(np.mean(out.switch_rate)) if np.size(out.switch_rate) else float("nan")
+            smoother = out.diagnostics.get("acceptance_smoother")
+            smoother = float(np.mean(smoother)) if smoother else float("nan")
+            measured = any(s.quantity in DISPLACEMENT_CHANNELS for s in model.sensors)
+            advice = low_switch_advice(switch, smoother, measured) + start_advice
+        diagnostics.setdefault("warnings", []).append(message + advice)
     truth = common["truth"]
     if truth:
         from latentforce.results import coverage

@@ -151,6 +151,33 @@ def needed(model, params: dict, dt: float) -> int:
 N_POSTERIOR_PROBES = 64
 
 
+def _posterior_eigenvalues(model, fixed: dict, draws: dict) -> list[tuple[dict, np.ndarray | None]]:
+    """``(values, eigenvalues)`` at :data:`N_POSTERIOR_PROBES` draws evenly spread over ``draws``
+    (:func:`needed_over_posterior`): each draw's sampled values and :func:`_eigenvalues` there."""
+    names = [k for k, v in draws.items() if np.size(v)]
+    if not names:
+        return []
+    flat = {k: np.asarray(draws[k], dtype=float).reshape(-1) for k in names}
+    size = min(v.size for v in flat.values())
+    probes = []
+    for i in np.unique(np.linspace(0, size - 1, min(N_POSTERIOR_PROBES, size)).astype(int)):
+        values = {k: float(flat[k][i]) for k in names}
+        probes.append((values, _eigenvalues(model, {**fixed, **values})))
+    return probes
+
+
+def _worst(probes, dt: float, real_bound: float, default: int) -> tuple[int, dict | None]:
+    """``(need, at)`` over :func:`_posterior_eigenvalues`' probes at a real eigenvalue's bound
+    ``real_bound`` (``default`` where no probe has an answer; ``at`` None with no probes)."""
+    best, at = -math.inf, None
+    for values, lam in probes:
+        rate = _demand_of(lam, real_bound)
+        at = values if at is None else at
+        if rate > best:  # NaN (no scale to probe at) never wins
+            best, at = rate, values
+    return (default if best == -math.inf else _count(best, dt)), at
+
+
 def needed_over_posterior(
     model, fixed: dict, draws: dict, dt: float, real_bound: float = STEP_BOUND
 ) -> tuple[int, dict | None]:
@@ -159,19 +186,8 @@ def needed_over_posterior(
     flattened), the other parameters at ``fixed``, a real eigenvalue's bound ``real_bound``; ``at``
     holds the sampled values of the draw that needs it (None with no draws). One compiled program
     serves every draw."""
-    names = [k for k, v in draws.items() if np.size(v)]
-    if not names:
-        return int(model.system.substeps), None
-    flat = {k: np.asarray(draws[k], dtype=float).reshape(-1) for k in names}
-    size = min(v.size for v in flat.values())
-    best, at = -math.inf, None
-    for i in np.unique(np.linspace(0, size - 1, min(N_POSTERIOR_PROBES, size)).astype(int)):
-        values = {k: float(flat[k][i]) for k in names}
-        rate = demand(model, {**fixed, **values}, real_bound)
-        at = values if at is None else at
-        if rate > best:  # NaN (no scale to probe at) never wins
-            best, at = rate, values
-    return (int(model.system.substeps) if best == -math.inf else _count(best, dt)), at
+    probes = _posterior_eigenvalues(model, fixed, draws)
+    return _worst(probes, dt, real_bound, int(model.system.substeps))
 
 
 def with_substeps(system, n: int):
@@ -254,11 +270,11 @@ def recheck(
     chains = result.param_chains or result.param_draws
     draws = {k: chains[k] for k in problem.free if k in chains}
     used = int(model.system.substeps)
-    need, at = needed_over_posterior(model, dict(problem.fixed), draws, dt)
-    if at is None or need <= used:
+    probes = _posterior_eigenvalues(model, dict(problem.fixed), draws)  # once: both bounds read them
+    need, at = _worst(probes, dt, STEP_BOUND, used)
+    # within RERUN_BOUND (never a larger need than the accuracy bound's): kept without a word
+    if at is None or _worst(probes, dt, RERUN_BOUND, used)[0] <= used:
         return None, None
-    if needed_over_posterior(model, dict(problem.fixed), draws, dt, RERUN_BOUND)[0] <= used:
-        return None, None  # short of the accuracy bound, within RERUN_BOUND: kept without a word
     where = ", ".join(f"{k} = {v:.4g}" for k, v in at.items())
     if rerun and problem.substeps is None and used < MAX_SUBSTEPS:
         system = with_substeps(model.system, min(need, MAX_SUBSTEPS))
