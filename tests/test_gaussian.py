@@ -7,6 +7,8 @@ On a Duffing system at small amplitude both agree with each other and, as the
 cubic term grows, the EKF and UKF differ while both stay close to the truth.
 """
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -68,6 +70,7 @@ def test_linear_systems_give_the_exact_kalman_smoother(kind, order, ndof):
         np.asarray(ours.covs), np.asarray(exact.covs), atol=1e-8 * np.max(np.abs(np.asarray(exact.covs))), rtol=0
     )
     assert float(ours.log_likelihood) == pytest.approx(float(exact.log_likelihood), rel=1e-9, abs=1e-8)
+    assert int(ours.first_nonfinite) == -1
 
 
 @pytest.mark.parametrize("kind", ["ekf", "ukf"])
@@ -252,3 +255,7 @@ def test_a_model_that_overflows_names_a_negative_cubic_stiffness(tmp_path, monke
     assert r.exit_code != 0 and "Traceback" not in r.output
     assert "log-likelihood is not finite" in r.output and "neg.toml" in r.output
     assert "[system].k3 = -2e+08" in r.output and not (tmp_path / "out").exists()
+    # and where: the first sample whose likelihood term overflowed, within the 2 s record
+    m = re.search(r"overflowed at sample (\d+), t = ([0-9.e+-]+) s", " ".join(r.output.split()))
+    assert m is not None, r.output
+    assert 0 <= int(m.group(1)) < 100 and float(m.group(2)) == pytest.approx(int(m.group(1)) / 50.0)

@@ -362,10 +362,12 @@ def _run_gaussian(
     y0 = np.where(mask, y, 0.0)
     sm = call(smoother, numbers(params0), y0, mask)
     if not np.isfinite(float(sm.log_likelihood)):
+        t = int(sm.first_nonfinite)
+        where = f" (the filter overflowed at sample {t}, t = {dataset.time[t]:.6g} s)" if t >= 0 else ""
         raise LatentForceError(
             f"The {settings.method.upper()} log-likelihood is not finite for the configured "
-            f"model in {problem.config_path}: check the parameter values and units"
-            f"{softening_hint(params0)}."
+            f"model in {problem.config_path}{where}: check the parameter values and units"
+            f"{softening_hint(params0)}. Nothing was written."
         )
     state_mean, state_sd = _smoothed_moments(problem, params0, sm.means, sm.covs)
     bad = [n for n in state_mean if not (np.all(np.isfinite(state_mean[n])) and np.all(np.isfinite(state_sd[n])))]

@@ -42,7 +42,7 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from latentforce.compile import Bound
 from latentforce.inference import particle_model
@@ -59,6 +59,8 @@ class GaussianSmoother(NamedTuple):
     covs: Float[Array, "T n n"]
     log_likelihood: Float[Array, ""]
     path: Float[Array, "T n"]  # zeros unless a key was given
+    #: the first sample whose log-likelihood term is not finite (the filter overflowed there), -1 if none
+    first_nonfinite: Int[Array, ""]
 
 
 def model_functions(pm: particle_model.ParticleModel, tr: particle_model.Transition):
@@ -251,4 +253,6 @@ def gaussian_smoother(
 
         _, xs = jax.lax.scan(_draw, x_last, (mf[:-1], Pf[:-1], mp[:-1], Pp_n, G, eps[:-1]), reverse=True)
         path = jnp.concatenate([xs, x_last[None]])
-    return GaussianSmoother(means, covs, jnp.sum(lls), path)
+    bad = ~jnp.isfinite(lls)
+    first_nonfinite = jnp.where(jnp.any(bad), jnp.argmax(bad), -1)
+    return GaussianSmoother(means, covs, jnp.sum(lls), path, first_nonfinite)
