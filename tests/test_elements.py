@@ -219,10 +219,10 @@ def test_config_builds_elements_and_refuses_invalid_ones():
 
 
 def test_an_inferred_element_key_is_named_by_its_table_in_messages():
-    from latentforce.io.config import _free_key
+    from latentforce.io.config import config_key
 
-    assert _free_key("element1_alpha") == "[[system.elements]][1].alpha"
-    assert _free_key("k_1") == "[system].stiffnesses[1]"
+    assert config_key("element1_alpha") == "[[system.elements]][1].alpha"
+    assert config_key("k_1") == "[system].stiffnesses[1]"
 
 
 def test_cli_estimates_a_frame_with_a_hysteretic_storey(tmp_path, monkeypatch):

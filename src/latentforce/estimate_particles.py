@@ -11,7 +11,7 @@ import numpy as np
 
 from latentforce.compile import jit, numbers
 from latentforce.errors import LatentForceError
-from latentforce.io.config import Problem, _free_key
+from latentforce.io.config import Problem, config_key
 from latentforce.io.data import Dataset
 from latentforce.outputs import path_outputs, sample_moments
 from latentforce.outputs import split as split_outputs
@@ -71,7 +71,7 @@ def softening_hint(values: dict) -> str:
         if name == "k3" or name.endswith("_k3"):
             v = np.asarray(value, dtype=float)
             if v.size and np.nanmin(v) < 0:
-                negative.append(f"{_free_key(name)} = {np.nanmin(v):.4g}")
+                negative.append(f"{config_key(name)} = {np.nanmin(v):.4g}")
     if not negative:
         return ""
     return (

@@ -250,7 +250,7 @@ def run_pgas(
     )
     params = {**params, **dict(zip(hyper.sys_names, hyper.sys_init))}
     d = len(hyper.joint_names)
-    start_record, spread, joint_chol = None, 0.5 * np.eye(d), 0.05 * np.eye(d)
+    start_record, spread, joint_chol = None, pgas_mode.START_SPREAD * np.eye(d), pgas_mode.WALK_SD * np.eye(d)
     x0 = hyper.joint_coordinates(np.concatenate([hyper.init, hyper.sys_init])) if d else jnp.zeros(0)
     # the model at the system parameters' initial values: its initial-state prior (a nonlinear
     # system's default depends on c and k) is kept while they are sampled (ParticleModel.with_params)

@@ -62,8 +62,12 @@ def mode_start(model, hyper: Hyper, params: dict, y, mask, R, dt: float, discret
     return np.asarray(best.x), cov, out
 
 
-#: log-space sds of the start's shape where the filter gave no definite mode (:func:`fallback_cov`)
-FALLBACK_SD = (0.05, 0.5)
+#: without system parameters, the log-space sd of the hyperparameters' random-walk step and of the
+#: chains' dispersed starts (``pgas.run_pgas``)
+WALK_SD, START_SPREAD = 0.05, 0.5
+#: log-space sds of the start's shape where the filter gave no definite mode (:func:`fallback_cov`):
+#: the same bounds
+FALLBACK_SD = (WALK_SD, START_SPREAD)
 
 
 def fallback_cov(cov) -> np.ndarray:

@@ -164,7 +164,7 @@ def _default_method(is_linear: bool, free: dict) -> str:
 _FRAME_KEYS = {"m": "masses", "c": "dampings", "k": "stiffnesses"}
 
 
-def _free_key(name: str) -> str:
+def config_key(name: str) -> str:
     """The config key of a parameter name: ``force_variance`` -> ``[force].variance``,
     a shear frame's ``k_1`` -> ``[system].stiffnesses[1]``."""
     if name.startswith("noise_std_"):
@@ -285,7 +285,7 @@ def config_from_dict(
             f'approximations "ekf", "ukf").',
         )
     if method == "kalman" and free:
-        names = ", ".join(_free_key(n) for n in free)
+        names = ", ".join(config_key(n) for n in free)
         raise fail(
             "[inference].method",
             f'method "kalman" needs every parameter fixed, but {names} '
@@ -313,7 +313,7 @@ def config_from_dict(
             # and the sensors' noise levels (an exact Gibbs step each, latentforce.inference.noise_gibbs)
             if not is_hyper_name(name) and name not in noise_names and name not in system.param_names:
                 raise fail(
-                    _free_key(name),
+                    config_key(name),
                     f'method "pgas" can infer the system\'s parameters, the force variance and '
                     f"lengthscale and the sensors' noise_std; {name} is none of them: "
                     f"give it as a number.",
