@@ -19,6 +19,7 @@ from latentforce.inference.gaussian import gaussian_smoother
 from latentforce.inference.kalman import kalman_smoother
 from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor
+from latentforce.outputs import OutputSpec, gaussian_moments, output_function, output_matrix
 from latentforce.simulate import measure, simulate
 from latentforce.systems import Duffing, LinearSystem
 
@@ -85,6 +86,61 @@ def test_drawn_paths_have_the_smoothed_moments(kind):
     assert np.max(np.abs(z)) < 5.0
     ratio = paths.std(0) / sd
     assert np.all(np.abs(ratio - 1.0) < 0.08), (ratio.min(), ratio.max())
+
+
+OUTPUTS = (
+    OutputSpec("inertia", acceleration=(1.0,)),
+    OutputSpec("mix", displacement=(2.0,), velocity=(-0.5,), acceleration=(0.1,), force=(1.5,)),
+)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+@pytest.mark.parametrize("order,ndof", [(1, 1), (2, 2)])
+def test_outputs_of_a_linear_system_are_the_exact_gaussian_readout(kind, order, ndof):
+    """Virtual sensors under ekf/ukf: the method's transform of each time's smoothed Gaussian through
+    the output function (the acceleration from the equation of motion, force feed-through included)
+    is exact on a linear system, G m_t and diag(G P_t G^T), and on the drawn path it is G x_t."""
+    pm, tr, _, y, mask = _linear_case(order, ndof=ndof)
+    outputs = OUTPUTS if ndof == 1 else (OutputSpec("drift", displacement=(-1.0, 1.0), acceleration=(0.3, 0.0)),)
+    # the output function made inside the compiled program, as the estimate's smoother makes it
+    run = lambda y, m, k: gaussian_smoother(
+        kind, pm, tr, y, m, key=k, out_fn=output_function(pm.model, outputs, pm.params)
+    )  # noqa: E731
+    out = jax.jit(run)(y, mask, jax.random.key(1))
+    G = output_matrix(pm.model, outputs, pm.params)
+    mean, sd = gaussian_moments(G, out.means, out.covs)
+    scale = np.max(np.abs(mean)) + np.max(sd)
+    np.testing.assert_allclose(np.asarray(out.output_means), mean, atol=1e-9 * scale, rtol=0)
+    np.testing.assert_allclose(np.sqrt(np.asarray(out.output_vars)), sd, atol=1e-7 * scale, rtol=0)
+    np.testing.assert_allclose(np.asarray(out.output_path), np.asarray(out.path) @ np.asarray(G).T, atol=1e-9 * scale)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_outputs_of_a_duffing_follow_the_methods_transform(kind):
+    """The acceleration through a cubic spring: the EKF's output is its tangent at the smoothed mean;
+    the UKF's cubature points integrate a cubic exactly, so its mean is the Gaussian expectation
+    E[z^3] = mu^3 + 3 mu s^2 (checked by hand from the smoothed moments)."""
+    pm, tr, sim, y = _duffing(k3=2000.0, T=150)
+    p = {k: float(v) for k, v in pm.params.items()}
+    fn = output_function(pm.model, OUTPUTS, pm.params)
+    out = gaussian_smoother(kind, pm, tr, y, jnp.ones(y.shape, bool), out_fn=fn)
+    m, P = np.asarray(out.means), np.asarray(out.covs)
+    iz, iv, iu = 0, 1, pm.nm
+    mu, s2 = m[:, iz], P[:, iz, iz]
+    cubic = mu**3 + 3 * mu * s2 if kind == "ukf" else mu**3
+    acc = (m[:, iu] - p["c"] * m[:, iv] - p["k"] * mu - p["k3"] * cubic) / p["m"]
+    np.testing.assert_allclose(np.asarray(out.output_means)[:, 0], acc, rtol=1e-9, atol=1e-9 * np.abs(acc).max())
+    mix = 2.0 * mu - 0.5 * m[:, iv] + 0.1 * acc + 1.5 * m[:, iu]
+    np.testing.assert_allclose(np.asarray(out.output_means)[:, 1], mix, rtol=1e-9, atol=1e-9 * np.abs(mix).max())
+    # the tangent's variance: J P J^T with J = (-(k + 3 k3 mu^2), -c, 1) / m on (z, v, u)
+    J = np.zeros((len(mu), P.shape[1]))
+    J[:, iz], J[:, iv], J[:, iu] = -(p["k"] + 3 * p["k3"] * mu**2) / p["m"], -p["c"] / p["m"], 1.0 / p["m"]
+    tangent = np.einsum("ti,tij,tj->t", J, P, J)
+    var = np.asarray(out.output_vars)[:, 0]
+    if kind == "ekf":
+        np.testing.assert_allclose(var, tangent, rtol=1e-8)
+    else:  # the cubature's variance carries the cubic's spread about the tangent: never below it much
+        assert np.all(var > 0.5 * tangent) and np.any(np.abs(var / tangent - 1) > 1e-3)
 
 
 def _duffing(k3: float, order: int = 1, T: int = 400):
@@ -156,7 +212,8 @@ method = "{method}"
 def test_ekf_and_ukf_as_methods_write_result_folders(tmp_path, monkeypatch):
     """Fixed parameters: the smoother's marginals, a deterministic result (converged, no draws);
     an inferred parameter (the damping of a Duffing system, which pgas cannot infer): random-walk
-    Metropolis on the approximate likelihood, with its verdict and the states mixed over the draws."""
+    Metropolis on the approximate likelihood, with its verdict and the states mixed over the draws.
+    Both with virtual sensors on the nonlinear system (the acceleration through the cubic spring)."""
     import json
 
     import arviz as az
@@ -169,15 +226,28 @@ def test_ekf_and_ukf_as_methods_write_result_folders(tmp_path, monkeypatch):
     (tmp_path / "ukf.toml").write_text(DUFFING_CONFIG.format(c=0.5, method="ukf", extra=""))
     r = runner.invoke(app, ["simulate", "ukf.toml", "--out", "data.csv", "--duration", "4", "--sample-rate", "50"])
     assert r.exit_code == 0, r.output
-    r = runner.invoke(app, ["estimate", "ukf.toml", "--out", "fixed", "--strict"])
+    # virtual sensors on the nonlinear system: the acceleration through the cubic spring, and a copy
+    # of the displacement (a check: it must equal the displacement's own posterior)
+    outputs = (
+        '\n[[outputs]]\nname = "inertia"\nacceleration = [1.0]\n\n[[outputs]]\nname = "disp"\ndisplacement = [1.0]\n'
+    )
+    (tmp_path / "ukf_out.toml").write_text(DUFFING_CONFIG.format(c=0.5, method="ukf", extra=outputs))
+    r = runner.invoke(app, ["estimate", "ukf_out.toml", "--out", "fixed", "--strict"])
     assert r.exit_code == 0, r.output
     summary = json.loads((tmp_path / "fixed" / "summary.json").read_text())
     assert summary["method"] == "ukf" and summary["converged"] is True and summary["nmse"]["force"] < 60.0
     tree = az.from_netcdf(tmp_path / "fixed" / "posterior.nc")
     assert "force_mean" in tree.posterior and "force_sd" in tree.posterior
+    table = np.genfromtxt(tmp_path / "fixed" / "summary.csv", delimiter=",", names=True)
+    data = np.genfromtxt(tmp_path / "data.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(table["disp_mean"], table["displacement_mean"], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(table["disp_sd"], table["displacement_sd"], rtol=1e-12, atol=1e-15)
+    # the smoothed acceleration fits the accelerometer to about its noise (sd 0.05), well inside its spread
+    assert np.sqrt(np.mean((table["inertia_mean"] - data["acc"]) ** 2)) < 0.1 < np.std(data["acc"])
+    assert np.all(table["inertia_sd"] > 0) and (tmp_path / "fixed" / "figures" / "output_inertia.png").exists()
     prior = '{ prior = "lognormal", mu = -0.7, sigma = 1.0, init = 1.0 }'
     (tmp_path / "ekf.toml").write_text(
-        DUFFING_CONFIG.format(c=prior, method="ekf", extra="iterations = 60\nburn_in = 40\nchains = 2")
+        DUFFING_CONFIG.format(c=prior, method="ekf", extra="iterations = 60\nburn_in = 40\nchains = 2\n" + outputs)
     )
     r = runner.invoke(app, ["estimate", "ekf.toml", "--out", "free"])
     assert r.exit_code == 0, r.output
@@ -185,7 +255,11 @@ def test_ekf_and_ukf_as_methods_write_result_folders(tmp_path, monkeypatch):
     assert summary["method"] == "ekf" and summary["converged"] is False  # 60 draws: said so
     assert {"mean", "sd", "r_hat", "ess_bulk"} <= set(summary["parameters"]["c"])
     tree = az.from_netcdf(tmp_path / "free" / "posterior.nc")
-    assert tree.posterior["c"].shape[0] == 2 and "force" in tree.posterior
+    assert tree.posterior["c"].shape[0] == 2 and "force" in tree.posterior and "inertia" in tree.posterior
+    table = np.genfromtxt(tmp_path / "free" / "summary.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(table["disp_mean"], table["displacement_mean"], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(table["disp_sd"], table["displacement_sd"], rtol=1e-9, atol=1e-12)
+    assert np.sqrt(np.mean((table["inertia_mean"] - data["acc"]) ** 2)) < 0.1
 
 
 def test_variances_fifteen_orders_apart_keep_the_unscented_smoother_stable():

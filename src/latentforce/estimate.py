@@ -319,16 +319,21 @@ def _dispatch(
     raise LatentForceError(f"Unknown inference method {settings.method!r}.")  # config validates this
 
 
-def _smoothed_moments(problem: Problem, params: dict, means, covs) -> tuple[dict, dict]:
+def _smoothed_moments(problem: Problem, params: dict, means, covs, outputs=None) -> tuple[dict, dict]:
     r"""Per-state posterior means and sds of a Gaussian smoother (``kalman``, ``ekf``, ``ukf`` at fixed
     parameters), the ``[[outputs]]`` included: :math:`G m_t` and :math:`\operatorname{diag}(G P_t G^T)`
-    from the full covariances (outputs under ``ekf``/``ukf``: linear systems only, by the config)."""
+    from the full covariances, or ``outputs = (means, variances)`` where the smoother gave them
+    (``ekf``/``ukf``, any system: its own transform)."""
     mom = state_moments(problem.model, means, covs)
     state_mean = {k: np.asarray(v[0]) for k, v in mom.items()}
     state_sd = {k: np.asarray(v[1]) for k, v in mom.items()}
     if problem.outputs:
-        G = output_matrix(problem.model, problem.outputs, params)
-        out_mean, out_sd, _ = split_outputs(problem.outputs, *gaussian_moments(G, means, covs))
+        if outputs is None:
+            G = output_matrix(problem.model, problem.outputs, params)
+            moments = gaussian_moments(G, means, covs)
+        else:
+            moments = (np.asarray(outputs[0]), np.sqrt(np.asarray(outputs[1])))
+        out_mean, out_sd, _ = split_outputs(problem.outputs, *moments)
         state_mean.update(out_mean)
         state_sd.update(out_sd)
     return state_mean, state_sd
@@ -353,7 +358,12 @@ def _run_gaussian(
 
     model, settings = problem.model, problem.inference
     loglik, smoother = for_parameters(
-        settings.method, model, dataset.dt, settings.discretisation, _mechanical_initial(problem, params0)
+        settings.method,
+        model,
+        dataset.dt,
+        settings.discretisation,
+        _mechanical_initial(problem, params0),
+        problem.outputs,
     )
     if problem.free:
         return _run_kalman_sampler(
@@ -369,7 +379,7 @@ def _run_gaussian(
             f"model in {problem.config_path}{where}: check the parameter values and units"
             f"{softening_hint(params0)}. Nothing was written."
         )
-    state_mean, state_sd = _smoothed_moments(problem, params0, sm.means, sm.covs)
+    state_mean, state_sd = _smoothed_moments(problem, params0, sm.means, sm.covs, (sm.output_means, sm.output_vars))
     bad = [n for n in state_mean if not (np.all(np.isfinite(state_mean[n])) and np.all(np.isfinite(state_sd[n])))]
     if bad:
         raise LatentForceError(

@@ -22,7 +22,13 @@ accelerometer, Eq. 23b of ISMA 2018), so every output is
   + \operatorname{Var}_\theta[G_\theta m_t(\theta)]` (:mod:`latentforce.inference.mixture`);
 * under ``pgas`` it is evaluated on each sampled path (any system, the
   acceleration from the system's own equation of motion) and summarised
-  by the sample mean and standard deviation (:func:`path_outputs`).
+  by the sample mean and standard deviation (:func:`path_outputs`);
+* under ``ekf``/``ukf`` it is the output function :math:`o(x)` of one state
+  (:func:`output_function`, any system) taken through the method's own
+  Gaussian transform of the smoothed :math:`N(m_t, P_t)` (linearised at
+  :math:`m_t`, or by the cubature points: ``inference.gaussian``), exact for
+  a linear system, where :math:`o(x) = G x`; with inferred parameters, mixed
+  over the draws as above.
 
 Outputs are reported beside the states: ``NAME_mean``/``NAME_sd`` in
 ``summary.csv`` and ``posterior.nc``, sampled paths ``NAME`` there under the
@@ -43,7 +49,7 @@ from jaxtyping import Array, Float
 from latentforce.compile import jit, numbers
 from latentforce.models import LatentForceModel
 
-__all__ = ["OutputSpec", "gaussian_moments", "output_matrix", "path_outputs", "sample_moments"]
+__all__ = ["OutputSpec", "gaussian_moments", "output_function", "output_matrix", "path_outputs", "sample_moments"]
 
 
 class OutputSpec(NamedTuple):
@@ -80,6 +86,30 @@ def output_matrix(model: LatentForceModel, outputs: Sequence[OutputSpec], params
         g = g + jnp.asarray(_coefficients(spec, "force", model.nforce)) @ Hu
         rows.append(g)
     return jnp.stack(rows)
+
+
+def output_function(model: LatentForceModel, outputs: Sequence[OutputSpec], params: dict):
+    r"""``o(x)``: the outputs ``(k,)`` of one augmented state ``x`` (``(n_state,)``), any system: the
+    acceleration from the system's equation of motion at ``params`` (module doc). For a linear
+    system :math:`o(x) = G x` (:func:`output_matrix`)."""
+    L = model.layout
+    nd, nf = model.ndof, model.nforce
+    cz, cv, ca, cu = (
+        np.stack([_coefficients(s, kind, width) for s in outputs])
+        for kind, width in (("displacement", nd), ("velocity", nd), ("acceleration", nd), ("force", nf))
+    )
+    Hu = model.force_matrix()
+    with_acceleration = bool(np.any(ca))
+
+    def fn(x):
+        z, v, r = L.split_mech(x[L.mech])
+        u = Hu @ x
+        out = cz @ z + cv @ v + cu @ u
+        if with_acceleration:
+            out = out + ca @ model.system.acceleration(params, z, v, u, r)
+        return out
+
+    return fn
 
 
 def gaussian_moments(

@@ -61,6 +61,12 @@ class GaussianSmoother(NamedTuple):
     path: Float[Array, "T n"]  # zeros unless a key was given
     #: the first sample whose log-likelihood term is not finite (the filter overflowed there), -1 if none
     first_nonfinite: Int[Array, ""]
+    #: the ``[[outputs]]``' means and variances by the method's transform of each time's smoothed
+    #: Gaussian, and their values on the drawn path (zeros unless a key was given); ``(T, 0)`` without
+    #: outputs (:func:`gaussian_smoother`'s ``out_fn``)
+    output_means: Float[Array, "T k"]
+    output_vars: Float[Array, "T k"]
+    output_path: Float[Array, "T k"]
 
 
 def model_functions(pm: particle_model.ParticleModel, tr: particle_model.Transition):
@@ -168,11 +174,12 @@ def gaussian_log_likelihood(
     return jnp.sum(lls)
 
 
-def for_parameters(kind: str, model, dt: float, discretisation: str = "rk4", initial=None):
+def for_parameters(kind: str, model, dt: float, discretisation: str = "rk4", initial=None, outputs=()):
     """``(loglik, smoother)``: ``loglik(params, y, mask)`` and ``smoother(params, y, mask, key=None)``
     of the ``kind`` filter with every number taken from ``params`` (jittable, differentiable: the
     samplers' model is built inside, :class:`particle_model.ParticleModel`); ``initial`` the mechanical
-    states' ``(mean, sd|cov)`` as for ``pgas``.
+    states' ``(mean, sd|cov)`` as for ``pgas``; ``outputs`` the ``[[outputs]]``
+    (:class:`latentforce.outputs.OutputSpec`), whose moments the smoother then returns too.
 
     Each is a :class:`latentforce.compile.Bound`: its numbers (``initial`` and the sensors' noise
     levels, :meth:`~latentforce.models.LatentForceModel.noise_params`, which ``params`` may
@@ -182,14 +189,14 @@ def for_parameters(kind: str, model, dt: float, discretisation: str = "rk4", ini
         raise ValueError(f"unknown Gaussian smoother {kind!r}; valid: {METHODS}")
     if initial is not None:
         initial = tuple(jnp.asarray(a, dtype=float) for a in initial)
-    static = (kind, model, float(dt), discretisation)
+    static = (kind, model, float(dt), discretisation, tuple(outputs))
     numbers = (initial, {n: jnp.asarray(v, dtype=float) for n, v in model.noise_params().items()})
     return Bound(_loglik, static, numbers), Bound(_smoother, static, numbers)
 
 
 def _build(static, numbers, params):
     """The samplers' model, the transition and the noise covariance at ``params`` (:func:`for_parameters`)."""
-    _, model, dt, discretisation = static
+    _, model, dt, discretisation, _ = static
     initial, noise = numbers
     params = {**noise, **params}
     pm = particle_model.ParticleModel(model, params, dt, discretisation, initial)
@@ -204,18 +211,31 @@ def _loglik(static, numbers, params, y, mask):
 
 
 def _smoother(static, numbers, params, y, mask, key=None):
+    from latentforce.outputs import output_function
+
     pm, tr, R = _build(static, numbers, params)
-    return gaussian_smoother(static[0], pm, tr, y, mask, R, key)
+    kind, model, _, _, outputs = static
+    out_fn = output_function(model, outputs, {**numbers[1], **params}) if outputs else None
+    return gaussian_smoother(kind, pm, tr, y, mask, R, key, out_fn)
 
 
 def gaussian_smoother(
-    kind: str, pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None, key=None
+    kind: str,
+    pm: particle_model.ParticleModel,
+    tr: particle_model.Transition,
+    y,
+    mask,
+    R=None,
+    key=None,
+    out_fn: Callable | None = None,
 ) -> GaussianSmoother:
     """The ``kind`` (``"ekf"`` or ``"ukf"``) filter and RTS-type smoother of the module doc.
 
     ``y`` ``(T, d)`` (anything where ``mask`` is False), ``mask`` ``(T, d)``;
     ``R`` the channels' noise covariance (default ``pm.R``). With ``key``,
-    also one trajectory from the smoother's Gaussian.
+    also one trajectory from the smoother's Gaussian. ``out_fn``: the outputs ``o(x)`` of one state
+    (:func:`latentforce.outputs.output_function`), whose moments under each time's smoothed Gaussian
+    are taken by the filter's own transform (Taylor or cubature, as for a sensor's readout).
     """
     if kind not in METHODS:
         raise ValueError(f"unknown Gaussian smoother {kind!r}; valid: {METHODS}")
@@ -255,4 +275,10 @@ def gaussian_smoother(
         path = jnp.concatenate([xs, x_last[None]])
     bad = ~jnp.isfinite(lls)
     first_nonfinite = jnp.where(jnp.any(bad), jnp.argmax(bad), -1)
-    return GaussianSmoother(means, covs, jnp.sum(lls), path, first_nonfinite)
+    if out_fn is None:
+        o_mean = o_var = o_path = jnp.zeros((means.shape[0], 0), dtype=means.dtype)
+    else:
+        o_mean, o_cov, _ = jax.vmap(lambda m, P: _linearised(kind, out_fn, m, P))(means, covs)
+        o_var = jnp.clip(jnp.diagonal(o_cov, axis1=-2, axis2=-1), 0.0, None)
+        o_path = jax.vmap(out_fn)(path) if key is not None else jnp.zeros_like(o_mean)
+    return GaussianSmoother(means, covs, jnp.sum(lls), path, first_nonfinite, o_mean, o_var, o_path)

@@ -86,22 +86,22 @@ def _one(
     With ``outputs`` (:class:`latentforce.outputs.OutputSpec`), the state columns are followed by
     the outputs :math:`G_\theta x`: means :math:`G m_t`, variances
     :math:`\operatorname{diag}(G P_t G^T)` from the full covariances, and the path's outputs.
-    ``smoother(params, y, mask, key)`` replaces the exact Kalman smoother (``ekf``/``ukf``).
+    ``smoother(params, y, mask, key)`` replaces the exact Kalman smoother (``ekf``/``ukf``; it returns
+    the outputs' moments itself, :func:`latentforce.inference.gaussian.for_parameters`).
     ``steady_K``: the steady-state smoother with that transient, else (None) the full one.
     """
     from latentforce.inference.kalman_mcmc import linear_gaussian
     from latentforce.outputs import output_matrix
 
     params = _params(fixed, names, theta)
+    if smoother is not None:  # ekf / ukf (inference/gaussian.py), the outputs by its own transform
+        sm = smoother(params, y, mask, key if with_path else None)
+        join = lambda a, b: jnp.concatenate([a, b], axis=-1)  # noqa: E731
+        var = join(jnp.diagonal(sm.covs, axis1=-2, axis2=-1), sm.output_vars)
+        path = join(sm.path, sm.output_path) if with_path else jnp.zeros(())
+        return join(sm.means, sm.output_means), var, path, sm.log_likelihood, jnp.ones((), bool)
     G = output_matrix(model, outputs, params) if outputs else None
     extend = (lambda x: x) if G is None else (lambda x: jnp.concatenate([x, x @ G.T], axis=-1))
-    if smoother is not None:  # ekf / ukf (inference/gaussian.py)
-        sm = smoother(params, y, mask, key if with_path else None)
-        var = jnp.diagonal(sm.covs, axis1=-2, axis2=-1)
-        if G is not None:
-            var = jnp.concatenate([var, jnp.einsum("ki,tij,kj->tk", G, sm.covs, G)], axis=-1)
-        path = extend(sm.path) if with_path else jnp.zeros(())
-        return extend(sm.means), var, path, sm.log_likelihood, jnp.ones((), bool)
     A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
     if steady_K is not None:
         sm = steady.steady_smoother(A, Q, H, R, m0, P0, y, key if with_path else None, K=steady_K, rows=G)
@@ -138,7 +138,7 @@ def mixture_posterior(
     ``outputs`` (virtual sensors, :mod:`latentforce.outputs`) are mixed likewise and returned
     under their names beside the states, in ``moments`` and ``paths``.
     ``smoother(params, y, mask, key)`` replaces the exact Kalman smoother (``ekf``/``ukf``:
-    :func:`latentforce.inference.gaussian.for_parameters`; outputs then need a linear system).
+    :func:`latentforce.inference.gaussian.for_parameters`, made with the same ``outputs``).
 
     ``kalman`` (:mod:`latentforce.inference.kalman_choice`): where it picks the
     parallel scan, every draw gets the full parallel filter and smoother (the

@@ -299,12 +299,6 @@ def config_from_dict(
             "(a prior table), but every parameter is fixed; use "
             'method = "kalman".',
         )
-    if method in ("ekf", "ukf") and outputs and not system.is_linear:
-        raise fail(
-            "[[outputs]]",
-            f'method "{method}" gives virtual sensors only for linear systems in this '
-            'version; use method = "pgas" for outputs of a nonlinear system.',
-        )
     if method == "pgas":
         for name in free:
             # PGAS infers (Algorithm 4, Vibration 2020, with Metropolis-within-Gibbs on the force
