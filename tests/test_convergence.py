@@ -117,6 +117,21 @@ def test_a_pgas_warning_names_a_sweep_that_hardly_switched():
     text = low_switch_advice(0.008, 0.02, displacement_measured=True)
     assert "add a displacement sensor" not in text and "substeps" in text and "ukf" in text
     assert low_switch_advice(0.008, 0.9, displacement_measured=True) == ""
+    # a Matérn-1/2 force model: no blame on smoothness, no advice to use the model already used; the
+    # sweep still mixes at these rates, slowly, so a longer run is the advice
+    for measured in (False, True):
+        text = low_switch_advice(0.06, 0.003, displacement_measured=measured, smooth_force=False)
+        assert "Matérn-1/2 force model" not in text and "weakness of a smooth force" not in text
+        assert "max_time" in text and "helps little" not in text and "ukf" in text and "\n" not in text
+    assert "coarsely" in low_switch_advice(0.06, 0.003, displacement_measured=True, smooth_force=False)
+
+
+def test_smooth_force_reads_the_kernels_terms():
+    from latentforce.estimate_particles import smooth_force
+    from latentforce.kernels import Matern
+
+    assert not smooth_force(Matern(0)) and smooth_force(Matern(1)) and smooth_force(Matern(3))
+    assert not smooth_force(Matern(0) + Matern(0)) and smooth_force(Matern(0) + Matern(2))
 
 
 def test_a_pgas_warning_names_the_initial_hysteretic_force_when_the_record_start_is_slow():
