@@ -313,6 +313,46 @@ def test_path_outputs_use_each_draws_own_system_parameters():
     np.testing.assert_allclose(fixed, (u - 0.5 * v - 10.0 * z - 100.0 * z**3) / 2.0, rtol=1e-12, atol=1e-12)
 
 
+def test_the_gaussian_methods_output_function_is_the_samplers_on_one_state():
+    """``output_function`` (ekf/ukf: outputs of one augmented state) against ``path_outputs`` (pgas:
+    outputs of paths), two implementations of one definition, on hysteretic systems where the
+    acceleration carries the hysteretic force r: a Bouc-Wen oscillator (and by hand) and a 3-storey
+    frame with a cubic and a Bouc-Wen element, random states."""
+    from latentforce.outputs import output_function
+    from latentforce.systems import BoucWen, Element, NonlinearMDOF, ShearFrame
+
+    hyst = dict(alpha=2e3, beta=30.0, gamma=10.0, nu=1.0)
+    frame_params = {f"{kind}_{i}": v for kind, v in (("m", 1.5), ("c", 2.0), ("k", 2e3)) for i in range(3)}
+    frame_params.update({"element0_k3": 5e4, **{f"element1_{k}": v for k, v in hyst.items()}})
+    cases = [
+        (BoucWen(), dict(m=2.0, c=0.7, k=40.0, **hyst), 1),
+        (
+            NonlinearMDOF(ShearFrame(3, force_dofs=(2,)), [Element("cubic", (2, 1)), Element("bouc-wen", (1, 0))]),
+            frame_params,
+            3,
+        ),
+    ]
+    rng = np.random.default_rng(4)
+    for system, params, nd in cases:
+        model = LatentForceModel(system, Matern(1), [Sensor("acceleration", 0, 0.1)])
+        params = {**params, "force_variance": 1.0, "force_lengthscale": 0.3}
+        spec = [
+            OutputSpec("inertia", acceleration=tuple(rng.normal(size=nd))),
+            OutputSpec("mix", displacement=tuple(rng.normal(size=nd)), velocity=(0.5,) * nd, force=(2.0,)),
+        ]
+        L = model.layout
+        x = rng.normal(size=(6, model.n_state))
+        fn = jax.jit(lambda x, p: jax.vmap(output_function(model, spec, p))(x))
+        got = np.asarray(fn(jnp.asarray(x), {k: jnp.asarray(v) for k, v in params.items()}))
+        z, v, r = (x[:, sl] for sl in (L.displacement, L.velocity, L.internal))
+        u = x[:, model.force_index()]
+        want = path_outputs(model, spec, params, z, v, u, r=r)
+        np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-9)
+        if nd == 1:  # m a = u - c v - k z - r
+            acc = (u - 0.7 * v - 40.0 * z - r) / 2.0
+            np.testing.assert_allclose(got[:, :1], acc * spec[0].acceleration[0], rtol=1e-11, atol=1e-11)
+
+
 def test_mass_warning_without_a_force_channel():
     from latentforce.results import RunResult
 
