@@ -127,11 +127,11 @@ def test_a_pgas_warning_names_a_sweep_that_hardly_switched():
 
 
 def test_smooth_force_reads_the_kernels_terms():
-    from latentforce.estimate_particles import smooth_force
+    from latentforce.estimate_particles import kernel_is_smooth
     from latentforce.kernels import Matern
 
-    assert not smooth_force(Matern(0)) and smooth_force(Matern(1)) and smooth_force(Matern(3))
-    assert not smooth_force(Matern(0) + Matern(0)) and smooth_force(Matern(0) + Matern(2))
+    assert not kernel_is_smooth(Matern(0)) and kernel_is_smooth(Matern(1)) and kernel_is_smooth(Matern(3))
+    assert not kernel_is_smooth(Matern(0) + Matern(0)) and kernel_is_smooth(Matern(0) + Matern(2))
 
 
 def test_a_pgas_warning_names_the_initial_hysteretic_force_when_the_record_start_is_slow():

@@ -40,7 +40,7 @@ def low_switch_advice(
     renewed the path ("" if not). ``displacement_measured``: a displacement or strain channel is
     among the sensors, where the smoother move's linearised proposal usually renews the path, so its
     failure points at the model's scale, not at a missing sensor. ``smooth_force``: the force model
-    has a Matérn-3/2 or smoother term (:func:`smooth_force`); with Matérn-1/2 alone the sweep still
+    has a Matérn-3/2 or smoother term (:func:`kernel_is_smooth`); with Matérn-1/2 alone the sweep still
     renews the path at these rates, slowly, and the advice says so instead of blaming smoothness."""
     if not switch_rate < LOW_SWITCH_RATE or smoother_acceptance >= LOW_SMOOTHER_ACCEPTANCE:
         return ""
@@ -78,13 +78,13 @@ def low_switch_advice(
     )
 
 
-def smooth_force(kernel) -> bool:
+def kernel_is_smooth(kernel) -> bool:
     """Whether a force kernel has a Matérn-3/2 or smoother term (a state dimension above one: the
     driving noise enters only its highest derivative), through sums."""
     if hasattr(kernel, "terms"):
-        return any(smooth_force(t) for t in kernel.terms)
+        return any(kernel_is_smooth(t) for t in kernel.terms)
     if hasattr(kernel, "k1"):
-        return smooth_force(kernel.k1) or smooth_force(kernel.k2)
+        return kernel_is_smooth(kernel.k1) or kernel_is_smooth(kernel.k2)
     return int(kernel.dim) > 1
 
 
@@ -317,7 +317,7 @@ def _run_pgas(
             smoother = out.diagnostics.get("acceptance_smoother")
             smoother = float(np.mean(smoother)) if smoother else float("nan")
             measured = any(s.quantity in DISPLACEMENT_CHANNELS for s in model.sensors)
-            advice = low_switch_advice(switch, smoother, measured, smooth_force(model.kernel)) + start_advice
+            advice = low_switch_advice(switch, smoother, measured, kernel_is_smooth(model.kernel)) + start_advice
         diagnostics.setdefault("warnings", []).append(message + advice)
     truth = common["truth"]
     if truth:
