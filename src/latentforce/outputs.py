@@ -68,6 +68,15 @@ def _coefficients(spec: OutputSpec, kind: str, width: int) -> np.ndarray:
     return np.zeros(width) if c is None else np.asarray(c, dtype=float)
 
 
+def _coefficient_matrices(outputs: Sequence[OutputSpec], nd: int, nf: int) -> tuple[np.ndarray, ...]:
+    """The outputs' coefficients as rows ``(k, width)``: displacement, velocity, acceleration (``nd``
+    wide each) and force (``nf`` wide)."""
+    return tuple(
+        np.stack([_coefficients(s, kind, width) for s in outputs])
+        for kind, width in (("displacement", nd), ("velocity", nd), ("acceleration", nd), ("force", nf))
+    )
+
+
 def output_matrix(model: LatentForceModel, outputs: Sequence[OutputSpec], params: dict) -> Float[Array, "k n"]:
     r""":math:`G` with :math:`o_t = G x_t` for a linear system (module doc).
 
@@ -93,11 +102,7 @@ def output_function(model: LatentForceModel, outputs: Sequence[OutputSpec], para
     acceleration from the system's equation of motion at ``params`` (module doc). For a linear
     system :math:`o(x) = G x` (:func:`output_matrix`)."""
     L = model.layout
-    nd, nf = model.ndof, model.nforce
-    cz, cv, ca, cu = (
-        np.stack([_coefficients(s, kind, width) for s in outputs])
-        for kind, width in (("displacement", nd), ("velocity", nd), ("acceleration", nd), ("force", nf))
-    )
+    cz, cv, ca, cu = _coefficient_matrices(outputs, model.ndof, model.nforce)
     Hu = model.force_matrix()
     with_acceleration = bool(np.any(ca))
 
@@ -139,10 +144,7 @@ def path_outputs(
     z, v, u = (jnp.asarray(a, dtype=float) for a in (z, v, u))
     nd, nf, ni = model.ndof, model.nforce, model.layout.n_internal
     r = jnp.zeros((*z.shape[:-1], ni)) if r is None else jnp.asarray(r, dtype=float)
-    cz = jnp.asarray(np.stack([_coefficients(s, "displacement", nd) for s in outputs]))
-    cv = jnp.asarray(np.stack([_coefficients(s, "velocity", nd) for s in outputs]))
-    ca = jnp.asarray(np.stack([_coefficients(s, "acceleration", nd) for s in outputs]))
-    cu = jnp.asarray(np.stack([_coefficients(s, "force", nf) for s in outputs]))
+    cz, cv, ca, cu = (jnp.asarray(c) for c in _coefficient_matrices(outputs, nd, nf))
     out = z @ cz.T + v @ cv.T + u @ cu.T
     if np.any(np.asarray(ca)):
         lead = z.shape[:-1]

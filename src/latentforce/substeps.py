@@ -116,11 +116,11 @@ def _demand_of(lam: np.ndarray | None, real_bound: float = STEP_BOUND) -> float:
     return float(np.max(np.abs(lam) / bound))
 
 
-def demand(model, params: dict, real_bound: float = STEP_BOUND) -> float:
+def demand(model, params: dict) -> float:
     """The substeps a unit of time needs: the largest |lambda| / bound over the probe states'
-    eigenvalues, the bound :data:`OSCILLATION_BOUND` for an oscillatory one, ``real_bound``
-    (:data:`STEP_BOUND`) otherwise (NaN as :func:`stiffness`)."""
-    return _demand_of(_eigenvalues(model, params), real_bound)
+    eigenvalues, the bound :data:`OSCILLATION_BOUND` for an oscillatory one, :data:`STEP_BOUND`
+    otherwise (NaN as :func:`stiffness`)."""
+    return _demand_of(_eigenvalues(model, params))
 
 
 def stiffness(model, params: dict) -> float:
@@ -178,16 +178,13 @@ def _worst(probes, dt: float, real_bound: float, default: int) -> tuple[int, dic
     return (default if best == -math.inf else _count(best, dt)), at
 
 
-def needed_over_posterior(
-    model, fixed: dict, draws: dict, dt: float, real_bound: float = STEP_BOUND
-) -> tuple[int, dict | None]:
+def needed_over_posterior(model, fixed: dict, draws: dict, dt: float) -> tuple[int, dict | None]:
     """``(need, at)``: the largest :func:`needed` over :data:`N_POSTERIOR_PROBES` draws evenly spread
     over ``draws`` (name -> array of draws of the sampled parameters, any shape with the draws
-    flattened), the other parameters at ``fixed``, a real eigenvalue's bound ``real_bound``; ``at``
-    holds the sampled values of the draw that needs it (None with no draws). One compiled program
-    serves every draw."""
+    flattened), the other parameters at ``fixed``; ``at`` holds the sampled values of the draw that
+    needs it (None with no draws). One compiled program serves every draw."""
     probes = _posterior_eigenvalues(model, fixed, draws)
-    return _worst(probes, dt, real_bound, int(model.system.substeps))
+    return _worst(probes, dt, STEP_BOUND, int(model.system.substeps))
 
 
 def with_substeps(system, n: int):
