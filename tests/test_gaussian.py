@@ -245,6 +245,10 @@ def test_ekf_and_ukf_as_methods_write_result_folders(tmp_path, monkeypatch):
     # the smoothed acceleration fits the accelerometer to about its noise (sd 0.05), well inside its spread
     assert np.sqrt(np.mean((table["inertia_mean"] - data["acc"]) ** 2)) < 0.1 < np.std(data["acc"])
     assert np.all(table["inertia_sd"] > 0) and (tmp_path / "fixed" / "figures" / "output_inertia.png").exists()
+    # the force spectrum from paths drawn from the smoother (none are stored at fixed parameters)
+    psd = np.genfromtxt(tmp_path / "fixed" / "force_psd.csv", delimiter=",", names=True)
+    assert np.all(psd["psd_q05"] <= psd["psd_mean"]) and np.all(psd["psd_mean"] <= psd["psd_q95"])
+    assert (tmp_path / "fixed" / "figures" / "force_psd.png").exists()
     prior = '{ prior = "lognormal", mu = -0.7, sigma = 1.0, init = 1.0 }'
     (tmp_path / "ekf.toml").write_text(
         DUFFING_CONFIG.format(c=prior, method="ekf", extra="iterations = 60\nburn_in = 40\nchains = 2\n" + outputs)

@@ -14,7 +14,7 @@ from typing import Callable
 import jax
 import numpy as np
 
-from latentforce import substeps
+from latentforce import latent_grid, substeps
 from latentforce.compile import call, numbers, require_x64
 from latentforce.errors import LatentForceError
 from latentforce.estimate_particles import (  # noqa: F401
@@ -125,39 +125,53 @@ def _run(
     for name, spec in problem.free.items():
         params0[name] = spec.init
     _check_stable(problem, params0)
-    problem, substeps_warning = substeps.for_problem(problem, params0, dataset.dt)
-    observed = {c: np.where(mask[:, i], y[:, i], np.nan) for i, c in enumerate(dataset.columns)}
-    truth = _truth(model, dataset)
+    # the nonlinear methods' model steps per sample (latent_grid): the run sees the record on that grid
+    problem, grid, steps, grid_record = latent_grid.for_problem(problem, params0, dataset)
+    problem, substeps_warning = substeps.for_problem(problem, params0, grid.dt)
     fixed_record = {k: (float(v) if np.ndim(v) == 0 else np.asarray(v).tolist()) for k, v in problem.fixed.items()}
-    common = dict(
-        time=np.asarray(dataset.time),
-        ndof=model.ndof,
-        nforce=model.nforce,
-        observed=observed,
-        truth=truth,
-        seed=seed,
-        fixed=fixed_record,
-        units=channel_units(dataset),
-        outputs=output_units(problem.outputs),
-    )
+
+    def shared(ds: Dataset) -> dict:
+        mask_ = np.asarray(ds.mask, dtype=bool)
+        return dict(
+            time=np.asarray(ds.time),
+            ndof=model.ndof,
+            nforce=model.nforce,
+            observed={c: np.where(mask_[:, i], ds.values[:, i], np.nan) for i, c in enumerate(ds.columns)},
+            truth=_truth(model, ds),
+            seed=seed,
+            fixed=fixed_record,
+            units=channel_units(ds),
+            outputs=output_units(problem.outputs),
+        )
+
+    common, common_grid = shared(dataset), shared(grid)
+    y_grid, mask_grid = np.asarray(grid.values, dtype=float), np.asarray(grid.mask, dtype=bool)
     result, extras = _dispatch(
-        key, problem, dataset, params0, y, mask, initial, common, progress, t0, channels, checkpoint
+        key, problem, grid, params0, y_grid, mask_grid, initial, common_grid, progress, t0, channels, checkpoint
     )
-    rerun, recheck_warning = substeps.recheck(problem, result, dataset.dt)
+    rerun, recheck_warning = substeps.recheck(problem, result, grid.dt)
     if rerun is not None:  # once: the count is then chosen at the posterior the data give
         getattr(progress, "close", lambda: None)()  # the rerun's bar starts anew
         used = int(problem.model.system.substeps)
         try:
             # not checkpointed: a run killed here resumes the first pass's finished loop and reruns this
-            second = _dispatch(key, rerun, dataset, params0, y, mask, initial, common, progress, t0, channels, None)
+            second = _dispatch(
+                key, rerun, grid, params0, y_grid, mask_grid, initial, common_grid, progress, t0, channels, None
+            )
         except Exception as err:  # noqa: BLE001 - the first pass is the user's result; say why it stands
             failed = f"chosen at the init values; the rerun at its need failed ({type(err).__name__}: {err})"
-            _, recheck_warning = substeps.recheck(problem, result, dataset.dt, rerun=False, reason=failed)
+            _, recheck_warning = substeps.recheck(problem, result, grid.dt, rerun=False, reason=failed)
         else:
             problem = rerun
             result, extras = second
             result.diagnostics["substeps_first_pass"] = used
-            _, recheck_warning = substeps.recheck(problem, result, dataset.dt, rerun=False)
+            _, recheck_warning = substeps.recheck(problem, result, grid.dt, rerun=False)
+    result = latent_grid.on_samples(result, steps, common)
+    if steps > 1 and "median_smoother" in extras:  # ekf/ukf with inferred parameters
+        extras["median_smoother"] = {n: (m[::steps], s[::steps]) for n, (m, s) in extras["median_smoother"].items()}
+    if grid_record is not None:
+        result.diagnostics["steps_per_sample"] = steps
+        result.diagnostics["grid_check"] = grid_record
     for warning in (substeps_warning, recheck_warning):
         if warning:
             result.diagnostics.setdefault("warnings", []).append(warning)
@@ -168,7 +182,9 @@ def _run(
     _sampling_rate_warning(problem, params0, dataset.dt, result)
     # the force spectrum's draws (kalman) from their own key, apart from the method's
     key_psd = jax.random.fold_in(key, 0x5D)
-    result.force_psd = force_spectrum(key_psd, problem, result, params0, y, mask, dataset.dt, initial)
+    result.force_psd = force_spectrum(
+        key_psd, problem, result, params0, y, mask, dataset.dt, initial, grid=(y_grid, mask_grid, steps)
+    )
     return result, extras
 
 

@@ -59,7 +59,8 @@ def low_switch_advice(
             "With a displacement (or strain) channel that move usually accepts most of its proposals; here "
             "its linearisation about the path is poor: a nonlinearity strong on the scale of the record's "
             "motion, a record sampled coarsely for the structure's motion (measured on a Bouc-Wen "
-            "oscillator: 0.3 % accepted at about 6 samples per period of its linearised mode, 30 % at 21), or a "
+            "oscillator over the same 0.8 s: 5 % accepted at about 6 samples per period of its linearised "
+            "mode, 30 % at 21; fewer on longer records), or a "
             "mechanical step too coarse for the structure's rate (a [system].substeps fixed below the need "
             "is warned about; diagnostics.substeps gives the count used). Compare with "
             'method = "ukf"' + (" and with a Matérn-1/2 force model." if smooth_force else ".")

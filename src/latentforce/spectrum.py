@@ -14,11 +14,12 @@ The posterior spectrum is the Welch estimate (Hann window, segments of
 ``nperseg`` samples, half overlap, the mean removed per segment) of each
 posterior sample path of the force; its mean and 5 % / 95 % quantiles over
 the paths are reported per frequency. The sample paths are the samplers'
-stored trajectories (``kalman-mcmc``, ``kalman-nuts``, ``pgas``), or, under
-``kalman``, draws from the exact smoothing distribution by forward
+stored trajectories (``kalman-mcmc``, ``kalman-nuts``, ``pgas``, ``ekf``/``ukf`` with inferred
+parameters), or, under ``kalman``, draws from the exact smoothing distribution by forward
 filtering, backward sampling (Carter & Kohn 1994;
 :func:`latentforce.inference.kalman.sample_smoothed_trajectory`) from a
-seeded key. The prior's density is drawn at the posterior median of the
+seeded key, and under ``ekf``/``ukf`` at fixed parameters the same from their Gaussian smoother
+(:func:`gaussian_force_samples`). The prior's density is drawn at the posterior median of the
 force hyperparameters (the fixed values under ``kalman``).
 """
 
@@ -35,7 +36,15 @@ from latentforce.compile import jit
 from latentforce.kernels import KernelParams
 from latentforce.models import hyper_names
 
-__all__ = ["PSD_SAMPLES", "force_psd_table", "force_spectrum", "kalman_force_samples", "prior_psd", "welch_psd"]
+__all__ = [
+    "PSD_SAMPLES",
+    "force_psd_table",
+    "force_spectrum",
+    "gaussian_force_samples",
+    "kalman_force_samples",
+    "prior_psd",
+    "welch_psd",
+]
 
 #: smoothing-distribution draws the ``kalman`` spectrum is estimated from
 PSD_SAMPLES = 64
@@ -129,6 +138,27 @@ def _force_draws(params, initial, keys, y, mask, *, model, dt):
     return jax.lax.map(lambda k: sample_smoothed_trajectory(k, A, Q, filt)[:, idx], keys)
 
 
+def gaussian_force_samples(key, problem, params: dict, y, mask, dt: float, n: int = PSD_SAMPLES) -> np.ndarray:
+    """``n`` force paths ``(n, T, nforce)`` drawn from the ``ekf``/``ukf`` smoother's Gaussian at
+    ``params`` (its forward-filtering, backward-sampling pass; ``problem.inference.method``'s kind)."""
+    from latentforce.compile import call, numbers
+    from latentforce.estimate_particles import _mechanical_initial
+    from latentforce.inference.gaussian import for_parameters
+
+    model, settings = problem.model, problem.inference
+    initial = _mechanical_initial(problem, params)
+    _, smoother = for_parameters(settings.method, model, dt, settings.discretisation, initial)
+    mask = np.asarray(mask, dtype=bool)
+    keys = jax.random.split(key, n)
+    paths = call(_gaussian_paths, smoother, numbers(params), np.where(mask, y, 0.0), mask, keys)
+    return np.asarray(paths)[..., model.layout.force]
+
+
+def _gaussian_paths(smoother, params, y, mask, keys):
+    # one path at a time (each a filter and a backward sampling pass)
+    return jax.lax.map(lambda k: smoother(params, y, mask, k).path, keys)
+
+
 def hyperparameters(result, fixed: dict, model) -> tuple:
     """The force variance and lengthscale at which the prior is drawn: the posterior median of a
     sampled one, else its fixed value (for a kernel sum, arrays with one entry per term)."""
@@ -147,13 +177,18 @@ def hyperparameters(result, fixed: dict, model) -> tuple:
     return (var[0], ls[0]) if len(var) == 1 else (np.array(var), np.array(ls))
 
 
-def force_spectrum(key, problem, result, params: dict, y, mask, dt: float, initial=None) -> dict | None:
-    """The ``force_psd.csv`` table of a run (module doc); ``None`` where no force path exists."""
+def force_spectrum(key, problem, result, params: dict, y, mask, dt: float, initial=None, grid=None) -> dict | None:
+    """The ``force_psd.csv`` table of a run (module doc); ``None`` where no force path exists.
+    ``grid``: ``(y, mask, steps)`` of the run's model grid (:mod:`latentforce.latent_grid`), where
+    ``ekf``/``ukf`` at fixed parameters draw their paths."""
     model = problem.model
+    # 64 draws, fewer on long records (each is a backward pass over the record), at least 16
+    n = int(np.clip(PATH_SAMPLE_BUDGET // max(len(y), 1), 16, PSD_SAMPLES))
     if result.method == "kalman":
-        # 64 draws, fewer on long records (each is a backward pass over the record), at least 16
-        n = int(np.clip(PATH_SAMPLE_BUDGET // max(len(y), 1), 16, PSD_SAMPLES))
         paths = kalman_force_samples(key, model, params, y, mask, dt, initial, n=n)
+    elif result.method in ("ekf", "ukf") and not result.path_draws:  # fixed parameters: no stored paths
+        y_grid, mask_grid, steps = grid if grid is not None else (y, mask, 1)
+        paths = gaussian_force_samples(key, problem, params, y_grid, mask_grid, dt / steps, n)[:, ::steps]
     else:
         f = result.path_draws.get("force")
         if f is None or np.size(f) == 0:

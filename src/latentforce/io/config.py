@@ -122,6 +122,8 @@ class Problem(NamedTuple):
     outputs: tuple = ()  # latentforce.outputs.OutputSpec per [[outputs]] table
     #: ``[system].substeps`` as given (None: chosen per record, :func:`latentforce.substeps.choose`)
     substeps: int | None = None
+    #: ``[system].steps_per_sample`` as given (None: "auto", :func:`latentforce.latent_grid.choose`)
+    steps_per_sample: int | None = None
 
 
 # ----- stage 2: meaning ------------------------------------------------------
@@ -386,6 +388,7 @@ def config_from_dict(
         carried=carried,
         outputs=outputs,
         substeps=cfg.system.substeps,
+        steps_per_sample=None if cfg.system.steps_per_sample == "auto" else cfg.system.steps_per_sample,
     )
 
 

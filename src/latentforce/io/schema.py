@@ -88,6 +88,8 @@ class _SystemSection(_Strict):
     gamma: _Param | None = None
     nu: _Param | None = None
     substeps: int | None = Field(default=None, ge=1, le=64)
+    # model steps per sample of the nonlinear methods (latentforce.latent_grid; le: its MAX_STEPS)
+    steps_per_sample: Literal["auto"] | Annotated[int, Field(ge=1, le=8)] = "auto"
     M: list[list[float]] | None = None
     C: list[list[float]] | None = None
     K: list[list[float]] | None = None

@@ -60,6 +60,8 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
         + ("substeps",)
         if getattr(s, n) is not None
     }
+    if s.steps_per_sample != "auto":
+        given.add("steps_per_sample")
 
     def require(names):
         for n in names:
@@ -104,9 +106,9 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
     if s.elements is not None:
         return _with_elements(fail, s, base, fixed, free)
     refuse(
-        ("substeps",),
-        "substeps applies to nonlinear systems (duffing, bouc-wen, [[system.elements]]); a linear one is "
-        "discretised exactly.",
+        ("substeps", "steps_per_sample"),
+        "substeps and steps_per_sample apply to nonlinear systems (duffing, bouc-wen, [[system.elements]]); "
+        "a linear one is discretised exactly.",
     )
     return base
 
