@@ -205,9 +205,13 @@ def test_a_carried_prior_is_the_calibration_marginal(calibration):
     }
     problem = config_from_dict(d, base_dir=calibration)
     with xr.open_datatree(calibration / "calib" / "posterior.nc") as tree:
-        post = tree["posterior"].to_dataset()
+        # every post-burn-in draw (the run stored fewer, aligned with its paths): what is carried
+        assert "parameter_chains" in tree.children
+        post = tree["parameter_chains"].to_dataset()
+        stored = tree["posterior"].to_dataset()["k"].size
         draws = {n: np.asarray(post[n].values).ravel() for n in ("c", "k")}
         ess = {n: float(az.ess(np.asarray(post[n].values))) for n in ("c", "k")}
+    assert problem.carried["[system].k"]["draws"] == draws["k"].size > stored
     for name in ("c", "k"):
         prior = problem.free[name].prior
         sample = np.asarray(prior.sample(jax.random.key(1), (4000,)))

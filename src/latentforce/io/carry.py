@@ -10,7 +10,9 @@ estimate carries the calibration's uncertainty instead of a point value::
     c = { prior = "posterior", from = "calib/", param = "c" }
 
 The earlier result folder's ``posterior.nc`` holds the draws of each sampled
-parameter; they are mapped to the samplers' space :math:`x =
+parameter (its ``parameter_chains`` group, every post-burn-in draw, where the run
+stored fewer in ``posterior``: a fit to the 100 stored draws of a 2 x 800 run came
+out 11 % narrower than the chains' sd, 29.6 against 33.3); they are mapped to the samplers' space :math:`x =
 \operatorname{softplus}^{-1}(\theta)`, where posteriors of positive
 parameters are close to Gaussian, and fitted there by their mean and
 standard deviation (:class:`latentforce.priors.SoftplusNormal`). A parameter
@@ -75,6 +77,12 @@ def carried_prior(folder: str | Path, param: str, where: str, *, signed: bool = 
             post = tree["posterior"].to_dataset() if "posterior" in tree.children else xr.Dataset()
             sampled = [n for n, v in post.data_vars.items() if v.dims == ("chain", "draw")]
             draws = np.asarray(post[param].values, dtype=float).ravel() if param in sampled else None
+            # the full post-burn-in chains where the run stored fewer draws than it made (thinned to
+            # its stored paths): the fit then sees the whole posterior, not a sub-sample of it
+            if draws is not None and "parameter_chains" in tree.children:
+                chains = tree["parameter_chains"].to_dataset()
+                if param in chains.data_vars:
+                    draws = np.asarray(chains[param].values, dtype=float).ravel()
     except (OSError, ValueError, KeyError) as exc:
         raise LatentForceError(f"{where}: {str(nc)!r} cannot be read as a result file ({exc}).") from None
     if draws is None:
