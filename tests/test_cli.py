@@ -60,6 +60,23 @@ def workdir(tmp_path, monkeypatch):
     return tmp_path
 
 
+def test_simulate_out_a_folder_an_extension_or_a_new_folder(workdir):
+    """--out a folder or without a known extension: a clear error before simulating, the folder and
+    its files untouched; in a folder not yet made: made, as estimate makes its --out's parents."""
+    (workdir / "runs").mkdir()
+    (workdir / "runs" / "keep.txt").write_text("mine")
+    for target in ("runs", "runs.csv/"):
+        if target.endswith("/"):
+            (workdir / target).mkdir()
+        code, out = invoke("simulate", "lf.toml", "--out", target, "--duration", "1", "--force")
+        assert code == 1 and "is a folder" in out and "Traceback" not in out and "bug" not in out, out
+    assert (workdir / "runs" / "keep.txt").read_text() == "mine"
+    code, out = invoke("simulate", "lf.toml", "--out", "new/x.txt", "--duration", "1")
+    assert code == 1 and "unknown extension '.txt'" in out and not (workdir / "new").exists(), out
+    code, out = invoke("simulate", "lf.toml", "--out", "new/deep/x.csv", "--duration", "1")
+    assert code == 0 and (workdir / "new" / "deep" / "x.csv").is_file(), out
+
+
 def test_simulate_estimate_report(workdir):
     code, out = invoke("estimate", "lf.toml", "--out", "res")
     assert code == 0, out

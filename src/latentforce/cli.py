@@ -278,6 +278,16 @@ def simulate(
     from latentforce.substeps import needed as needed_substeps
 
     problem = load_config(config)
+    if out.is_dir():
+        raise LatentForceError(
+            f"--out {str(out)!r} is a folder; simulate writes one data file (.csv, .h5, .mat or .nc), "
+            "e.g. --out data.csv. Nothing was written."
+        )
+    if out.suffix.lower() not in (".csv", ".h5", ".hdf5", ".mat", ".nc"):
+        raise LatentForceError(
+            f"--out {str(out)!r}: unknown extension {out.suffix!r}; simulate writes .csv, .h5, .mat or .nc. "
+            "Nothing was written."
+        )
     if out.exists() and not force:
         raise LatentForceError(
             f"The file {str(out)!r} already exists; nothing was written. "
@@ -299,6 +309,10 @@ def simulate(
     columns = {(problem.data.time_column or "time"): sim.time}
     columns.update({c: y[:, i] / scales[i] for i, c in enumerate(problem.columns)})
     columns.update({k: v for k, v in truth_columns(sim).items() if k not in columns})
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)  # as estimate makes its --out folder's parents
+    except OSError as err:
+        raise LatentForceError(f"--out {str(out)!r}: its folder cannot be made ({err}). Nothing was written.") from None
     write_data(out, columns)
     typer.echo(
         f"wrote {n} samples at {rate:g} Hz to {out} "
