@@ -177,6 +177,18 @@ def test_ragged_csv_row(tmp_path):
     _raises(_write_text(tmp_path, "time,acc\n0,1\n1\n"), "line 3")
 
 
+def test_a_comment_line_or_another_separator_is_named(tmp_path):
+    _raises(_write_text(tmp_path, "# logger export\ntime,acc\n0,1\n1,2\n"), "line 2", "comment or title")
+    _raises(_write_text(tmp_path, "time;acc\n0;1\n1;2\n"), "'time;acc'", "separated by commas")
+    _raises(_write_text(tmp_path, "time,acc\n0;1\n1;2\n"), "line 2", "other than commas")
+
+
+def test_a_space_before_a_quoted_header_name_is_not_part_of_it(tmp_path):
+    path = _write_text(tmp_path, 'time, "acc"\n0, 1.5\n0.5, 2.5\n', "ok.csv")
+    ds = load_data(path, ["acc"])
+    np.testing.assert_array_equal(ds.values[:, 0], [1.5, 2.5])
+
+
 def test_unknown_extension(tmp_path):
     _raises(_write_text(tmp_path, "x", "data.xlsx"), ".xlsx", ".csv", ".nc")
 

@@ -94,7 +94,8 @@ class _CsvTable(_Table):
         self.path = path
         # utf-8-sig drops the byte-order mark spreadsheet programs add.
         with open(path, newline="", encoding="utf-8-sig") as f:
-            rows = list(csv.reader(f))
+            # skipinitialspace: a header like `time, "acc"` (a space before a quoted name) reads as `acc`
+            rows = list(csv.reader(f, skipinitialspace=True))
         # Blank lines (e.g. a trailing newline pair) are not data.
         numbered = [(i + 1, r) for i, r in enumerate(rows) if any(cell.strip() for cell in r)]
         if not numbered:
@@ -107,7 +108,16 @@ class _CsvTable(_Table):
             raise _err(path, "the file has a header row but no data rows")
         for line, row in zip(self._lines, self._rows):
             if len(row) != len(self.names):
-                raise _err(path, f"line {line} has {len(row)} fields but the header has {len(self.names)}")
+                hint = ""
+                if len(self.names) == 1 and len(row) > 1:
+                    hint = (
+                        f"; the header (line {numbered[0][0]}: {header[0][:40]!r}) is read as one field: is it a "
+                        "comment or title line? The first non-blank line must be the header, and fields are "
+                        "separated by commas"
+                    )
+                elif len(row) == 1 and len(self.names) > 1:
+                    hint = "; are the fields separated by something other than commas (semicolons, tabs)?"
+                raise _err(path, f"line {line} has {len(row)} fields but the header has {len(self.names)}{hint}")
         dupes = sorted({n for n in self.names if self.names.count(n) > 1})
         if dupes:
             raise _err(path, f"the header names column(s) {', '.join(map(repr, dupes))} more than once")
@@ -336,7 +346,11 @@ def _load(
     listing = ", ".join(repr(n) for n in available) or "(none)"
     for name in columns:
         if name not in available:
-            raise _err(path, f"column {name!r} not found{_suggest(name, available)}. Available columns: {listing}.")
+            sep = next((c for c in (";", "\t", "|") if len(available) == 1 and c in available[0]), None)
+            hint = f" The header holds {sep!r}: CSV fields are separated by commas." if sep else ""
+            raise _err(
+                path, f"column {name!r} not found{_suggest(name, available)}. Available columns: {listing}.{hint}"
+            )
 
     use_time = sample_rate is None
     if use_time:
