@@ -215,3 +215,18 @@ def test_auto_refines_a_coarsely_sampled_hysteretic_record(tmp_path, monkeypatch
     assert cov_one > 0.85 and 0.55 < cov_auto < 0.85, (cov_one, cov_auto)
     assert coverage(truth, auto["force_mean"], auto["force_sd"], 3.0) > 0.97
     assert nmse(truth, auto["force_mean"]) < 0.5 * nmse(truth, one["force_mean"])
+    # pgas under "auto" keeps one step (its cost grows with the count) and its warning names the count
+    import tomllib
+
+    from latentforce.io.config import config_from_dict
+
+    cfg = tomllib.loads(_BOUC_WEN.format(steps="").replace('method = "ukf"', 'method = "pgas"'))
+    problem = config_from_dict(cfg, source="test")
+    data = np.genfromtxt(tmp_path / "data.csv", delimiter=",", names=True)
+    y = np.stack([data["acc"], data["disp"]], axis=1)
+    ds = Dataset(data["time"], 0.005, y, np.ones(y.shape, bool), ["acc", "disp"], {})
+    k, record = latent_grid.choose(problem, dict(problem.fixed), ds)
+    assert k == 1 and record["recommended"] == s_auto["diagnostics"]["steps_per_sample"], record
+    text = latent_grid.warning(record)
+    assert f"steps_per_sample = {record['recommended']}" in text and "wider than the data support" in text
+    assert latent_grid.warning(check) is None

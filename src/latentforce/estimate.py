@@ -21,6 +21,7 @@ from latentforce.estimate_particles import (  # noqa: F401
     PGAS_AUTO_ITERATIONS,
     _mechanical_initial,
     _run_pgas,
+    gaussian_for,
     softening_hint,
 )
 from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_compiled, state_moments
@@ -172,7 +173,7 @@ def _run(
     if grid_record is not None:
         result.diagnostics["steps_per_sample"] = steps
         result.diagnostics["grid_check"] = grid_record
-    for warning in (substeps_warning, recheck_warning):
+    for warning in (substeps_warning, recheck_warning, latent_grid.warning(grid_record)):
         if warning:
             result.diagnostics.setdefault("warnings", []).append(warning)
     if not problem.model.system.is_linear:
@@ -370,17 +371,8 @@ def _run_gaussian(
 ) -> RunResult:
     """``ekf`` / ``ukf``: the Gaussian smoother at fixed parameters, or random-walk Metropolis over the
     inferred ones on its approximate likelihood with the states mixed over the draws."""
-    from latentforce.inference.gaussian import for_parameters
-
-    model, settings = problem.model, problem.inference
-    loglik, smoother = for_parameters(
-        settings.method,
-        model,
-        dataset.dt,
-        settings.discretisation,
-        _mechanical_initial(problem, params0),
-        problem.outputs,
-    )
+    settings = problem.inference
+    loglik, smoother = gaussian_for(problem, params0, dataset.dt, outputs=problem.outputs)
     if problem.free:
         return _run_kalman_sampler(
             key, problem, dataset, y, mask, None, common, progress, t0, extras, checkpoint, gaussian=(loglik, smoother)

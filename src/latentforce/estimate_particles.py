@@ -181,6 +181,17 @@ def _mechanical_initial(problem: Problem, params0: dict):
     return np.asarray(m0)[mech], np.asarray(P0)[mech, mech]
 
 
+def gaussian_for(problem: Problem, params0: dict, dt: float, kind: str | None = None, outputs=()):
+    """``(loglik, smoother)`` of the problem's ``ekf``/``ukf`` (``kind`` in place of its method) at the
+    model step ``dt``, started from :func:`_mechanical_initial` at ``params0``
+    (:func:`latentforce.inference.gaussian.for_parameters`)."""
+    from latentforce.inference.gaussian import for_parameters
+
+    settings = problem.inference
+    initial = _mechanical_initial(problem, params0)
+    return for_parameters(kind or settings.method, problem.model, dt, settings.discretisation, initial, outputs)
+
+
 def _run_pgas(
     key,
     problem: Problem,

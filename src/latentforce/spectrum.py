@@ -142,12 +142,10 @@ def gaussian_force_samples(key, problem, params: dict, y, mask, dt: float, n: in
     """``n`` force paths ``(n, T, nforce)`` drawn from the ``ekf``/``ukf`` smoother's Gaussian at
     ``params`` (its forward-filtering, backward-sampling pass; ``problem.inference.method``'s kind)."""
     from latentforce.compile import call, numbers
-    from latentforce.estimate_particles import _mechanical_initial
-    from latentforce.inference.gaussian import for_parameters
+    from latentforce.estimate_particles import gaussian_for
 
-    model, settings = problem.model, problem.inference
-    initial = _mechanical_initial(problem, params)
-    _, smoother = for_parameters(settings.method, model, dt, settings.discretisation, initial)
+    model = problem.model
+    _, smoother = gaussian_for(problem, params, dt)
     mask = np.asarray(mask, dtype=bool)
     keys = jax.random.split(key, n)
     paths = call(_gaussian_paths, smoother, numbers(params), np.where(mask, y, 0.0), mask, keys)
