@@ -48,13 +48,13 @@ the linear part's; not measured to need more). A run then costs ``k`` times as m
 ``steps_per_sample = 1`` in ``[system]`` keeps the faster, wider answer.
 
 ``pgas`` keeps one step under "auto" where the check asks for more, and its warning names the count
-(:func:`warning`; ``diagnostics.grid_check.recommended``): its per-iteration cost grows with ``k`` and on
-the record above, alpha inferred, the refined grid converged more slowly (3 steps: R-hat 1.047 at
-600 s where one step converged in 585 s; 4 steps at the default 150 s cap: R-hat 1.74 in 426 s of wall
-time, the warm-up not counted against the cap, against 1.038 at one step). One step's bands are wide,
-not wrong (force +-3 sd 100 %); ``steps_per_sample = k`` gives the sharper answer where the time is
-there. A check that fails (the
-unscented smoother breaking down on some grid) keeps one step and says why in ``summary.json``.
+(:func:`warning`; ``diagnostics.grid_check.recommended``): its per-iteration cost grows with ``k`` and
+on the record above, alpha inferred, the refined grid converged more slowly (3 steps: R-hat 1.047 at
+600 s where one step converged in 585 s; 4 steps at the config's 150 s cap: R-hat 1.74 in 426 s of
+wall time beside a test run, the warm-up not counted against the cap, against 1.038 at one step).
+One step's bands are wide, not wrong (force +-3 sd 100 %); ``steps_per_sample = k`` gives the sharper
+answer where the time is there. A check that fails (the unscented smoother breaking down on some
+grid) keeps one step and says why in ``summary.json``.
 
 The results are reported at the samples only (:func:`on_samples`); ``summary.json`` records the
 count and the check (``diagnostics.steps_per_sample``, ``diagnostics.grid_check``).
