@@ -213,7 +213,7 @@ def test_a_posterior_stiffer_than_the_init_values_reruns_at_its_need(monkeypatch
     y = np.zeros((11, 1))
     dataset = Dataset(np.arange(11) / FS, 1.0 / FS, y, np.ones_like(y, dtype=bool), ["vel"], {})
     monkeypatch.setattr(estimate, "_dispatch", lambda key, problem, *a: _posterior_at_truth(problem))
-    monkeypatch.setattr(estimate, "force_spectrum", lambda *a: None)
+    monkeypatch.setattr(estimate, "force_spectrum", lambda *a, **k: None)
     seen.clear()
     result, _ = estimate.run(problem, dataset)
     warnings = result.diagnostics.get("warnings", [])
@@ -237,7 +237,7 @@ def test_a_posterior_within_the_rerun_bound_keeps_the_count_without_a_word(monke
     problem = _config(beta=prior(100.0), gamma=prior(80.0), **extra)
     y = np.zeros((11, 1))
     dataset = Dataset(np.arange(11) / FS, 1.0 / FS, y, np.ones_like(y, dtype=bool), ["vel"], {})
-    monkeypatch.setattr(estimate, "force_spectrum", lambda *a: None)
+    monkeypatch.setattr(estimate, "force_spectrum", lambda *a, **k: None)
     for factor, expected in ((4.0, [6]), (6.0, [6] if fixed_count else [6, 14])):
         at = {**STIFF, **GP, "beta": 100.0 * factor, "gamma": 80.0 * factor}
         assert S.needed(problem.model, at, 1.0 / FS) > 6  # past the accuracy bound either way
@@ -272,7 +272,7 @@ def test_a_rerun_that_fails_leaves_the_first_pass_with_a_warning(monkeypatch):
         return _posterior_at_truth(problem)
 
     monkeypatch.setattr(estimate, "_dispatch", dispatch)
-    monkeypatch.setattr(estimate, "force_spectrum", lambda *a: None)
+    monkeypatch.setattr(estimate, "force_spectrum", lambda *a, **k: None)
     seen.clear()
     result, _ = estimate.run(problem, dataset)
     assert seen == [6, 18] and result.diagnostics["substeps"] == 6
