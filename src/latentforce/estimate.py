@@ -145,7 +145,8 @@ def _run(
             outputs=output_units(problem.outputs),
         )
 
-    common, common_grid = shared(dataset), shared(grid)
+    common = shared(dataset)
+    common_grid = common if grid is dataset else shared(grid)
     y_grid, mask_grid = np.asarray(grid.values, dtype=float), np.asarray(grid.mask, dtype=bool)
     result, extras = _dispatch(
         key, problem, grid, params0, y_grid, mask_grid, initial, common_grid, progress, t0, channels, checkpoint

@@ -129,9 +129,14 @@ def for_problem(problem, params0: dict, dataset: Dataset) -> tuple[object, Datas
     the ``k`` steps; ``record`` what ``summary.json`` says about the choice (None: one step, nothing
     to say)."""
     k, record = choose(problem, params0, dataset)
-    if k > 1 and problem.substeps is not None:
-        problem = problem._replace(substeps=max(1, math.ceil(problem.substeps / k)))
-    return problem, refine(dataset, k), k, record
+    return _substeps_per_step(problem, k), refine(dataset, k), k, record
+
+
+def _substeps_per_step(problem, k: int):
+    """``problem`` with a fixed ``substeps`` count (per sample) spread over ``k`` model steps."""
+    if k == 1 or problem.substeps is None:
+        return problem
+    return problem._replace(substeps=max(1, math.ceil(problem.substeps / k)))
 
 
 def choose(problem, params0: dict, dataset: Dataset) -> tuple[int, dict | None]:
@@ -196,8 +201,8 @@ def _posterior(problem, params0: dict, dataset: Dataset, k: int) -> dict:
     from latentforce.inference.kalman_mcmc import state_moments
 
     fine = refine(dataset, k)
-    prob = problem if problem.substeps is None else problem._replace(substeps=max(1, math.ceil(problem.substeps / k)))
-    prob, _ = substeps.for_problem(prob, params0, fine.dt)  # the run's method is pgas, ekf or ukf here
+    # the substeps a run on this grid would take (the run's method is pgas, ekf or ukf here)
+    prob, _ = substeps.for_problem(_substeps_per_step(problem, k), params0, fine.dt)
     _, smoother = gaussian_for(prob, params0, fine.dt, kind="ukf")
     mask = np.asarray(fine.mask, dtype=bool)
     sm = call(smoother, numbers(params0), np.where(mask, fine.values, 0.0), mask)

@@ -346,7 +346,7 @@ def _load(
     listing = ", ".join(repr(n) for n in available) or "(none)"
     for name in columns:
         if name not in available:
-            sep = next((c for c in (";", "\t", "|") if len(available) == 1 and c in available[0]), None)
+            sep = next((c for c in (";", "\t", "|") if c in available[0]), None) if len(available) == 1 else None
             hint = f" The header holds {sep!r}: CSV fields are separated by commas." if sep else ""
             raise _err(
                 path, f"column {name!r} not found{_suggest(name, available)}. Available columns: {listing}.{hint}"
