@@ -272,7 +272,8 @@ def simulate(
 
     from latentforce.io.channels import sensor_unit_scales
     from latentforce.io.config import initial_params, load_config
-    from latentforce.io.data import write_data
+    from latentforce.io.data import truth_units, write_data
+    from latentforce.io.units import SI_UNITS
     from latentforce.simulate import measure, truth_columns
     from latentforce.simulate import simulate as simulate_fn
     from latentforce.substeps import needed as needed_substeps
@@ -309,11 +310,15 @@ def simulate(
     columns = {(problem.data.time_column or "time"): sim.time}
     columns.update({c: y[:, i] / scales[i] for i, c in enumerate(problem.columns)})
     columns.update({k: v for k, v in truth_columns(sim).items() if k not in columns})
+    # unit labels (.h5/.nc attributes): a sensor's unit key, else SI, as estimate reads them back
+    keys = tuple(problem.data.units or ()) or (None,) * len(problem.columns)
+    units = {c: k or SI_UNITS[s.quantity] for c, k, s in zip(problem.columns, keys, problem.model.sensors)}
+    units = {**truth_units(columns), **units, (problem.data.time_column or "time"): "s"}
     try:
         out.parent.mkdir(parents=True, exist_ok=True)  # as estimate makes its --out folder's parents
     except OSError as err:
         raise LatentForceError(f"--out {str(out)!r}: its folder cannot be made ({err}). Nothing was written.") from None
-    write_data(out, columns)
+    write_data(out, columns, units)
     typer.echo(
         f"wrote {n} samples at {rate:g} Hz to {out} "
         f"(channels: {', '.join(problem.columns)}; truth: {', '.join(problem.model.layout.states)})"

@@ -33,7 +33,7 @@ from typing import NamedTuple
 import numpy as np
 
 from latentforce.errors import LatentForceError
-from latentforce.io.data import Dataset, load_data
+from latentforce.io.data import Dataset, read_table
 from latentforce.io.units import ChannelUnit, resolve_unit
 from latentforce.io.vendor import (
     VENDOR_EXTENSIONS,
@@ -138,12 +138,16 @@ def _read_sources(
                 sources[i] = _Source(table.channel(specs[i].column), where)
                 _check_missing(specs[i], sources[i], missing)
             continue
-        ds = load_data(
+        ds, labels = read_table(
             file, [specs[i].column for i in idx], time_column=time_column, sample_rate=sample_rate, missing=missing
         )
         for k, i in enumerate(idx):
             raw = RawChannel(
-                values=ds.values[:, k], t0=float(ds.time[0]), dt=float(ds.dt), unit=None, time=np.asarray(ds.time)
+                values=ds.values[:, k],
+                t0=float(ds.time[0]),
+                dt=float(ds.dt),
+                unit=labels[specs[i].column],
+                time=np.asarray(ds.time),
             )
             sources[i] = _Source(raw, where)
             _check_missing(specs[i], sources[i], missing)

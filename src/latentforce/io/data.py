@@ -10,6 +10,9 @@ and turns each into a one-paragraph :class:`~latentforce.errors.LatentForceError
 naming the file and the column. Truth columns (``displacement``,
 ``velocity``, ``force``, or with ``_0``, ``_1`` ... suffixes for MDOF), as
 written by ``simulate``, are picked up when present for the NMSE table.
+A netCDF or HDF5 variable's ``units`` attribute is its unit label: the time
+column and truth columns are scaled to seconds and SI here, the sensor
+channels by :mod:`latentforce.io.channels` (which knows their quantities).
 
 This module only moves numbers between files and arrays; it does no
 numerics beyond the checks (STYLE.md, rule 7).
@@ -28,13 +31,15 @@ import numpy as np
 
 from latentforce.errors import LatentForceError
 
-__all__ = ["Dataset", "SUPPORTED_EXTENSIONS", "TRUTH_NAMES", "load_data", "write_csv"]
+__all__ = ["Dataset", "SUPPORTED_EXTENSIONS", "TRUTH_NAMES", "load_data", "read_table", "truth_units", "write_csv"]
 
 SUPPORTED_EXTENSIONS = (".csv", ".h5", ".hdf5", ".mat", ".nc", ".uff", ".unv", ".tdms")
 # Vendor formats (io/vendor.py): each channel carries its own time axis and unit.
 _VENDOR_EXTENSIONS = (".uff", ".unv", ".tdms")
 TRUTH_NAMES = ("displacement", "velocity", "force")
 _TRUTH_PATTERN = re.compile(r"^(displacement|velocity|hysteretic_force|force)(_\d+)?$")
+#: the SI unit of each truth column (what the estimates are in)
+_TRUTH_SI = {"displacement": "m", "velocity": "m/s", "hysteretic_force": "N", "force": "N"}
 # Relative tolerance on the spread of the time steps: tighter than any
 # sensible acquisition jitter, looser than float64 round-off of t = i * dt.
 _UNEVEN_RTOL = 1e-6
@@ -75,6 +80,10 @@ class _Table:
 
     def row_label(self, i: int) -> str:
         return f"row {i}"
+
+    def unit(self, name: str) -> str | None:
+        """The unit label the file gives channel ``name`` (None: none)."""
+        return None
 
     def close(self) -> None:
         pass
@@ -164,17 +173,33 @@ class _Hdf5Table(_Table):
     def read(self, name: str) -> np.ndarray:
         return np.asarray(self._file[name][()])
 
+    def unit(self, name: str) -> str | None:
+        attrs = self._file[name].attrs
+        return next((_label(attrs[k]) for k in ("units", "unit") if k in attrs), None)
+
     def close(self) -> None:
         self._file.close()
 
 
 class _DictTable(_Table):
-    def __init__(self, arrays: dict[str, np.ndarray]):
+    def __init__(self, arrays: dict[str, np.ndarray], units: dict[str, str | None] | None = None):
         self._arrays = arrays
+        self._units = units or {}
         self.names = list(arrays)
 
     def read(self, name: str) -> np.ndarray:
         return np.asarray(self._arrays[name])
+
+    def unit(self, name: str) -> str | None:
+        return self._units.get(name)
+
+
+def _label(value) -> str | None:
+    """An attribute's text (HDF5 stores it as str, bytes or a one-element array)."""
+    value = np.asarray(value).reshape(-1)[0] if np.ndim(value) else value
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", "replace")
+    return str(value) if isinstance(value, (str, np.str_)) else None
 
 
 def _open_mat(path: Path) -> _Table:
@@ -198,15 +223,18 @@ def _open_netcdf(path: Path) -> _Table:
     last: Exception | None = None
     for engine in ("h5netcdf", "netcdf4"):
         try:
-            ds = xr.open_dataset(path, engine=engine)
+            # decode_timedelta=False: a variable in "s" stays seconds (its label read below)
+            ds = xr.open_dataset(path, engine=engine, decode_timedelta=False)
         except (ValueError, OSError, ImportError) as exc:
             last = exc
             continue
         try:
-            arrays = {str(n): ds[n].values for n in list(ds.data_vars) + list(ds.coords)}
+            names = list(ds.data_vars) + list(ds.coords)
+            arrays = {str(n): ds[n].values for n in names}
+            units = {str(n): _label(ds[n].attrs["units"]) for n in names if "units" in ds[n].attrs}
         finally:
             ds.close()
-        return _DictTable(arrays)
+        return _DictTable(arrays, units)
     raise _err(path, f"not a readable netCDF file ({last})")
 
 
@@ -243,6 +271,25 @@ def _as_vector(path: Path, name: str, raw: np.ndarray) -> np.ndarray:
     if arr.dtype.kind not in "biuf":
         raise _err(path, f"column {name!r} holds non-numeric data (type {arr.dtype})")
     return arr.astype(np.float64)
+
+
+def _in_unit(path: Path, table: _Table, name: str, values: np.ndarray, si: str, what: str) -> np.ndarray:
+    """``values`` of column ``name`` in ``si``, by the file's unit label (as they are without one)."""
+    from latentforce.io.units import NO_UNIT, unit_scale
+
+    label = table.unit(name)
+    if label is None or label.strip().lower() in NO_UNIT:
+        return values
+    label = label.split(" since ")[0]  # CF time: "seconds since 2024-01-01" (not decoded in HDF5)
+    try:
+        scale = unit_scale(label, si)
+    except ValueError as exc:
+        raise _err(
+            path,
+            f"column {name!r} has the unit label {label!r} (its 'units' attribute), which does not fit {what} "
+            f"({exc}); it needs a unit like {si!r}. Correct or remove the label.",
+        ) from None
+    return values * scale if scale != 1.0 else values
 
 
 def _first(mask: np.ndarray) -> int:
@@ -291,9 +338,40 @@ def load_data(
     time and unit: they go through :func:`latentforce.io.channels.load_channels`
     (channels at several rates on one grid, values in SI by the file's unit
     labels). ``missing="error"`` refuses NaN/inf samples; ``"skip"`` keeps
-    them as unobserved (``mask`` False, value NaN).
+    them as unobserved (``mask`` False, value NaN). A table format's sensor
+    channels are as the file holds them (:func:`read_table` gives their unit
+    labels); its time is in seconds and its truth in SI by their labels.
     """
     path = Path(path)
+    _check_path(path, columns, missing)
+    if path.suffix.lower() in _VENDOR_EXTENSIONS:
+        # Time from each channel (time_column and sample_rate do not apply), units to SI.
+        from latentforce.io.channels import ChannelSpec, load_channels
+
+        return load_channels([ChannelSpec(c) for c in columns], path, missing=missing)
+    return read_table(path, columns, time_column, sample_rate, missing)[0]
+
+
+def read_table(
+    path: str | Path,
+    columns: list[str],
+    time_column: str | None = "time",
+    sample_rate: float | None = None,
+    missing: str = "error",
+) -> tuple[Dataset, dict[str, str | None]]:
+    """:func:`load_data` for a table format (``.csv``, ``.h5``, ``.mat``, ``.nc``), and each of the
+    ``columns``' unit label in the file (a netCDF/HDF5 ``units`` attribute; None where none)."""
+    path = Path(path)
+    _check_path(path, columns, missing)
+    table = _open(path)
+    try:
+        dataset = _load(path, table, list(columns), time_column, sample_rate, missing)
+        return dataset, {c: table.unit(c) for c in columns}
+    finally:
+        table.close()
+
+
+def _check_path(path: Path, columns: list[str], missing: str) -> None:
     if missing not in ("error", "skip"):
         raise ValueError(f"missing must be 'error' or 'skip', got {missing!r}")
     if not path.exists():
@@ -304,17 +382,6 @@ def load_data(
         raise _err(path, "the file is empty")
     if not columns:
         raise ValueError("load_data needs at least one column")
-    if path.suffix.lower() in _VENDOR_EXTENSIONS:
-        # Time from each channel (time_column and sample_rate do not apply), units to SI.
-        from latentforce.io.channels import ChannelSpec, load_channels
-
-        return load_channels([ChannelSpec(c) for c in columns], path, missing=missing)
-
-    table = _open(path)
-    try:
-        return _load(path, table, list(columns), time_column, sample_rate, missing)
-    finally:
-        table.close()
 
 
 def _check_rate_against_time(path: Path, table: _Table, columns: list[str], sample_rate: float, T: int) -> None:
@@ -386,7 +453,7 @@ def _load(
         raise _err(path, f"column {columns[0]!r} has {T} sample; at least 2 are needed")
 
     if use_time:
-        time = channels[time_column]
+        time = _in_unit(path, table, time_column, channels[time_column], "s", "a time column")
         dt = _check_time(path, table, time_column, time)
     else:
         dt = 1.0 / float(sample_rate)
@@ -406,8 +473,16 @@ def _load(
                     f"to treat them as missing observations.",
                 )
     values = np.where(mask, values, np.nan)
-    truth = {n: channels[n] for n in truth_names}
+    truth = {
+        n: _in_unit(path, table, n, channels[n], _TRUTH_SI[_TRUTH_PATTERN.match(n).group(1)], f"a {n} truth column")
+        for n in truth_names
+    }
     return Dataset(time=time, dt=dt, values=values, mask=mask, columns=list(columns), truth=truth)
+
+
+def truth_units(columns) -> dict[str, str]:
+    """The SI unit label of each truth column among ``columns`` (names as ``simulate`` writes them)."""
+    return {n: _TRUTH_SI[m.group(1)] for n in columns if (m := _TRUTH_PATTERN.match(n))}
 
 
 def write_csv(path: str | Path, columns: dict[str, np.ndarray]) -> None:
@@ -428,13 +503,16 @@ def write_csv(path: str | Path, columns: dict[str, np.ndarray]) -> None:
             writer.writerow([repr(v) for v in row])
 
 
-def write_data(path: str | Path, columns: dict[str, np.ndarray]) -> None:
+def write_data(path: str | Path, columns: dict[str, np.ndarray], units: dict[str, str] | None = None) -> None:
     """Write channels in the format given by the extension (the formats ``load_data`` reads).
 
     ``.csv``: header row; ``.h5``/``.hdf5``: one dataset per column;
     ``.mat``: MATLAB v5, one variable per column; ``.nc``: netCDF, one
-    variable per column on the dimension ``time``.
+    variable per column on the dimension ``time``. ``units``: column -> unit
+    label, written as each variable's ``units`` attribute in ``.h5`` and
+    ``.nc`` files (the other formats have no place for it).
     """
+    units = units or {}
     path = Path(path)
     ext = path.suffix.lower()
     arrays = {n: np.asarray(v, dtype=np.float64).reshape(-1) for n, v in columns.items()}
@@ -446,6 +524,8 @@ def write_data(path: str | Path, columns: dict[str, np.ndarray]) -> None:
         with h5py.File(path, "w") as f:
             for n, a in arrays.items():
                 f.create_dataset(n, data=a)
+                if n in units:
+                    f[n].attrs["units"] = units[n]
     elif ext == ".mat":
         from scipy.io import savemat
 
@@ -453,7 +533,8 @@ def write_data(path: str | Path, columns: dict[str, np.ndarray]) -> None:
     elif ext == ".nc":
         import xarray as xr
 
-        xr.Dataset({n: ("time", a) for n, a in arrays.items()}).to_netcdf(path, engine="h5netcdf")
+        variables = {n: ("time", a, {"units": units[n]} if n in units else {}) for n, a in arrays.items()}
+        xr.Dataset(variables).to_netcdf(path, engine="h5netcdf")
     else:
         raise LatentForceError(
             f"Cannot write {str(path)!r}: unknown extension {ext!r}. Supported: .csv, .h5, .hdf5, .mat, .nc."

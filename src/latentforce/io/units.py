@@ -2,14 +2,18 @@
 
 A channel's unit comes from the sensor's ``unit`` key, else from the data
 file (a UFF record's ordinate units label, a TDMS channel's ``unit_string``,
-a SEP005 record's ``unit_str``), else SI is assumed. The data are multiplied
+a SEP005 record's ``unit_str``, a netCDF or HDF5 variable's ``units``
+attribute), else SI is assumed. The data are multiplied
 by the unit's factor to SI before inference, and so is the sensor's
 ``noise_std``, which is given in the channel's unit.
 
 Words the units library reads differently from a vibration engineer:
 ``g`` is standard gravity (9.80665 m/s², so ``mg`` is a thousandth of it),
 never the gram, since no sensor here measures a mass; ``strain`` is a
-dimensionless unit (``ustrain``, ``µε`` = 1e-6). The registry holding these
+dimensionless unit (``ustrain``, ``µε`` = 1e-6). Labels in the UDUNITS
+syntax of netCDF files (CF conventions), which pint does not read, are read
+after rewriting: a power written after its unit (``"m s-2"``, ``"m/s2"``,
+``"m.s^-2"``) and ``.`` as the product. The registry holding these
 definitions is private to this module (STYLE.md 7a: importing changes
 nothing global) and is built on first use only, since building it takes a
 second or two.
@@ -18,11 +22,12 @@ second or two.
 from __future__ import annotations
 
 import functools
+import re
 from typing import NamedTuple
 
 from latentforce.errors import LatentForceError
 
-__all__ = ["SI_UNITS", "ChannelUnit", "resolve_unit", "unit_scale"]
+__all__ = ["NO_UNIT", "SI_UNITS", "ChannelUnit", "resolve_unit", "unit_scale"]
 
 #: The unit every quantity is converted to before inference.
 SI_UNITS: dict[str, str] = {
@@ -39,7 +44,7 @@ class _WrongDimension(ValueError):
 
 
 #: Labels vendor files use for "no unit given" (pyuff writes "NONE" by default).
-_NO_UNIT = {"", "none", "null", "n/a", "na", "-"}
+NO_UNIT = {"", "none", "null", "n/a", "na", "-"}
 
 
 class ChannelUnit(NamedTuple):
@@ -65,19 +70,39 @@ def _registry():
     ureg = pint.UnitRegistry()
     # Vibration usage, see the module docstring: g is the acceleration of gravity.
     ureg.define("g = standard_gravity")
+    # but "kg" stays the kilogram (else kilo-gravities: "kg m s-2", a newton in UDUNITS, would not be one)
+    ureg.define("kg = kilogram")
     ureg.define("strain = 1 = ε")
     return ureg
 
 
+#: UDUNITS writes a power straight after its unit ("s-2", "m2", "s^-2"); pint needs "**".
+_UDUNITS_POWER = re.compile(r"(?<=[A-Za-zµμ])\^?([-+]?\d+)(?![\d.])")
+#: and "." between units as their product ("m.s-2")
+_UDUNITS_PRODUCT = re.compile(r"(?<=[A-Za-zµμ\d])\.(?=[A-Za-zµμ])")
+
+
+def _pint_syntax(text: str) -> str:
+    """A UDUNITS label (netCDF, CF conventions) in pint's syntax: "m s-2" -> "m s**-2"."""
+    return _UDUNITS_POWER.sub(r"**\1", _UDUNITS_PRODUCT.sub("*", text))
+
+
 def _parse(text: str):
-    """The pint unit of ``text``, or a ValueError saying why not."""
+    """The pint unit of ``text`` (as written, else read as UDUNITS), or a ValueError saying why not."""
     import pint
 
     ureg = _registry()
+    caught = (pint.errors.PintError, AttributeError, TypeError, ValueError, SyntaxError)
     try:
         quantity = ureg.Quantity(1.0, text.strip())
-    except (pint.errors.PintError, AttributeError, TypeError, ValueError, SyntaxError) as exc:
-        raise ValueError(str(exc) or type(exc).__name__) from None
+    except caught as exc:
+        rewritten = _pint_syntax(text.strip())
+        if rewritten == text.strip():
+            raise ValueError(str(exc) or type(exc).__name__) from None
+        try:
+            quantity = ureg.Quantity(1.0, rewritten)
+        except caught:
+            raise ValueError(str(exc) or type(exc).__name__) from None
     if quantity.magnitude != 1.0:
         # "1e-3 m" or "2 N": a number inside the unit string
         raise ValueError("a unit must not hold a number")
@@ -124,7 +149,7 @@ def resolve_unit(
     if sensor_unit is not None and not sensor_unit.strip():
         raise LatentForceError(f'{who}: unit is empty; give a unit such as "m/s^2", or leave the key out.')
     given, source = (sensor_unit, "sensor") if sensor_unit is not None else (file_unit, "file")
-    if given is None or (source == "file" and given.strip().lower() in _NO_UNIT):
+    if given is None or (source == "file" and given.strip().lower() in NO_UNIT):
         if quantity is None:
             return ChannelUnit(unit="", si="", scale=1.0, source="assumed")
         si = SI_UNITS[quantity]

@@ -1,0 +1,191 @@
+"""Unit labels of netCDF and HDF5 files (a variable's ``units`` attribute).
+
+A channel labelled in g, mm or UDUNITS syntax ("m s-2") is read in SI as a
+vendor file's label is; the time column in seconds and the truth columns in
+SI by their labels; a label that does not fit is an error naming the file,
+the column and the label. The reference for each number is the same data
+written plainly in SI, or the factor by hand.
+"""
+
+import h5py
+import numpy as np
+import pytest
+import xarray as xr
+
+import latentforce  # noqa: F401  (float64)
+from latentforce.errors import LatentForceError
+from latentforce.io.channels import ChannelSpec, load_channels
+from latentforce.io.data import read_table, write_data
+from latentforce.io.units import unit_scale
+
+G = 9.80665
+T = 50
+DT = 0.01
+
+
+def _signals():
+    rng = np.random.default_rng(4)
+    return 0.3 * rng.standard_normal(T), 2.0 * rng.standard_normal(T), rng.standard_normal(T)
+
+
+@pytest.mark.parametrize(
+    "label, si, scale",
+    [
+        ("m s-2", "m/s^2", 1.0),
+        ("m/s2", "m/s^2", 1.0),
+        ("m.s-2", "m/s^2", 1.0),
+        ("m.s^-2", "m/s^2", 1.0),
+        ("mm s-2", "m/s^2", 1e-3),
+        ("mm s-1", "m/s", 1e-3),
+        ("cm/s2", "m/s^2", 1e-2),
+        ("kg m s-2", "N", 1.0),
+        ("um", "m", 1e-6),
+        ("g", "m/s^2", G),
+    ],
+)
+def test_udunits_labels_read_as_their_unit(label, si, scale):
+    assert unit_scale(label, si) == pytest.approx(scale, rel=1e-14)
+
+
+def test_udunits_labels_of_another_dimension_are_refused():
+    with pytest.raises(ValueError, match="dimension"):
+        unit_scale("mm s-1", "m/s^2")  # a velocity, not an acceleration
+    with pytest.raises(ValueError):
+        unit_scale("m s-2x", "m/s^2")
+
+
+def _write_nc(path, time, columns, units):
+    xr.Dataset(
+        {n: ("time", v, {"units": units[n]} if n in units else {}) for n, v in columns.items()},
+        coords={"time": ("time", time, {"units": units["time"]} if "time" in units else {})},
+    ).to_netcdf(path, engine="h5netcdf")
+
+
+def _write_h5(path, time, columns, units):
+    with h5py.File(path, "w") as f:
+        for n, v in {"time": time, **columns}.items():
+            f.create_dataset(n, data=v)
+            if n in units:
+                # h5py writes str attributes as variable-length strings; MATLAB and others as bytes
+                f[n].attrs["units"] = np.bytes_(units[n]) if n == "disp" else units[n]
+
+
+@pytest.mark.parametrize("writer", [_write_nc, _write_h5], ids=["nc", "h5"])
+def test_labelled_channels_time_and_truth_are_read_in_si(tmp_path, writer):
+    acc, disp, force = _signals()
+    time = 1000.0 * DT * np.arange(T)  # in ms
+    path = tmp_path / f"rec.{'nc' if writer is _write_nc else 'h5'}"
+    labels = {"time": "ms", "acc": "g", "disp": "mm", "force": "kN"}
+    writer(path, time, {"acc": acc, "disp": disp, "force": force}, labels)
+    specs = [ChannelSpec("acc", "acceleration", label="[[sensors]][0]"), ChannelSpec("disp", "displacement")]
+    ds = load_channels(specs, path)
+    np.testing.assert_allclose(ds.values[:, 0], G * acc, rtol=1e-15)
+    np.testing.assert_allclose(ds.values[:, 1], 1e-3 * disp, rtol=1e-15)
+    assert ds.dt == pytest.approx(DT, rel=1e-12)
+    np.testing.assert_allclose(ds.time, DT * np.arange(T), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(ds.truth["force"], 1e3 * force, rtol=1e-15)
+    assert {c: (u.unit, u.scale, u.source) for c, u in ds.units.items()} == {
+        "acc": ("g", G, "file"),
+        "disp": ("mm", pytest.approx(1e-3, rel=1e-14), "file"),
+    }
+    # the sensor's unit key overrides the label (here: the numbers are SI after all)
+    over = load_channels([ChannelSpec("acc", "acceleration", unit="m/s^2")], path)
+    np.testing.assert_array_equal(over.values[:, 0], acc)
+    # read_table: the numbers as the file holds them, with their labels
+    raw, found = read_table(path, ["acc", "disp"])
+    np.testing.assert_array_equal(raw.values[:, 0], acc)
+    assert found == {"acc": "g", "disp": "mm"}
+
+
+def test_unlabelled_and_none_labels_are_taken_as_si(tmp_path):
+    acc, disp, _ = _signals()
+    path = tmp_path / "rec.nc"
+    _write_nc(path, DT * np.arange(T), {"acc": acc, "disp": disp}, {"disp": "none"})
+    ds = load_channels([ChannelSpec("acc", "acceleration"), ChannelSpec("disp", "displacement")], path)
+    np.testing.assert_array_equal(ds.values, np.column_stack([acc, disp]))
+    assert {u.source for u in ds.units.values()} == {"assumed"}
+
+
+def test_cf_time_labels(tmp_path):
+    """A CF "seconds since" time: decoded by xarray in netCDF, read as seconds in HDF5."""
+    acc, _, _ = _signals()
+    for writer, name in ((_write_nc, "rec.nc"), (_write_h5, "rec.h5")):
+        path = tmp_path / name
+        writer(path, 5.0 + DT * np.arange(T), {"acc": acc}, {"time": "seconds since 2024-01-01 00:00:00"})
+        ds = load_channels([ChannelSpec("acc", "acceleration")], path)
+        assert ds.dt == pytest.approx(DT, rel=1e-9), name
+        np.testing.assert_array_equal(ds.values[:, 0], acc)
+
+
+def _raises(fn, *parts):
+    with pytest.raises(LatentForceError) as info:
+        fn()
+    text = str(info.value)
+    for part in parts:
+        assert part in text, (part, text)
+
+
+def test_labels_that_do_not_fit_name_the_file_column_and_label(tmp_path):
+    acc, disp, force = _signals()
+    path = tmp_path / "bad.nc"
+    _write_nc(path, DT * np.arange(T), {"acc": acc}, {"acc": "V"})
+    _raises(
+        lambda: load_channels([ChannelSpec("acc", "acceleration", label="[[sensors]][0]")], path),
+        "sensor [[sensors]][0] (column 'acc')",
+        "'V'",
+        "bad.nc",
+        "does not fit quantity 'acceleration'",
+        "unit key",
+    )
+    _write_nc(path, DT * np.arange(T), {"acc": acc}, {"acc": "blorps"})
+    _raises(lambda: load_channels([ChannelSpec("acc", "acceleration")], path), "'blorps'", "pint", "unit key")
+    _write_nc(path, DT * np.arange(T), {"acc": acc}, {"time": "m"})
+    _raises(lambda: load_channels([ChannelSpec("acc", "acceleration")], path), "bad.nc", "'time'", "'m'", "'s'")
+    _write_nc(path, DT * np.arange(T), {"acc": acc, "velocity": disp}, {"velocity": "mm"})
+    _raises(lambda: load_channels([ChannelSpec("acc", "acceleration")], path), "'velocity'", "'mm'", "'m/s'")
+
+
+@pytest.mark.parametrize("ext", ["nc", "h5"])
+def test_write_data_labels_read_back(tmp_path, ext):
+    """write_data's labels (what ``simulate`` writes) are what the reader finds."""
+    acc, disp, force = _signals()
+    path = tmp_path / f"sim.{ext}"
+    write_data(
+        path,
+        {"time": DT * np.arange(T), "acc": acc, "disp": disp, "force": force},
+        {"time": "s", "acc": "g", "disp": "m", "force": "N"},
+    )
+    ds, labels = read_table(path, ["acc", "disp"])
+    assert labels == {"acc": "g", "disp": "m"}
+    np.testing.assert_array_equal(ds.truth["force"], force)
+    si = load_channels([ChannelSpec("acc", "acceleration"), ChannelSpec("disp", "displacement")], path)
+    np.testing.assert_allclose(si.values[:, 0], G * acc, rtol=1e-15)
+
+
+def test_simulate_labels_its_netcdf_and_estimate_reads_them(tmp_path, monkeypatch):
+    """simulate --out x.nc with an accelerometer in g: estimate without the unit key reads the same data."""
+    from typer.testing import CliRunner
+
+    from latentforce.cli import app
+    from latentforce.io.channels import load_problem_data
+    from latentforce.io.config import load_config
+
+    monkeypatch.chdir(tmp_path)
+    body = (
+        '[system]\ntype = "linear"\nm = 1.0\nc = 0.8\nk = 40.0\n'
+        '[force]\nkernel = "matern32"\nvariance = 4.0\nlengthscale = 0.1\n'
+        '[[sensors]]\ncolumn = "acc"\nquantity = "acceleration"\nnoise_std = 0.01\n{unit}'
+        '[[sensors]]\ncolumn = "force"\nquantity = "force"\nnoise_std = 0.01\nunit = "kN"\n'
+        '[inference]\nmethod = "kalman"\n[data]\npath = "sim.nc"\n'
+    )
+    (tmp_path / "with.toml").write_text(body.format(unit='unit = "g"\n'))
+    (tmp_path / "without.toml").write_text(body.format(unit=""))
+    result = CliRunner().invoke(app, ["simulate", "with.toml", "--out", "sim.nc", "--duration", "1"])
+    assert result.exit_code == 0, result.output
+    with xr.open_dataset(tmp_path / "sim.nc", decode_timedelta=False) as f:
+        attrs = {n: f[n].attrs.get("units") for n in f.variables}
+    assert attrs == {"time": "s", "acc": "g", "force": "kN", "displacement": "m", "velocity": "m/s"}
+    a = load_problem_data(load_config(tmp_path / "with.toml"))
+    b = load_problem_data(load_config(tmp_path / "without.toml"))
+    np.testing.assert_array_equal(a.values, b.values)
+    assert b.units["acc"].source == "file" and b.units["acc"].scale == G
