@@ -189,3 +189,41 @@ def test_simulate_labels_its_netcdf_and_estimate_reads_them(tmp_path, monkeypatc
     b = load_problem_data(load_config(tmp_path / "without.toml"))
     np.testing.assert_array_equal(a.values, b.values)
     assert b.units["acc"].source == "file" and b.units["acc"].scale == G
+
+
+def test_a_unit_key_that_overrides_a_label_of_another_scale_is_named():
+    """The sensor's unit key wins over the file's label; where the label reads as a different unit of
+    the same quantity (one of the two is wrong), the channel unit keeps it and the run warns."""
+    from latentforce.io.units import override_warning, resolve_unit
+
+    clash = resolve_unit("acceleration", "m/s^2", "g", who="s", where="f")
+    assert (clash.scale, clash.source, clash.file_label) == (1.0, "sensor", "g")
+    for label in ("m s-2", "m/s^2", "NONE", "V", "blorps", None):  # same scale, none, or no unit that fits
+        assert resolve_unit("acceleration", "m/s^2", label, who="s", where="f").file_label is None, label
+    text = override_warning({"acc": clash, "disp": resolve_unit("displacement", "mm", "mm", who="s", where="f")})
+    assert "column 'acc'" in text and "'g'" in text and "9.807" in text and "disp" not in text
+    assert override_warning({"disp": resolve_unit("displacement", None, "mm", who="s", where="f")}) is None
+
+
+def test_estimate_warns_of_the_override_and_records_the_label(tmp_path):
+    import json
+
+    from latentforce import estimate
+    from latentforce.io.channels import channel_units, load_problem_data
+    from latentforce.io.config import config_from_dict
+
+    acc, _, force = _signals()
+    _write_nc(tmp_path / "rec.nc", DT * np.arange(T), {"acc": acc, "force": force}, {"acc": "g"})
+    config = {
+        "data": {"path": "rec.nc"},
+        "system": {"type": "linear", "m": 1.0, "c": 0.8, "k": 40.0},
+        "force": {"kernel": "matern32", "variance": 4.0, "lengthscale": 0.1},
+        "sensors": [{"column": "acc", "quantity": "acceleration", "noise_std": 0.01, "unit": "m/s^2"}],
+        "inference": {"method": "kalman"},
+    }
+    problem = config_from_dict(config, source="lf.toml", base_dir=tmp_path)
+    dataset = load_problem_data(problem)
+    np.testing.assert_array_equal(dataset.values[:, 0], acc)  # the key's unit, not the label's
+    result, _ = estimate.run(problem, dataset)
+    assert any("overrides the data file's own unit label" in w for w in result.diagnostics["warnings"])
+    assert json.loads(json.dumps(channel_units(dataset)))["acc"]["file_label"] == "g"

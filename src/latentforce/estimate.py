@@ -28,6 +28,7 @@ from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_c
 from latentforce.io.channels import channel_units, noise_in_si
 from latentforce.io.config import Problem
 from latentforce.io.data import Dataset
+from latentforce.io.units import override_warning
 from latentforce.outputs import gaussian_moments, output_matrix
 from latentforce.outputs import split as split_outputs
 from latentforce.outputs import units as output_units
@@ -174,7 +175,8 @@ def _run(
     if grid_record is not None:
         result.diagnostics["steps_per_sample"] = steps
         result.diagnostics["grid_check"] = grid_record
-    for warning in (substeps_warning, recheck_warning, latent_grid.warning(grid_record)):
+    unit_warning = override_warning(getattr(dataset, "units", None))
+    for warning in (unit_warning, substeps_warning, recheck_warning, latent_grid.warning(grid_record)):
         if warning:
             result.diagnostics.setdefault("warnings", []).append(warning)
     if not problem.model.system.is_linear:

@@ -380,9 +380,14 @@ def noise_in_si(problem, dataset: Dataset):
 def channel_units(dataset: Dataset) -> dict[str, dict]:
     """The units table of the result files: column -> ``unit`` (SI, what the data now carry),
     ``original`` (what they were given in), ``scale`` (SI per original unit) and ``source``
-    (``"sensor"``, ``"file"`` or ``"assumed"``). Empty when the data set resolved no units."""
+    (``"sensor"``, ``"file"`` or ``"assumed"``), and ``file_label`` where the sensor's unit overrode a
+    file label of another scale. Empty when the data set resolved no units."""
     units = getattr(dataset, "units", None) or {}
-    return {c: {"unit": u.si, "original": u.unit, "scale": u.scale, "source": u.source} for c, u in units.items()}
+    return {
+        c: {"unit": u.si, "original": u.unit, "scale": u.scale, "source": u.source}
+        | ({"file_label": u.file_label} if u.file_label else {})
+        for c, u in units.items()
+    }
 
 
 def sensor_unit_scales(problem) -> list[float]:

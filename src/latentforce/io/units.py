@@ -22,12 +22,13 @@ second or two.
 from __future__ import annotations
 
 import functools
+import math
 import re
 from typing import NamedTuple
 
 from latentforce.errors import LatentForceError
 
-__all__ = ["NO_UNIT", "SI_UNITS", "ChannelUnit", "resolve_unit", "unit_scale"]
+__all__ = ["NO_UNIT", "SI_UNITS", "ChannelUnit", "override_warning", "resolve_unit", "unit_scale"]
 
 #: The unit every quantity is converted to before inference.
 SI_UNITS: dict[str, str] = {
@@ -54,13 +55,16 @@ class ChannelUnit(NamedTuple):
     file's label, or the SI unit when neither gives one); ``si``: the SI unit
     the data now carry; ``scale``: SI per ``unit`` (data and ``noise_std``
     are multiplied by it); ``source``: ``"sensor"``, ``"file"`` or
-    ``"assumed"``.
+    ``"assumed"``; ``file_label``: where the sensor's ``unit`` overrode a
+    label of the file's that reads as another unit of the same dimension,
+    that label (None otherwise: :func:`override_warning`).
     """
 
     unit: str
     si: str
     scale: float
     source: str
+    file_label: str | None = None
 
 
 @functools.cache
@@ -196,4 +200,29 @@ def resolve_unit(
             f'({exc}); write it like "m/s^2", "g", "mm", "um", "in/s", "N", "kN" or '
             f'"ustrain".{hint}'
         ) from None
-    return ChannelUnit(unit=given, si=si, scale=scale, source=source)
+    label = None
+    if source == "sensor" and file_unit is not None and file_unit.strip().lower() not in NO_UNIT:
+        try:
+            other = unit_scale(file_unit.strip(), si)
+        except ValueError:  # a label that does not parse or fit: the override is its documented fix
+            other = scale
+        label = None if math.isclose(other, scale, rel_tol=1e-9) else file_unit.strip()
+    return ChannelUnit(unit=given, si=si, scale=scale, source=source, file_label=label)
+
+
+def override_warning(units: dict[str, ChannelUnit] | None) -> str | None:
+    """A warning naming the channels whose sensor ``unit`` key overrode a file label that reads as a
+    different unit of the same quantity (``"m/s^2"`` over a file's ``"g"``): one of the two is wrong,
+    and the data were taken in the key's unit. None where there is none."""
+    clashes = [(c, u) for c, u in (units or {}).items() if u.file_label is not None]
+    if not clashes:
+        return None
+    listing = "; ".join(
+        f"column {c!r}: unit {u.unit!r} from its sensor's unit key, {u.file_label!r} in the file's label "
+        f"(a factor {unit_scale(u.file_label, u.si) / u.scale:.4g} apart)"
+        for c, u in clashes
+    )
+    return (
+        f"the config's unit overrides the data file's own unit label ({listing}). The data were read in "
+        "the config's unit; if the file's label is right, remove the sensor's unit key."
+    )
