@@ -330,7 +330,7 @@ def simulate(
 def demo(
     name: str = typer.Argument(..., help="oma | duffing | duffing-params | bouc-wen | frame | sine | silverbox"),
     out: Optional[Path] = typer.Option(None, "--out", help="Result folder (default: demo-NAME)."),
-    quick: bool = typer.Option(False, "--quick", help="A short run (under a minute)."),
+    quick: bool = typer.Option(False, "--quick", help="A short run (about a minute; silverbox 2-4 minutes)."),
     seed: int = typer.Option(0, "--seed", help="Random seed."),
     force: bool = typer.Option(False, "--force", help="Replace results in an existing folder."),
     paper_settings: bool = typer.Option(
