@@ -270,3 +270,42 @@ def test_stiffness_drop_shows_on_a_local_cluster(tmp_path, monkeypatch, cache_en
     assert mean[1] - mean[2] > 2 * (sd[1] + sd[2]), (mean, sd)
     assert {"k_mean", "k_sd", "force_rms", "converged"} <= set(rows[0])
     print("wall time per record (s):", [round(float(r["wall_time_s"]), 1) for r in rows])
+
+
+def test_unconverged_records_are_flagged_in_the_summary_line_the_trend_and_strict(tmp_path, monkeypatch):
+    """A campaign whose finished records include unconverged runs says so: a warning naming them, the
+    summary line's count, hollow red markers on trend.png (its title counts them) and --strict's exit
+    code 3 (4 when a record failed). The rows stand in for run_batch's (the Dask runs are above)."""
+    import matplotlib.image as mpimg
+
+    import latentforce.batch as batch_module
+    from latentforce.batch import BatchOutcome
+    from latentforce.batch_report import not_converged, write_trend
+
+    rows = [
+        {"folder": "r1", "status": "done", "converged": True, "k_mean": 10.0, "k_sd": 0.1, "timestamp": ""},
+        {"folder": "r2", "status": "done", "converged": False, "k_mean": 9.0, "k_sd": 0.1, "timestamp": ""},
+        {"folder": "r3", "status": "skipped", "converged": "false", "k_mean": 8.0, "k_sd": 0.1, "timestamp": ""},
+        {"folder": "r4", "status": "failed", "converged": "", "error": "x", "timestamp": ""},
+    ]
+    assert [r["folder"] for r in not_converged(rows)] == ["r2", "r3"]
+
+    def red_pixels(folder, rows_):
+        folder.mkdir(exist_ok=True)
+        image = mpimg.imread(write_trend(folder, rows_, order="file"))
+        return int(((image[..., 0] > 0.9) & (image[..., 1] < 0.1) & (image[..., 2] < 0.1)).sum())
+
+    # hollow red rings on the unconverged records (the means are C0 blue; no failure drawn here)
+    assert red_pixels(tmp_path / "flagged", rows[:3]) > 50
+    assert red_pixels(tmp_path / "clean", [{**r, "converged": True} for r in rows[:3]]) == 0
+    trend = tmp_path / "flagged" / "trend.png"
+    (tmp_path / "lf.toml").write_text(CONFIG.format(k=10.0, inference=KALMAN))
+    for failing, expected in ((False, 3), (True, EXIT_SOME_FAILED)):
+        kept = rows if failing else rows[:3]
+        outcome = BatchOutcome(rows=kept, order="file", table=tmp_path / "batch.csv", trend=trend)
+        monkeypatch.setattr(batch_module, "run_batch", lambda *a, outcome=outcome, **k: outcome)
+        code, text = invoke("batch", tmp_path / "lf.toml", tmp_path, "--out", tmp_path / "c", "--strict")
+        assert code == expected, text
+        assert "2 of the finished records did not converge (r2, r3)" in text and "(2 NOT CONVERGED)" in text
+        code, text = invoke("batch", tmp_path / "lf.toml", tmp_path, "--out", tmp_path / "c")
+        assert code == (EXIT_SOME_FAILED if failing else 0), text

@@ -227,3 +227,39 @@ def test_estimate_warns_of_the_override_and_records_the_label(tmp_path):
     result, _ = estimate.run(problem, dataset)
     assert any("overrides the data file's own unit label" in w for w in result.diagnostics["warnings"])
     assert json.loads(json.dumps(channel_units(dataset)))["acc"]["file_label"] == "g"
+
+
+def test_vendor_spellings_g_s_and_engineering_units():
+    """ "g's" is g (pint reads g times seconds); "EU" names no unit (pint: the enzyme unit)."""
+    from latentforce.io.units import resolve_unit
+
+    assert resolve_unit("acceleration", None, "g's", who="s", where="f").scale == G
+    with pytest.raises(LatentForceError, match="engineering units.*unit key"):
+        resolve_unit("acceleration", None, "EU", who="s", where="f")
+
+
+def test_netcdf3_files_attribute_spellings_and_coarse_time_stamps(tmp_path):
+    """A netCDF-3 (classic) file reads (through scipy); "Units"/"unit" attributes are labels; time
+    stamps stored in float32, or as absolute epoch seconds, are even to their storage resolution and
+    give the mean step; a sample_rate is checked against the time column in seconds."""
+    acc, disp, _ = _signals()
+    path = tmp_path / "classic.nc"
+    xr.Dataset(
+        {"acc": ("time", acc, {"Units": "g"}), "disp": ("time", disp, {"unit": "mm"})},
+        coords={"time": ("time", DT * np.arange(T))},
+    ).to_netcdf(path, engine="scipy")
+    ds = load_channels([ChannelSpec("acc", "acceleration"), ChannelSpec("disp", "displacement")], path)
+    np.testing.assert_allclose(ds.values, np.column_stack([G * acc, 1e-3 * disp]), rtol=1e-15)
+    for name, stamps in (("f32.h5", (DT * np.arange(T)).astype(np.float32)), ("epoch.h5", 1.7e9 + DT * np.arange(T))):
+        _write_h5(tmp_path / name, stamps, {"acc": acc}, {})
+        got = load_channels([ChannelSpec("acc", "acceleration")], tmp_path / name)
+        assert got.dt == pytest.approx(DT, rel=1e-7), name
+    with h5py.File(tmp_path / "bad.h5", "w") as f:  # a real jitter is still refused
+        f["time"], f["acc"] = DT * np.arange(T) + 1e-4 * (np.arange(T) == 7), acc
+    with pytest.raises(LatentForceError, match="not evenly sampled"):
+        load_channels([ChannelSpec("acc", "acceleration")], tmp_path / "bad.h5")
+    _write_nc(tmp_path / "ms.nc", 1e3 * DT * np.arange(T), {"acc": acc}, {"time": "ms"})
+    rate = load_channels([ChannelSpec("acc", "acceleration")], tmp_path / "ms.nc", sample_rate=1 / DT)
+    assert rate.dt == pytest.approx(DT)
+    with pytest.raises(LatentForceError, match="sample_rate"):
+        load_channels([ChannelSpec("acc", "acceleration")], tmp_path / "ms.nc", sample_rate=10 / DT)

@@ -14,7 +14,9 @@ The trend figure draws each inferred parameter's posterior mean with a
 ±2 sd bar against the record (its time when the records are in time order,
 its place otherwise) and the force rms below, so that a change of the
 structure, e.g. a stiffness drop, shows as a step. Failed records are
-marked by red dotted lines.
+marked by red dotted lines, and records whose sampler did not converge
+(``converged`` false) are drawn as hollow red markers, counted in the title
+(their values are not to be trusted as they stand).
 """
 
 from __future__ import annotations
@@ -77,6 +79,13 @@ def _parameters(rows: list[dict]) -> list[str]:
     return [c[: -len("_mean")] for c in columns if c.endswith("_mean") and c[: -len("_mean")] + "_sd" in columns]
 
 
+def not_converged(rows: list[dict]) -> list[dict]:
+    """The finished records (``done`` or ``skipped``) whose run did not converge."""
+    return [
+        r for r in rows if r.get("status") in ("done", "skipped") and str(r.get("converged")).lower() in ("false", "0")
+    ]
+
+
 def _number(value) -> float:
     try:
         return float(value)
@@ -98,6 +107,8 @@ def write_trend(out: Path, rows: list[dict], *, order: str, title: str = "") -> 
         x = list(range(1, len(rows) + 1))
     ok = np.array([r.get("status") in ("done", "skipped") for r in rows])
     failed = [xi for xi, r in zip(x, rows) if r.get("status") == "failed"]
+    unconverged = {id(r) for r in not_converged(rows)}
+    bad = np.array([id(r) in unconverged for r in rows])
 
     n = max(len(panels), 1)
     fig = Figure(figsize=(8.0, 1.0 + 2.0 * n), layout="constrained")
@@ -130,6 +141,18 @@ def write_trend(out: Path, rows: list[dict], *, order: str, title: str = "") -> 
             )
         else:
             ax.plot(xs, mean[keep], "o-", ms=4, color="C1")
+        if (keep & bad).any():  # over the line: hollow red rings on the records to distrust
+            ax.plot(
+                [xi for xi, k in zip(x, keep & bad) if k],
+                mean[keep & bad],
+                "o",
+                ms=8,
+                mfc="none",
+                mec="red",
+                mew=1.5,
+                ls="none",
+                label="NOT CONVERGED",
+            )
         for xi in failed:
             ax.axvline(xi, color="red", ls=":", lw=1.0)
         ax.set_ylabel(label)
@@ -144,6 +167,7 @@ def write_trend(out: Path, rows: list[dict], *, order: str, title: str = "") -> 
         if len(rows) <= 30:
             axes[-1].set_xticks(x, [r["folder"] for r in rows], rotation=45, ha="right", fontsize="small")
     fails = f", {len(failed)} failed (red dotted)" if failed else ""
+    fails += f", {int(bad.sum())} NOT CONVERGED (hollow red)" if bad.any() else ""
     fig.suptitle(f"{title}{fails}" if title else f"{len(rows)} records{fails}")
     path = out / TREND_FILE
     tmp = path.with_name(path.name + ".tmp.png")

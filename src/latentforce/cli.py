@@ -373,9 +373,15 @@ def batch(
     force: bool = typer.Option(
         False, "--force", help="Replace result folders holding another config's or data's result."
     ),
+    strict: bool = typer.Option(
+        False,
+        "--strict",
+        help="Exit with code 3 when some record's run did not converge (and none failed; failures give 4).",
+    ),
 ):
     """Estimate many records with one configuration on Dask (a campaign); reruns skip finished records."""
     from latentforce.batch import EXIT_SOME_FAILED, run_batch
+    from latentforce.batch_report import not_converged
 
     outcome = run_batch(
         config,
@@ -387,12 +393,25 @@ def batch(
         echo=lambda line: typer.echo(line, err=True),
     )
     done, skipped, failed = (outcome.count(s) for s in ("done", "skipped", "failed"))
+    unconverged = not_converged(outcome.rows)
+    if unconverged:
+        names = ", ".join(r["folder"] for r in unconverged[:10]) + (" ..." if len(unconverged) > 10 else "")
+        typer.echo(
+            f"warning: {len(unconverged)} of the finished records did not converge ({names}): their values in "
+            f"{outcome.table.name} and on the trend figure (hollow red) are not to be trusted as they stand; "
+            "each folder's summary.json says which quantities (convergence) and what to try. Rerun them "
+            'with a larger max_time (iterations = "auto") and --force.',
+            err=True,
+        )
+    flagged = f" ({len(unconverged)} NOT CONVERGED)" if unconverged else ""
     typer.echo(
-        f"batch: {done} done, {skipped} skipped (finished before), {failed} failed; records in "
+        f"batch: {done} done, {skipped} skipped (finished before), {failed} failed{flagged}; records in "
         f"{outcome.order} order; table {outcome.table}, trend figure {outcome.trend}"
     )
     if failed:
         raise typer.Exit(EXIT_SOME_FAILED)
+    if strict and unconverged:
+        raise typer.Exit(EXIT_NOT_CONVERGED)
 
 
 @app.command()

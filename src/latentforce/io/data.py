@@ -42,6 +42,8 @@ _TRUTH_PATTERN = re.compile(r"^(displacement|velocity|hysteretic_force|force)(_\
 _TRUTH_SI = {"displacement": "m", "velocity": "m/s", "hysteretic_force": "N", "force": "N"}
 # Relative tolerance on the spread of the time steps: tighter than any
 # sensible acquisition jitter, looser than float64 round-off of t = i * dt.
+# Stamps stored coarser than that (float32, or absolute epoch seconds: 2.4e-7 s
+# apart at 1.7e9 s) are allowed their storage resolution too (_resolution).
 _UNEVEN_RTOL = 1e-6
 
 
@@ -174,8 +176,7 @@ class _Hdf5Table(_Table):
         return np.asarray(self._file[name][()])
 
     def unit(self, name: str) -> str | None:
-        attrs = self._file[name].attrs
-        return next((_label(attrs[k]) for k in ("units", "unit") if k in attrs), None)
+        return _unit_attribute(self._file[name].attrs)
 
     def close(self) -> None:
         self._file.close()
@@ -192,6 +193,13 @@ class _DictTable(_Table):
 
     def unit(self, name: str) -> str | None:
         return self._units.get(name)
+
+
+def _unit_attribute(attrs) -> str | None:
+    """A variable's unit label: its attribute ``units`` or ``unit``, in any case (``Units``: some
+    acquisition exports), "units" first; None where there is none."""
+    keys = {str(k).lower(): k for k in attrs.keys()}
+    return next((_label(attrs[keys[k]]) for k in ("units", "unit") if k in keys), None)
 
 
 def _label(value) -> str | None:
@@ -220,22 +228,24 @@ def _open_mat(path: Path) -> _Table:
 def _open_netcdf(path: Path) -> _Table:
     import xarray as xr
 
-    last: Exception | None = None
-    for engine in ("h5netcdf", "netcdf4"):
+    reasons: dict[str, str] = {}
+    # h5netcdf reads netCDF-4 (HDF5), scipy netCDF-3 (classic); netCDF4 either, where installed
+    for engine in ("h5netcdf", "scipy", "netcdf4"):
         try:
             # decode_timedelta=False: a variable in "s" stays seconds (its label read below)
             ds = xr.open_dataset(path, engine=engine, decode_timedelta=False)
-        except (ValueError, OSError, ImportError) as exc:
-            last = exc
+        except (ValueError, OSError, ImportError, TypeError) as exc:
+            reasons[engine] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             continue
         try:
             names = list(ds.data_vars) + list(ds.coords)
             arrays = {str(n): ds[n].values for n in names}
-            units = {str(n): _label(ds[n].attrs["units"]) for n in names if "units" in ds[n].attrs}
+            units = {str(n): _unit_attribute(ds[n].attrs) for n in names}
         finally:
             ds.close()
-        return _DictTable(arrays, units)
-    raise _err(path, f"not a readable netCDF file ({last})")
+        return _DictTable(arrays, {n: u for n, u in units.items() if u is not None})
+    listing = "; ".join(f"{engine}: {why}" for engine, why in reasons.items())
+    raise _err(path, f"not a readable netCDF file (each reader's reason: {listing})")
 
 
 def _open(path: Path) -> _Table:
@@ -287,7 +297,12 @@ def _in_unit(path: Path, table: _Table, name: str, values: np.ndarray, si: str, 
         raise _err(
             path,
             f"column {name!r} has the unit label {label!r} (its 'units' attribute), which does not fit {what} "
-            f"({exc}); it needs a unit like {si!r}. Correct or remove the label.",
+            f"({exc}); it needs a unit like {si!r}. Correct or remove the label"
+            + (
+                ", or give [data].sample_rate to use an even time axis instead of this column."
+                if si == "s"
+                else f" (a {name!r} column is read as the truth, only to score the estimate: renaming it keeps it out)."
+            ),
         ) from None
     return values * scale if scale != 1.0 else values
 
@@ -296,8 +311,21 @@ def _first(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask)[0])
 
 
-def _check_time(path: Path, table: _Table, name: str, t: np.ndarray) -> float:
-    """Check the time column is finite, increasing and even; return the step."""
+def _resolution(raw: np.ndarray, t: np.ndarray) -> float:
+    """The spacing of the stored time stamps ``raw`` (as read) near their largest value, in the
+    seconds of ``t``: the round-off a step between two of them can carry, twice over."""
+    raw = np.asarray(raw)
+    if raw.dtype.kind in "mM":  # integer nanoseconds (or coarser) since an epoch
+        return 1e-9
+    dtype = raw.dtype if raw.dtype.kind == "f" else np.dtype(np.float64)
+    big = np.max(np.abs(raw[np.isfinite(raw)])) if raw.size and np.isfinite(raw).any() else 0.0
+    scale = float(np.max(np.abs(t))) / float(big) if big and np.max(np.abs(t)) else 1.0
+    return 2.0 * float(np.spacing(dtype.type(big))) * scale
+
+
+def _check_time(path: Path, table: _Table, name: str, t: np.ndarray, resolution: float = 0.0) -> float:
+    """Check the time column is finite, increasing and even (to ``_UNEVEN_RTOL`` of a step, or the
+    stamps' storage ``resolution`` where coarser); return the step."""
     bad = ~np.isfinite(t)
     if bad.any():
         raise _err(path, f"time column {name!r} holds NaN/inf at {table.row_label(_first(bad))}")
@@ -310,7 +338,9 @@ def _check_time(path: Path, table: _Table, name: str, t: np.ndarray) -> float:
             f"({float(t[i - 1]):.9g} then {float(t[i]):.9g})",
         )
     dt = float(np.median(d))
-    off = np.abs(d - dt) > _UNEVEN_RTOL * dt
+    off = np.abs(d - dt) > max(_UNEVEN_RTOL * dt, 2.0 * resolution)
+    if resolution > _UNEVEN_RTOL * dt:  # stamps coarser than the tolerance: the mean step is the step
+        dt = float(t[-1] - t[0]) / (t.size - 1)
     if off.any():
         i = _first(off) + 1
         raise _err(
@@ -389,9 +419,9 @@ def _check_rate_against_time(path: Path, table: _Table, columns: list[str], samp
     rate silently rescales every frequency of the structure and the force)."""
     if "time" not in table.names or "time" in columns:
         return
-    try:
-        t = np.asarray(table.read("time"), dtype=float).reshape(-1)
-    except (TypeError, ValueError):
+    try:  # in seconds, as time_column would read it (decoded dates, a unit label)
+        t = _in_unit(path, table, "time", _as_vector(path, "time", table.read("time")), "s", "a time column")
+    except (TypeError, ValueError, LatentForceError):  # not a time column we can read: nothing to compare
         return
     steps = np.diff(t)
     if t.size != T or T < 2 or not np.all(np.isfinite(steps)) or not np.all(steps > 0):
@@ -438,8 +468,11 @@ def _load(
     channels = {name: _as_vector(path, name, table.read(name)) for name in columns}
     T = channels[columns[0]].size
     extra = ([time_column] if use_time else []) + truth_names
+    raw_time = None
     for name in extra:
-        channels[name] = _as_vector(path, name, table.read(name))
+        raw = table.read(name)
+        raw_time = raw if name == time_column and use_time else raw_time
+        channels[name] = _as_vector(path, name, raw)
     for name, arr in channels.items():
         if arr.size != T:
             raise _err(
@@ -454,7 +487,7 @@ def _load(
 
     if use_time:
         time = _in_unit(path, table, time_column, channels[time_column], "s", "a time column")
-        dt = _check_time(path, table, time_column, time)
+        dt = _check_time(path, table, time_column, time, _resolution(raw_time, time))
     else:
         dt = 1.0 / float(sample_rate)
         time = np.arange(T) / float(sample_rate)

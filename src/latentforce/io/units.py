@@ -44,6 +44,11 @@ class _WrongDimension(ValueError):
     """A unit that parses but measures something else."""
 
 
+#: Vendor spellings pint reads as something else ("g's" as g times seconds).
+_ALIASES = {"g's": "g", "G's": "g", "g’s": "g", "G’s": "g"}
+#: Labels that say a channel is in some unit without naming it (pint: "EU" is the enzyme unit).
+_UNNAMED = {"eu", "engineering units", "engineering unit", "eng. units", "eng units"}
+
 #: Labels vendor files use for "no unit given" (pyuff writes "NONE" by default).
 NO_UNIT = {"", "none", "null", "n/a", "na", "-"}
 
@@ -160,6 +165,12 @@ def resolve_unit(
         return ChannelUnit(unit=si, si=si, scale=1.0, source="assumed")
     given = given.strip()
     origin = "its unit key" if source == "sensor" else f"the unit label {given!r} in {where}"
+    if given.lower() in _UNNAMED:
+        raise LatentForceError(
+            f"{who}: unit {given!r} (from {origin}) means engineering units, which does not say which unit; "
+            'give the channel\'s unit in the sensor\'s unit key (e.g. "g", "m/s^2", "mm", "N").'
+        )
+    given = _ALIASES.get(given, given)
     try:
         if quantity is None:
             quantity = _quantity_for(given)
