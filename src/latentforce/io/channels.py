@@ -33,7 +33,7 @@ from typing import NamedTuple
 import numpy as np
 
 from latentforce.errors import LatentForceError
-from latentforce.io.data import Dataset, read_table
+from latentforce.io.data import Dataset, check_file, read_table
 from latentforce.io.units import ChannelUnit, resolve_unit
 from latentforce.io.vendor import (
     VENDOR_EXTENSIONS,
@@ -85,20 +85,6 @@ def _who(spec: ChannelSpec) -> str:
     return f"sensor {spec.label} (column {spec.column!r})" if spec.label else f"column {spec.column!r}"
 
 
-def _check_file(path: Path) -> None:
-    """The checks ``load_data`` makes before opening a file."""
-
-    def fail(message):
-        return LatentForceError(f"data file {str(path)!r}: {message}")
-
-    if not path.exists():
-        raise fail("file not found")
-    if not path.is_file():
-        raise fail("is not a file")
-    if path.stat().st_size == 0:
-        raise fail("the file is empty")
-
-
 def _check_missing(spec: ChannelSpec, src: _Source, missing: str) -> None:
     bad = ~np.isfinite(src.raw.values)
     if bad.all():
@@ -132,7 +118,7 @@ def _read_sources(
     for file, idx in by_file.items():
         where = f"data file {str(file)!r}"
         if file.suffix.lower() in VENDOR_EXTENSIONS:
-            _check_file(file)
+            check_file(file)
             table = open_vendor(file)
             for i in idx:
                 sources[i] = _Source(table.channel(specs[i].column), where)

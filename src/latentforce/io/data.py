@@ -31,7 +31,16 @@ import numpy as np
 
 from latentforce.errors import LatentForceError
 
-__all__ = ["Dataset", "SUPPORTED_EXTENSIONS", "TRUTH_NAMES", "load_data", "read_table", "truth_units", "write_csv"]
+__all__ = [
+    "Dataset",
+    "SUPPORTED_EXTENSIONS",
+    "TRUTH_NAMES",
+    "check_file",
+    "load_data",
+    "read_table",
+    "truth_units",
+    "write_csv",
+]
 
 SUPPORTED_EXTENSIONS = (".csv", ".h5", ".hdf5", ".mat", ".nc", ".uff", ".unv", ".tdms")
 # Vendor formats (io/vendor.py): each channel carries its own time axis and unit.
@@ -404,14 +413,19 @@ def read_table(
 def _check_path(path: Path, columns: list[str], missing: str) -> None:
     if missing not in ("error", "skip"):
         raise ValueError(f"missing must be 'error' or 'skip', got {missing!r}")
+    check_file(path)
+    if not columns:
+        raise ValueError("load_data needs at least one column")
+
+
+def check_file(path: Path) -> None:
+    """A data file that exists, is a file and is not empty, or the error naming it."""
     if not path.exists():
         raise _err(path, "file not found")
     if not path.is_file():
         raise _err(path, "is not a file")
     if path.stat().st_size == 0:
         raise _err(path, "the file is empty")
-    if not columns:
-        raise ValueError("load_data needs at least one column")
 
 
 def _check_rate_against_time(path: Path, table: _Table, columns: list[str], sample_rate: float, T: int) -> None:
