@@ -270,7 +270,7 @@ def simulate(
     """
     import jax
 
-    from latentforce.io.channels import sensor_unit_scales
+    from latentforce.io.channels import sensor_unit_keys, sensor_unit_scales
     from latentforce.io.config import initial_params, load_config
     from latentforce.io.data import truth_units, write_data
     from latentforce.io.units import SI_UNITS
@@ -311,7 +311,7 @@ def simulate(
     columns.update({c: y[:, i] / scales[i] for i, c in enumerate(problem.columns)})
     columns.update({k: v for k, v in truth_columns(sim).items() if k not in columns})
     # unit labels (.h5/.nc attributes): a sensor's unit key, else SI, as estimate reads them back
-    keys = tuple(problem.data.units or ()) or (None,) * len(problem.columns)
+    keys = sensor_unit_keys(problem)
     units = {c: k or SI_UNITS[s.quantity] for c, k, s in zip(problem.columns, keys, problem.model.sensors)}
     units = {**truth_units(columns), **units, (problem.data.time_column or "time"): "s"}
     try:

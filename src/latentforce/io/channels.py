@@ -51,6 +51,7 @@ __all__ = [
     "load_channels",
     "load_problem_data",
     "noise_in_si",
+    "sensor_unit_keys",
     "sensor_unit_scales",
 ]
 
@@ -315,7 +316,7 @@ def load_problem_data(problem) -> Dataset:
     """The data set of a :class:`~latentforce.io.config.Problem`: its sensors' channels, from
     ``[data].path`` (or ``--data``) and the sensors' own ``path`` keys, on one grid, in SI."""
     settings = problem.data
-    units = tuple(getattr(settings, "units", ()) or ()) or (None,) * len(problem.columns)
+    units = sensor_unit_keys(problem)
     paths = tuple(getattr(settings, "sensor_paths", ()) or ()) or (None,) * len(problem.columns)
     if settings.path is None and any(p is None for p in paths):
         from latentforce.io.config import data_path
@@ -376,10 +377,14 @@ def channel_units(dataset: Dataset) -> dict[str, dict]:
     }
 
 
+def sensor_unit_keys(problem) -> tuple[str | None, ...]:
+    """Each sensor's ``unit`` key (None where none is given), in sensor order."""
+    return tuple(getattr(problem.data, "units", ()) or ()) or (None,) * len(problem.model.sensors)
+
+
 def sensor_unit_scales(problem) -> list[float]:
     """SI per unit of each sensor's ``unit`` key (1.0 where none is given), in sensor order."""
-    units = tuple(getattr(problem.data, "units", ()) or ()) or (None,) * len(problem.model.sensors)
     return [
         1.0 if u is None else resolve_unit(s.quantity, u, None, who=f"sensor {s.name!r}", where="").scale
-        for s, u in zip(problem.model.sensors, units)
+        for s, u in zip(problem.model.sensors, sensor_unit_keys(problem))
     ]

@@ -249,10 +249,10 @@ def _open_netcdf(path: Path) -> _Table:
         try:
             names = list(ds.data_vars) + list(ds.coords)
             arrays = {str(n): ds[n].values for n in names}
-            units = {str(n): _unit_attribute(ds[n].attrs) for n in names}
+            units = {str(n): u for n in names if (u := _unit_attribute(ds[n].attrs)) is not None}
         finally:
             ds.close()
-        return _DictTable(arrays, {n: u for n, u in units.items() if u is not None})
+        return _DictTable(arrays, units)
     listing = "; ".join(f"{engine}: {why}" for engine, why in reasons.items())
     raise _err(path, f"not a readable netCDF file (each reader's reason: {listing})")
 
@@ -382,11 +382,11 @@ def load_data(
     labels); its time is in seconds and its truth in SI by their labels.
     """
     path = Path(path)
-    _check_path(path, columns, missing)
     if path.suffix.lower() in _VENDOR_EXTENSIONS:
         # Time from each channel (time_column and sample_rate do not apply), units to SI.
         from latentforce.io.channels import ChannelSpec, load_channels
 
+        _check_path(path, columns, missing)
         return load_channels([ChannelSpec(c) for c in columns], path, missing=missing)
     return read_table(path, columns, time_column, sample_rate, missing)[0]
 
@@ -520,10 +520,8 @@ def _load(
                     f"to treat them as missing observations.",
                 )
     values = np.where(mask, values, np.nan)
-    truth = {
-        n: _in_unit(path, table, n, channels[n], _TRUTH_SI[_TRUTH_PATTERN.match(n).group(1)], f"a {n} truth column")
-        for n in truth_names
-    }
+    truth_si = truth_units(truth_names)
+    truth = {n: _in_unit(path, table, n, channels[n], truth_si[n], f"a {n} truth column") for n in truth_names}
     return Dataset(time=time, dt=dt, values=values, mask=mask, columns=list(columns), truth=truth)
 
 

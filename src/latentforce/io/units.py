@@ -102,11 +102,12 @@ def _parse(text: str):
 
     ureg = _registry()
     caught = (pint.errors.PintError, AttributeError, TypeError, ValueError, SyntaxError)
+    text = _ALIASES.get(text.strip(), text.strip())
     try:
-        quantity = ureg.Quantity(1.0, text.strip())
+        quantity = ureg.Quantity(1.0, text)
     except caught as exc:
-        rewritten = _pint_syntax(text.strip())
-        if rewritten == text.strip():
+        rewritten = _pint_syntax(text)
+        if rewritten == text:
             raise ValueError(str(exc) or type(exc).__name__) from None
         try:
             quantity = ureg.Quantity(1.0, rewritten)
@@ -170,7 +171,6 @@ def resolve_unit(
             f"{who}: unit {given!r} (from {origin}) means engineering units, which does not say which unit; "
             'give the channel\'s unit in the sensor\'s unit key (e.g. "g", "m/s^2", "mm", "N").'
         )
-    given = _ALIASES.get(given, given)
     try:
         if quantity is None:
             quantity = _quantity_for(given)
