@@ -293,6 +293,21 @@ def test_every_sampling_method_writes_a_result_folder_with_its_verdict(workdir, 
     assert code == 3 and (workdir / "res" / "summary.json").is_file(), out
 
 
+def test_an_auto_warm_up_past_half_of_max_time_is_cut_and_the_run_says_so(workdir):
+    """``max_time`` caps the warm-up too: still adapting at half of it, an "auto" run ends the warm-up at
+    that chunk's end and samples (here 1 ms: the first of two warm-up chunks is past it), and its summary
+    gives the warm-up run beside ``burn_in`` and a warning saying what to change."""
+    (workdir / "m.toml").write_text(_inferred("kalman-mcmc", "burn_in = 200\nchains = 2\nmax_time = 0.001\n"))
+    code, out = invoke("estimate", "m.toml", "--out", "res")
+    assert code == 0, out
+    summary = json.loads((workdir / "res" / "summary.json").read_text())
+    d = summary["diagnostics"]
+    assert d["burn_in"] == 200 and d["warmup"] == 100 and d["iterations"] == "auto" and d["draws_per_chain"] == 100
+    assert summary["converged"] is False
+    cut = [w for w in d["warnings"] if w.startswith("the warm-up stopped after 100 of its 200 iterations")]
+    assert len(cut) == 1 and "max_time" in cut[0] and "burn_in" in cut[0], d["warnings"]
+
+
 def test_exact_kalman_is_converged_and_strict_passes(workdir):
     code, out = invoke("estimate", "lf.toml", "--out", "res", "--strict")
     assert code == 0, out

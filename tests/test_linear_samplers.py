@@ -219,7 +219,7 @@ def test_auto_stops_on_the_verdict_it_reports(monkeypatch):
         return states, xs, {"accepted": np.ones((2, 10)), "logdensity": -0.5 * xs[..., 0] ** 2}
 
     priors = (LogNormal(0.0, 1.0),)
-    _, xs, stats = kalman_mcmc.sample_in_chunks(
+    _, xs, stats, _ = kalman_mcmc.sample_in_chunks(
         jax.random.key(0),
         None,
         run_chunk,
@@ -240,6 +240,77 @@ def test_auto_stops_on_the_verdict_it_reports(monkeypatch):
     for name in loop:
         np.testing.assert_array_equal(loop[name], reported[name])
     assert not np.allclose(loop["k"], xs[..., 0])  # the physical values, not the coordinates
+
+
+def test_auto_warm_up_stops_at_half_of_max_time_and_a_resumed_run_keeps_the_cut(monkeypatch, tmp_path):
+    """An "auto" run whose warm-up is still adapting at half of ``max_time`` ends it at that chunk's end:
+    the next chunks adapt nothing and are kept as draws, and the warm-up run is returned (not the
+    configured one). A run restored from a checkpoint written after the cut keeps it. Fixed
+    ``iterations`` are never cut. (The clock is the test's: it jumps when a chunk reports.)"""
+    from latentforce.inference import kalman_mcmc
+    from latentforce.priors import LogNormal
+
+    class Clock:
+        now = 0.0
+
+        def perf_counter(self):
+            return self.now
+
+    clock = Clock()
+    monkeypatch.setattr(kalman_mcmc, "_time", clock)
+    adapted, rng = [], np.random.default_rng(0)
+
+    def run_chunk(keys, states, start_step, adapt):
+        adapted.append(bool(adapt))
+        xs = rng.standard_normal((2, 10, 1))
+        return states, xs, {"accepted": np.ones((2, 10)), "logdensity": -0.5 * xs[..., 0] ** 2}
+
+    def progress(done, total, rate):  # 30 s a chunk, max_time 100: the third chunk's end is past 50 s
+        clock.now = 30.0 * done / 10
+
+    def sample(iterations, checkpoint=None):
+        adapted.clear()
+        clock.now = 0.0
+        return kalman_mcmc.sample_in_chunks(
+            jax.random.key(0),
+            {"x": np.zeros(2)},
+            run_chunk,
+            ("k",),
+            (LogNormal(0.0, 1.0),),
+            chains=2,
+            n_chunk=10,
+            burn_total=100,
+            iterations=iterations,
+            target_ess=1e9,
+            max_time=100.0,
+            t0=0.0,
+            progress=progress,
+            checkpoint=checkpoint,
+        )
+
+    _, xs, _, warm = sample(None)
+    assert warm == 20 and adapted == [True, True, False, False]  # cut at 2 chunks (60 s); 120 s > max_time
+    assert xs.shape == (2, 20, 1)
+    _, xs, _, warm = sample(30)
+    assert warm == 100 and adapted == [True] * 10 + [False] * 3 and xs.shape == (2, 30, 1)
+
+    class Saved:  # the checkpoint of the chunk boundary after the cut, kept in memory
+        saved = None
+
+        def save(self, sampler, loop_state):
+            state = loop_state()
+            if state.done == 30:
+                self.saved = state
+
+        def restore(self, sampler):
+            return self.saved
+
+    cp = Saved()
+    sample(None, cp)
+    assert cp.saved.extra == {"warm_up": 20}
+    cp.save = lambda *a: None
+    _, xs, _, warm = sample(None, cp)
+    assert warm == 20 and adapted == [False] and xs.shape == (2, 20, 1)
 
 
 # ----- the bounded-memory mixture ----------------------------------------------------

@@ -1274,6 +1274,62 @@ def test_auto_runs_until_converged_and_matches_the_exact_smoother():
         assert np.mean((mean - km[:, i]) ** 2) / np.var(km[:, i]) < 0.005, name
 
 
+def test_auto_warm_up_stops_at_half_of_max_time_and_the_draws_after_it_are_the_posterior(monkeypatch):
+    """An "auto" run whose warm-up is still running at half of ``max_time`` ends it at that segment's end
+    (the compiled block, built for the configured burn-in, then sees each later block numbered past it:
+    no adaptation, draws stored from the first slot): the draws after the cut are the exact smoother's
+    posterior, and the run reports the warm-up it ran. The test's clock jumps when a segment reports;
+    the settings are the test above's, so its compiled programs serve."""
+    prob = linear_problem(T=100, missing=True, kernel=Matern(1))
+    pm = smc.ParticleModel(prob["model"], prob["params"], prob["dt"])
+    A_d, Q_d, H, m0, P0 = pm.linear_discrete(pm.transition(1.0, 0.5))
+    ks = kalman_smoother(A_d, Q_d, H, pm.R, m0, P0, prob["y"], prob["mask"])
+
+    class Clock:
+        now = 0.0
+
+        def perf_counter(self):
+            return self.now
+
+    clock, reports = Clock(), []
+    monkeypatch.setattr(pgas, "time", clock)
+
+    def progress(done, total, rate):  # past half of max_time at the first report, past it 1 000 draws later
+        reports.append((done, total))
+        clock.now = 400.0 if done < 1_100 else 700.0
+
+    out = pgas.run_pgas(
+        jax.random.key(3),
+        prob["model"],
+        prob["params"],
+        {},
+        prob["y"],
+        prob["mask"],
+        prob["dt"],
+        particles=32,
+        iterations=None,
+        burn_in=200,
+        chains=4,
+        thin_draws=50,
+        max_time=600,
+        max_iterations=20_000,
+        progress=progress,
+    )
+    d = out.diagnostics
+    assert reports[0] == (100, 20_200) and reports[1] == (200, 20_100)  # cut at the first segment's end
+    assert d["burn_in_run"] == 100 and d["stopped"] in ("converged", "max_time")
+    n = d["iterations_run"]
+    assert n == reports[-1][0] - 100 and n <= 1_000
+    assert out.trajectories.shape[1] == -(-n // d["thin"]) <= 50
+    assert d["convergence"]["converged"] == (d["stopped"] == "converged")
+    np.testing.assert_array_equal(out.trajectories[:, -1].any(axis=(1, 2)), True)  # every slot filled
+    km, kv = np.asarray(ks.means), np.asarray(jnp.diagonal(ks.covs, axis1=1, axis2=2))
+    for name, i in [("displacement", 0), ("force", 2)]:
+        mean, sd = out.state_mean[name][:, 0], out.state_sd[name][:, 0]
+        assert np.mean((mean - km[:, i]) ** 2) / np.var(km[:, i]) < 0.005, name
+        assert np.mean(np.abs(sd / np.sqrt(kv[:, i]) - 1.0)) < 0.1, name
+
+
 @pytest.mark.slow  # its own compile (50 s under load); tests/test_cli.py's twin runs in CI
 def test_auto_stops_at_max_time_and_says_so():
     prob = linear_problem(T=50, missing=False, kernel=Matern(1))

@@ -552,6 +552,9 @@ def _run_kalman_sampler(
     message = convergence.warning_message(record, settings.method, softening_hint({**problem.fixed, **out.draws}))
     if message:
         warnings_.append(message)
+    cut = convergence.warm_up_cut_warning(settings.burn_in, out.warmup, settings.max_time)
+    if cut and settings.iterations is None:
+        warnings_.append(cut)
     if warnings_:
         diagnostics["warnings"] = warnings_
     truth = common["truth"]

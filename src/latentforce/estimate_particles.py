@@ -261,11 +261,12 @@ def _run_pgas(
     # Each stored trajectory came from the sweep of one Gibbs block; pair it with the
     # hyperparameters drawn at the end of that block (conditional on that trajectory).
     k = settings.state_every
-    burn_blocks = -(-settings.burn_in // k)
+    burn_in = int(out.diagnostics.pop("burn_in_run"))  # settings.burn_in unless max_time cut the warm-up
+    burn_blocks = -(-burn_in // k)
     iterations = int(out.diagnostics.pop("iterations_run"))
     thin = int(out.diagnostics.pop("thin"))
     slots = np.arange(out.trajectories.shape[1])
-    idx = np.clip((burn_blocks + slots * thin) * k + k - 1 - settings.burn_in, 0, max(iterations - 1, 0))
+    idx = np.clip((burn_blocks + slots * thin) * k + k - 1 - burn_in, 0, max(iterations - 1, 0))
     param_draws = {n: v[:, idx] for n, v in out.theta.items()}
     if problem.outputs:  # from the stored paths, the acceleration from the equation of motion
         # a sampled system parameter (m, c, k, k3 ...): each path's at its own draw
@@ -294,6 +295,7 @@ def _run_pgas(
             "iterations": iterations,
             "iterations_setting": "auto" if settings.iterations is None else settings.iterations,
             "burn_in": settings.burn_in,
+            "warmup": burn_in,
             "state_every": k,
             "chains": settings.chains,
             "discretisation": settings.discretisation,
@@ -331,6 +333,9 @@ def _run_pgas(
             measured = any(s.quantity in DISPLACEMENT_CHANNELS for s in model.sensors)
             advice = low_switch_advice(switch, smoother, measured, kernel_is_smooth(model.kernel)) + start_advice
         diagnostics.setdefault("warnings", []).append(message + advice)
+    cut = convergence.warm_up_cut_warning(settings.burn_in, burn_in, settings.max_time)
+    if cut:
+        diagnostics.setdefault("warnings", []).append(cut)
     truth = common["truth"]
     if truth:
         from latentforce.results import coverage

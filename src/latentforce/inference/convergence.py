@@ -32,6 +32,9 @@ import numpy as np
 RHAT_MAX = 1.01
 TARGET_ESS = 400
 MONITORED_TIMES = 24
+#: the share of ``max_time`` an "auto" run's warm-up may take: at the first chunk's end past it the
+#: adaptation stops and the draws start, so that they get the rest (:func:`warm_up_cut_warning`)
+WARM_UP_SHARE = 0.5
 
 
 def monitored_times(T: int, n: int = MONITORED_TIMES) -> np.ndarray:
@@ -222,4 +225,17 @@ def warning_message(record: dict, method: str, hint: str = "") -> str | None:
         f"NOT CONVERGED{why}: worst max R-hat {record['max_r_hat']:.3f} (need <= {record['r_hat_max']}), "
         f"min bulk ESS {record['min_ess_bulk']:.0f} (need >= {record['target_ess']:.0f}); worst "
         f"quantities: {worst}. The posterior summaries and bands may be wrong: {advice}."
+    )
+
+
+def warm_up_cut_warning(planned: int, run: int, max_time: float) -> str | None:
+    """The warning of an "auto" run whose warm-up :data:`WARM_UP_SHARE` of ``max_time`` cut short:
+    ``run`` of ``planned`` iterations (``None`` where it was not cut)."""
+    if run >= planned:
+        return None
+    return (
+        f"the warm-up stopped after {run} of its {planned} iterations (burn_in), when half of max_time "
+        f"({WARM_UP_SHARE * max_time:.0f} of {max_time:.0f} s) had passed, so that the draws get the other "
+        "half: the proposals were adapted for that long only and the chains may still carry their start. "
+        "Raise max_time, or lower burn_in to what this machine runs in half of it."
     )

@@ -398,7 +398,7 @@ def run_kalman_mcmc(
             stats["independent"] = infos.independent
         return s, xs, stats
 
-    states, xs, stats = sample_in_chunks(
+    states, xs, stats, burn_total = sample_in_chunks(
         key_run,
         states,
         run_chunk,
@@ -488,8 +488,12 @@ def sample_in_chunks(
     stats {name: (chains, n_chunk)})``, with ``stats["accepted"]`` (for the
     progress line) and ``stats["logdensity"]`` (monitored beside the
     parameters). Fixed ``iterations`` are run (rounded up to whole chunks, the
-    surplus dropped); ``None`` runs until converged or ``max_time``.
-    Returns the final states, the post-warm-up draws and their stats.
+    surplus dropped); ``None`` runs until converged or ``max_time``, and its warm-up
+    stops at the first chunk's end after half of ``max_time``
+    (:data:`~latentforce.inference.convergence.WARM_UP_SHARE`), so that the draws get
+    the other half: the adaptation stops there and the draws start.
+    Returns the final states, the post-warm-up draws, their stats and the warm-up
+    iterations run (``burn_total`` unless it was cut).
 
     The chunks' boundaries depend only on the settings and each chunk's keys
     only on ``key`` and the chunk's first iteration, so ``checkpoint`` (a
@@ -502,6 +506,7 @@ def sample_in_chunks(
     from latentforce.inference import convergence
 
     fixed_total = None if iterations is None else burn_total + -(-iterations // n_chunk) * n_chunk
+    warm_up_cap = convergence.WARM_UP_SHARE * max_time if iterations is None else float("inf")
     done = 0
     xs_all: list = []
     stats_all: dict[str, list] = {}
@@ -510,6 +515,7 @@ def sample_in_chunks(
     saved = checkpoint.restore(sampler) if checkpoint is not None else None
     if saved is not None:
         done, finished = saved.done, saved.finished
+        burn_total = int(saved.extra.get("warm_up", burn_total))
         states = tree_from_arrays(states, saved.arrays, "state")
         if "draws" in saved.arrays:
             xs_all = [saved.arrays["draws"]]
@@ -525,7 +531,7 @@ def sample_in_chunks(
             for k, v in stats_all.items():
                 v[:] = [np.concatenate(v, axis=1)]
                 arrays[f"stats/{k}"] = v[0]
-        return LoopState(done, finished, arrays, _time.perf_counter() - clock0)
+        return LoopState(done, finished, arrays, _time.perf_counter() - clock0, {"warm_up": burn_total})
 
     while not finished:
         adapt = done < burn_total
@@ -540,7 +546,8 @@ def sample_in_chunks(
         if progress is not None:
             progress(done, total, float(np.mean(np.asarray(stats["accepted"]))))
         if adapt:
-            pass
+            if done < burn_total and _time.perf_counter() - clock0 >= warm_up_cap:
+                burn_total = done  # max_time: the warm-up ends here (the chunks' keys do not depend on it)
         elif fixed_total is not None:
             finished = done >= fixed_total
         else:
@@ -557,7 +564,7 @@ def sample_in_chunks(
             checkpoint.save(sampler, loop_state)
     n_kept = iterations if iterations is not None else done - burn_total
     xs = np.concatenate(xs_all, axis=1)[:, :n_kept]
-    return states, xs, {k: np.concatenate(v, axis=1)[:, :n_kept] for k, v in stats_all.items()}
+    return states, xs, {k: np.concatenate(v, axis=1)[:, :n_kept] for k, v in stats_all.items()}, burn_total
 
 
 def finish(

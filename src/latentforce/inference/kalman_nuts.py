@@ -173,7 +173,7 @@ def run_kalman_nuts(
     def run_chunk(keys, s, start_step, adapt):
         return _run_chains(logpost, keys, s, adapt, *data, n_chunk=n_chunk)
 
-    states, xs, stats = sample_in_chunks(
+    states, xs, stats, burn_total = sample_in_chunks(
         key_run,
         states,
         run_chunk,

@@ -66,6 +66,7 @@ from latentforce.inference.pgas_block import (  # noqa: F401 (re-exported: calle
     Schedule,
     _summary_quantities,
     _with_scale_of,
+    cut_warm_up,
     make_block,
     path_move_shapes,
     reshape_chunks,
@@ -388,20 +389,24 @@ def run_pgas(
     data = BlockData(y, mask, od, ref_q)
 
     infos = []
-    verdict, done, finished, stopped = None, 0, False, None
+    verdict, done, finished, stopped, cut = None, 0, False, None, None
     saved = checkpoint.restore("pgas") if checkpoint is not None else None
     if saved is not None:
-        states, infos, ref_q, done, finished, stopped = pgas_restore(saved, states, BlockInfo)
+        states, infos, ref_q, done, finished, stopped, cut = pgas_restore(saved, states, BlockInfo)
         data = data._replace(ref_q=ref_q)
         t_start = time.perf_counter() - saved.elapsed_s
     # "auto": the verdict needs some draws; the first check after a tenth of the burn-in's sweeps
     first_check = sched.burn_blocks + max(20, sched.burn_blocks // 10)
+    # "auto": a warm-up still running at half of max_time stops at that segment's end (cut_warm_up)
+    warm_up_cap = convergence.WARM_UP_SHARE * max_time if auto else float("inf")
     for start, end in segments:
-        if finished:
+        off = 0 if cut is None else sched.burn_blocks - cut  # the blocks' numbers in the compiled schedule
+        if finished or start + off >= n_blocks:
             break
+        end = min(end, n_blocks - off)
         if end <= done:  # run before the checkpoint this run was restored from
             continue
-        if start in reshape_at:  # new shapes, the adapted scales kept, at each chain's own model
+        if start in reshape_at and cut is None:  # new shapes, the adapted scales kept, at each chain's own model
             x_sys = _chain_system(states, hyper)
             lfs, rps = _shapes(pm, rm, basis, od, states.tr, states.reference, hyper, x_sys, with_rp=with_rp)
             states = states._replace(
@@ -414,11 +419,11 @@ def run_pgas(
                     )
                 )
         if auto:
-            states = fit_draws(states, end - sched.burn_blocks, sched.n_draws)
+            states = fit_draws(states, end + off - sched.burn_blocks, sched.n_draws)
         states, info = _run_chunk(
             states,
-            np.arange(start, start + scan_len, dtype=np.int32),
-            np.int32(end),
+            np.arange(start + off, start + off + scan_len, dtype=np.int32),
+            np.int32(end + off),
             data,
             pm,
             hyper,
@@ -431,33 +436,37 @@ def run_pgas(
         done = end
         if progress is not None:
             acc = float(np.mean(infos[-1].accept))
-            progress(end * sched.state_every, n_blocks * sched.state_every, acc)
-        finished = end >= n_blocks
-        if auto and end >= first_check:
-            verdict = _verdict(pm, hyper, infos, sched, mpoints, target_ess, noise.names)
+            progress(end * sched.state_every, (n_blocks - off) * sched.state_every, acc)
+        finished = end + off >= n_blocks
+        if end + off < sched.burn_blocks and time.perf_counter() - t_start >= warm_up_cap:
+            cut = end
+        if auto and end + off >= first_check:
+            verdict = _verdict(pm, hyper, infos, cut_warm_up(sched, cut), mpoints, target_ess, noise.names)
             if verdict["converged"] or time.perf_counter() - t_start > max_time:
                 stopped = "converged" if verdict["converged"] else "max_time"
                 finished = True
         if checkpoint is not None:
             checkpoint.save(
                 "pgas",
-                lambda: pgas_loop_state(states, infos, ref_q, done, finished, stopped, time.perf_counter() - t_start),
+                lambda: pgas_loop_state(
+                    states, infos, ref_q, done, finished, stopped, time.perf_counter() - t_start, cut
+                ),
             )
     info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)  # the segments tile the blocks
-    total = min(sched.total, done * sched.state_every)
-    post_sweeps = max(0, done - sched.burn_blocks)
+    run = cut_warm_up(sched, cut)  # the schedule as run: its warm-up cut short where max_time did
+    total = min(run.total, done * sched.state_every)
+    post_sweeps = max(0, done - run.burn_blocks)
     thin = int(np.asarray(states.thin).reshape(-1)[0])
     n_draws = min(sched.n_draws, -(-post_sweeps // thin))
-    out = _assemble(
-        pm, hyper, states, info, ref_q, sched.burn_in, total, sched.burn_blocks, n_draws, tpoints, noise.names
-    )
+    out = _assemble(pm, hyper, states, info, ref_q, run.burn_in, total, run.burn_blocks, n_draws, tpoints, noise.names)
     out.diagnostics["thin"] = thin
     out.diagnostics["particles"] = int(particles)
     if start_record is not None:
         out.diagnostics["start"] = start_record
-    out.diagnostics["iterations_run"] = max(0, total - sched.burn_in)
+    out.diagnostics["iterations_run"] = max(0, total - run.burn_in)
+    out.diagnostics["burn_in_run"] = run.burn_in
     if verdict is None:
-        verdict = _verdict(pm, hyper, infos, sched, mpoints, target_ess, noise.names)
+        verdict = _verdict(pm, hyper, infos, run, mpoints, target_ess, noise.names)
     out.diagnostics["convergence"] = verdict
     if auto:
         out.diagnostics["stopped"] = stopped or (

@@ -139,7 +139,7 @@ from latentforce.inference.path_moves import (
     residual_init,
     residual_move,
 )
-from latentforce.inference.pgas_schedule import Schedule, reshape_chunks, schedule  # noqa: F401 (re-exported)
+from latentforce.inference.pgas_schedule import Schedule, cut_warm_up, reshape_chunks, schedule  # noqa: F401 (re-exported)
 from latentforce.inference.pgas_state import NOT_RUN, BlockData, BlockInfo, ChainState  # noqa: F401 (re-exported)
 
 

@@ -38,6 +38,22 @@ def schedule(burn_in: int, iterations: int, state_every: int = 1, mh_steps: int 
     return Schedule(k_every, n_mh, int(burn_in), total, n_blocks, burn_blocks, thin, n_draws)
 
 
+def cut_warm_up(sched: Schedule, cut: int | None) -> Schedule:
+    """``sched`` as run when its warm-up stopped after ``cut`` blocks (None: not cut; "auto" runs at half of
+    ``max_time``, :func:`~latentforce.inference.pgas.run_pgas`): the burn-in ends there, and the compiled
+    block, built for ``sched``, then numbers each later block ``sched.burn_blocks - cut`` higher, so that
+    it adapts nothing more and records its draws from the first slot on."""
+    if cut is None or cut >= sched.burn_blocks:
+        return sched
+    off = sched.burn_blocks - int(cut)
+    return sched._replace(
+        burn_in=int(cut) * sched.state_every,
+        burn_blocks=int(cut),
+        total=sched.total - off * sched.state_every,
+        n_blocks=sched.n_blocks - off,
+    )
+
+
 def reshape_chunks(
     n_blocks: int, burn_blocks: int, chunk_blocks: int, nonlinear: bool
 ) -> tuple[int, list[tuple[int, int]], tuple[int, ...]]:
