@@ -265,6 +265,28 @@ def test_checkpoint_writes_at_most_every_so_often_and_reads_back(tmp_path):
         resumed.restore("pgas")
 
 
+def test_a_pgas_checkpoint_keeps_the_warm_ups_cut(tmp_path):
+    """Where ``max_time`` cut an "auto" run's warm-up (``pgas.cut_warm_up``), the block it stopped at goes
+    through the checkpoint file (a run restored from it numbers its later blocks as the first run did)."""
+    from typing import NamedTuple
+
+    from latentforce.inference.resume import pgas_loop_state, pgas_restore
+
+    class Info(NamedTuple):
+        accept: np.ndarray
+
+    states = {"x": np.arange(4.0)}
+    for cut in (None, 120):
+        folder = tmp_path / str(cut)
+        folder.mkdir()
+        state = pgas_loop_state(states, [Info(np.ones((2, 3)))], np.zeros(2), 300, False, None, 9.0, cut)
+        ckpt.Checkpoint(folder, {"seed": 0}, every=0.0).save("pgas", lambda: state, force=True)
+        _, back = ckpt.read_checkpoint(folder)
+        restored = pgas_restore(back, states, Info)
+        assert restored[3:] == (300, False, None, cut)
+        np.testing.assert_array_equal(restored[0]["x"], states["x"])
+
+
 # ----- the samplers on their own: a checkpoint that "dies" at its N-th write -----------------
 class _Killed(Exception):
     pass
