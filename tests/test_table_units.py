@@ -3,7 +3,7 @@
 A channel labelled in g, mm or UDUNITS syntax ("m s-2") is read in SI as a
 vendor file's label is; the time column in seconds and the truth columns in
 SI by their labels; a label that does not fit is an error naming the file,
-the column and the label. The reference for each number is the same data
+the column and the label (a truth column's is left out with a note instead). The reference for each number is the same data
 written plainly in SI, or the factor by hand.
 """
 
@@ -141,8 +141,12 @@ def test_labels_that_do_not_fit_name_the_file_column_and_label(tmp_path):
     _raises(lambda: load_channels([ChannelSpec("acc", "acceleration")], path), "'blorps'", "pint", "unit key")
     _write_nc(path, DT * np.arange(T), {"acc": acc}, {"time": "m"})
     _raises(lambda: load_channels([ChannelSpec("acc", "acceleration")], path), "bad.nc", "'time'", "'m'", "'s'")
-    _write_nc(path, DT * np.arange(T), {"acc": acc, "velocity": disp}, {"velocity": "mm"})
-    _raises(lambda: load_channels([ChannelSpec("acc", "acceleration")], path), "'velocity'", "'mm'", "'m/s'")
+    # a truth column (a variable merely named velocity) whose label does not fit is left out, with a note
+    _write_nc(path, DT * np.arange(T), {"acc": acc, "velocity": disp, "force": disp}, {"velocity": "mm"})
+    for ds in (load_channels([ChannelSpec("acc", "acceleration")], path), read_table(path, ["acc"])[0]):
+        assert set(ds.truth) == {"force"} and len(ds.notes) == 1
+        for fragment in ("bad.nc", "'velocity'", "'mm'", "'m/s'", "left out", "coverage and NMSE"):
+            assert fragment in ds.notes[0], ds.notes
 
 
 @pytest.mark.parametrize("ext", ["nc", "h5"])
@@ -212,8 +216,9 @@ def test_estimate_warns_of_the_override_and_records_the_label(tmp_path):
     from latentforce.io.channels import channel_units, load_problem_data
     from latentforce.io.config import config_from_dict
 
-    acc, _, force = _signals()
-    _write_nc(tmp_path / "rec.nc", DT * np.arange(T), {"acc": acc, "force": force}, {"acc": "g"})
+    acc, disp, force = _signals()
+    columns = {"acc": acc, "force": force, "displacement": disp}
+    _write_nc(tmp_path / "rec.nc", DT * np.arange(T), columns, {"acc": "g", "displacement": "V"})
     config = {
         "data": {"path": "rec.nc"},
         "system": {"type": "linear", "m": 1.0, "c": 0.8, "k": 40.0},
@@ -226,6 +231,9 @@ def test_estimate_warns_of_the_override_and_records_the_label(tmp_path):
     np.testing.assert_array_equal(dataset.values[:, 0], acc)  # the key's unit, not the label's
     result, _ = estimate.run(problem, dataset)
     assert any("overrides the data file's own unit label" in w for w in result.diagnostics["warnings"])
+    # the displacement truth in volts is left out of the scoring, and the run says so
+    assert "displacement" not in result.truth and "force" in result.truth
+    assert any("column 'displacement'" in w and "left out" in w for w in result.diagnostics["warnings"])
     assert json.loads(json.dumps(channel_units(dataset)))["acc"]["file_label"] == "g"
 
 

@@ -176,7 +176,8 @@ def _run(
         result.diagnostics["steps_per_sample"] = steps
         result.diagnostics["grid_check"] = grid_record
     unit_warning = override_warning(getattr(dataset, "units", None))
-    for warning in (unit_warning, substeps_warning, recheck_warning, latent_grid.warning(grid_record)):
+    notes = getattr(dataset, "notes", ())
+    for warning in (*notes, unit_warning, substeps_warning, recheck_warning, latent_grid.warning(grid_record)):
         if warning:
             result.diagnostics.setdefault("warnings", []).append(warning)
     if not problem.model.system.is_linear:

@@ -105,7 +105,8 @@ def _check_missing(spec: ChannelSpec, src: _Source, missing: str) -> None:
 def _read_sources(
     specs: Sequence[ChannelSpec], path: Path | None, time_column: str | None, sample_rate: float | None, missing: str
 ):
-    """Each spec's channel as it was sampled, plus the truth columns of table-format files."""
+    """Each spec's channel as it was sampled, plus the truth columns of table-format files (and the notes of
+    reading them, :attr:`~latentforce.io.data.Dataset.notes`)."""
     by_file: dict[Path, list[int]] = {}
     for i, spec in enumerate(specs):
         file = spec.path if spec.path is not None else path
@@ -115,7 +116,7 @@ def _read_sources(
             )
         by_file.setdefault(Path(file), []).append(i)
     sources: list[_Source | None] = [None] * len(specs)
-    truths: list[tuple[np.ndarray, dict]] = []
+    truths: list[tuple[np.ndarray, dict, tuple[str, ...]]] = []  # with each file's notes (Dataset.notes)
     for file, idx in by_file.items():
         where = f"data file {str(file)!r}"
         if file.suffix.lower() in VENDOR_EXTENSIONS:
@@ -138,8 +139,8 @@ def _read_sources(
             )
             sources[i] = _Source(raw, where)
             _check_missing(specs[i], sources[i], missing)
-        if ds.truth:
-            truths.append((np.asarray(ds.time), ds.truth))
+        if ds.truth or ds.notes:
+            truths.append((np.asarray(ds.time), ds.truth, ds.notes))
     return sources, truths
 
 
@@ -207,7 +208,10 @@ def _grid(specs: Sequence[ChannelSpec], sources: list[_Source], dt: float | None
 
 
 def _assemble(
-    specs: Sequence[ChannelSpec], sources: list[_Source], dt: float | None, truths: list[tuple[np.ndarray, dict]]
+    specs: Sequence[ChannelSpec],
+    sources: list[_Source],
+    dt: float | None,
+    truths: list[tuple[np.ndarray, dict, tuple[str, ...]]],
 ) -> Dataset:
     origin, step, T, index = _grid(specs, sources, dt)
     time = None
@@ -228,12 +232,12 @@ def _assemble(
     mask = np.isfinite(values)
     values = np.where(mask, values, np.nan)
     truth: dict[str, np.ndarray] = {}
-    for t, columns in truths:
+    for t, columns, _ in truths:
         if t.size == T and np.allclose(t, time, rtol=0.0, atol=OFFSET_TOL * step):
             truth.update(columns)
-    return Dataset(
-        time=time, dt=step, values=values, mask=mask, columns=[s.column for s in specs], truth=truth, units=units
-    )
+    notes = tuple(note for _, _, file_notes in truths for note in file_notes)
+    columns = [s.column for s in specs]
+    return Dataset(time=time, dt=step, values=values, mask=mask, columns=columns, truth=truth, units=units, notes=notes)
 
 
 def load_channels(

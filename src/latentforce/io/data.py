@@ -74,6 +74,8 @@ class Dataset(NamedTuple):
     #: the SI unit they now carry, the factor); None when no units were resolved (``load_data``
     #: on a table format: the numbers are taken as SI)
     units: dict | None = None
+    #: warnings from reading the file(s), for the run's own (a truth column left out, :func:`_truth_in_si`)
+    notes: tuple[str, ...] = ()
 
 
 # ----- readers: one per format, each a table of named 1-D channels -----------
@@ -520,9 +522,25 @@ def _load(
                     f"to treat them as missing observations.",
                 )
     values = np.where(mask, values, np.nan)
-    truth_si = truth_units(truth_names)
-    truth = {n: _in_unit(path, table, n, channels[n], truth_si[n], f"a {n} truth column") for n in truth_names}
-    return Dataset(time=time, dt=dt, values=values, mask=mask, columns=list(columns), truth=truth)
+    truth, notes = _truth_in_si(path, table, {n: channels[n] for n in truth_names})
+    return Dataset(time=time, dt=dt, values=values, mask=mask, columns=list(columns), truth=truth, notes=notes)
+
+
+def _truth_in_si(path: Path, table: _Table, columns: dict[str, np.ndarray]) -> tuple[dict, tuple[str, ...]]:
+    """The truth ``columns`` in SI by their unit labels, and a note for each left out because its label does
+    not fit (a variable merely named ``force``, say a load cell's volts: it only scores the estimate, so the
+    run goes on without it and says so)."""
+    truth, notes = {}, []
+    for name, si in truth_units(columns).items():
+        try:
+            truth[name] = _in_unit(path, table, name, columns[name], si, f"a {name} truth column")
+        except LatentForceError:
+            notes.append(
+                f"data file {str(path)!r}: column {name!r} is read as the truth only to score the estimate, "
+                f"and its unit label {table.unit(name)!r} does not fit a {name} (a unit like {si!r}): it was left "
+                "out, so coverage and NMSE against it are not reported. Correct its label to score against it."
+            )
+    return truth, tuple(notes)
 
 
 def truth_units(columns) -> dict[str, str]:
