@@ -3,8 +3,9 @@
 A channel labelled in g, mm or UDUNITS syntax ("m s-2") is read in SI as a
 vendor file's label is; the time column in seconds and the truth columns in
 SI by their labels; a label that does not fit is an error naming the file,
-the column and the label (a truth column's is left out with a note instead). The reference for each number is the same data
-written plainly in SI, or the factor by hand.
+the column and the label (a truth column's is left out with a note instead).
+The reference for each number is the same data written plainly in SI, or the
+factor by hand.
 """
 
 import h5py
