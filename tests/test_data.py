@@ -7,7 +7,8 @@ import xarray as xr
 from scipy import io as sio
 
 from latentforce.errors import LatentForceError
-from latentforce.io.data import load_data, write_csv
+from latentforce.io.data import load_data
+from latentforce.io.writers import write_csv
 
 T = 50
 DT = 1.0 / 256.0

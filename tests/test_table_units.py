@@ -16,8 +16,9 @@ import xarray as xr
 import latentforce  # noqa: F401  (float64)
 from latentforce.errors import LatentForceError
 from latentforce.io.channels import ChannelSpec, load_channels
-from latentforce.io.data import read_table, write_data
+from latentforce.io.data import read_table
 from latentforce.io.units import unit_scale
+from latentforce.io.writers import write_data
 
 G = 9.80665
 T = 50

@@ -25,8 +25,9 @@ from latentforce.io.channels import (
     load_problem_data,
 )
 from latentforce.io.config import config_from_dict
-from latentforce.io.data import load_data, write_csv
+from latentforce.io.data import load_data
 from latentforce.io.units import resolve_unit
+from latentforce.io.writers import write_csv
 from latentforce.results import write_results
 
 pyuff = pytest.importorskip("pyuff")

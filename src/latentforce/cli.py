@@ -272,8 +272,9 @@ def simulate(
 
     from latentforce.io.channels import sensor_unit_keys, sensor_unit_scales
     from latentforce.io.config import initial_params, load_config
-    from latentforce.io.data import truth_units, write_data
+    from latentforce.io.data import truth_units
     from latentforce.io.units import SI_UNITS
+    from latentforce.io.writers import write_data
     from latentforce.simulate import measure, truth_columns
     from latentforce.simulate import simulate as simulate_fn
     from latentforce.substeps import needed as needed_substeps

@@ -7,7 +7,8 @@ from pathlib import Path
 
 from latentforce import estimate
 from latentforce.io.config import config_from_dict
-from latentforce.io.data import load_data, write_csv
+from latentforce.io.data import load_data
+from latentforce.io.writers import write_csv
 from latentforce.results import FIGURE_LOCK, check_out_dir, write_figures, write_results
 
 
