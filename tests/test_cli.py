@@ -313,6 +313,14 @@ def test_exact_kalman_is_converged_and_strict_passes(workdir):
     assert code == 0, out
     summary = json.loads((workdir / "res" / "summary.json").read_text())
     assert summary["converged"] is True and summary["convergence"] == {"exact": True}
+    assert "warnings" not in summary["diagnostics"]
+    # a key this method does not read is named on stderr and in the summary (and changes nothing else)
+    text = (workdir / "lf.toml").read_text().replace("[inference]", "[inference]\nparticles = 100")
+    (workdir / "pf.toml").write_text(text)
+    code, out = invoke("estimate", "pf.toml", "--out", "res2", "--strict")
+    assert code == 0 and "particles (pgas only)" in out, out
+    again = json.loads((workdir / "res2" / "summary.json").read_text())
+    assert any("particles (pgas only)" in w for w in again["diagnostics"]["warnings"])
 
 
 def test_a_converged_run_has_no_stamp_and_an_unconverged_one_has(workdir):

@@ -187,6 +187,11 @@ def _edit(base, path, value, delete=False):
     return d
 
 
+def test_steps_per_sample_out_of_range_says_what_is_valid():
+    msg = _bad(_edit(DUFFING, ["system", "steps_per_sample"], 9), "[system].steps_per_sample = 9", "1 to 8", '"auto"')
+    assert "literal" not in msg
+
+
 def test_unknown_section_suggests():
     d = copy.deepcopy(DUFFING)
     d["sytem"] = d.pop("system")
@@ -268,6 +273,23 @@ def test_method_consistency():
         _edit(d, ["inference", "method"], "kalman"), "[inference].method", "fixed", "kalman-mcmc", "[force].lengthscale"
     )
     _bad(_edit(MDOF, ["inference", "method"], "kalman-mcmc"), "[inference].method", "kalman")
+    # a linear base with nonlinear elements: the elements are named as what makes it nonlinear
+    frame = _edit(MDOF, ["system", "elements"], [{"type": "cubic", "dofs": [1, 0], "k3": 1e4}])
+    msg = _bad(_edit(frame, ["inference", "method"], "kalman"), "[inference].method", "[[system.elements]] (cubic)")
+    assert "type is 'linear'" not in msg
+
+
+def test_keys_the_method_does_not_use_are_named():
+    """[inference] keys only some methods read (pgas's particles ..., the Kalman methods' kalman): set in the
+    file for another method they are ignored, and the problem carries a warning naming them (estimate
+    adds it to the run's); keys left at their defaults, or read by the method, give none."""
+    ukf = _edit(DUFFING, ["inference"], {"method": "ukf", "particles": 100, "state_every": 3, "kalman": "parallel"})
+    (note,) = config_from_dict(ukf, source="config.toml").notes
+    for fragment in ("particles, state_every, kalman", "'ukf'", "particles (pgas only)", "kalman (kalman /"):
+        assert fragment in note, note
+    assert config_from_dict(DUFFING, source="config.toml").notes == ()  # pgas reads particles
+    assert config_from_dict(_edit(MDOF, ["inference"], {"kalman": "parallel"}), source="config.toml").notes == ()
+    assert "particles" in config_from_dict(_edit(MDOF, ["inference"], {"particles": 8}), source="c.toml").notes[0]
 
 
 def test_initial_length_explains_state_vector():

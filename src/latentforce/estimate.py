@@ -176,7 +176,7 @@ def _run(
         result.diagnostics["steps_per_sample"] = steps
         result.diagnostics["grid_check"] = grid_record
     unit_warning = override_warning(getattr(dataset, "units", None))
-    notes = getattr(dataset, "notes", ())
+    notes = (*problem.notes, *getattr(dataset, "notes", ()))
     for warning in (*notes, unit_warning, substeps_warning, recheck_warning, latent_grid.warning(grid_record)):
         if warning:
             result.diagnostics.setdefault("warnings", []).append(warning)

@@ -124,6 +124,8 @@ class Problem(NamedTuple):
     substeps: int | None = None
     #: ``[system].steps_per_sample`` as given (None: "auto", :func:`latentforce.latent_grid.choose`)
     steps_per_sample: int | None = None
+    #: warnings about the file that do not stop the run (keys the method ignores), for the run's own
+    notes: tuple[str, ...] = ()
 
 
 # ----- stage 2: meaning ------------------------------------------------------
@@ -280,10 +282,14 @@ def config_from_dict(
     inf = cfg.inference
     method = inf.method or _default_method(system.is_linear, free)
     if method in ("kalman", "kalman-mcmc", "kalman-nuts") and not system.is_linear:
+        why = (
+            f"its [[system.elements]] ({', '.join(sorted({e.type for e in cfg.system.elements}))}) make it nonlinear"
+            if cfg.system.elements
+            else f"[system].type is {cfg.system.type!r}"
+        )
         raise fail(
             "[inference].method",
-            f"method {method!r} needs a linear system but [system].type is "
-            f'{cfg.system.type!r}; use method = "pgas" (or the Gaussian '
+            f'method {method!r} needs a linear system but {why}; use method = "pgas" (or the Gaussian '
             f'approximations "ekf", "ukf").',
         )
     if method == "kalman" and free:
@@ -321,6 +327,7 @@ def config_from_dict(
             f"chains, but chains = {inf.chains}; give chains = 2 or more (default 4), or a fixed number of "
             "iterations.",
         )
+    notes = _unused_inference_keys(inf, method)
     settings = InferenceSettings(
         method=method,
         particles=None if inf.particles == "auto" else inf.particles,
@@ -389,6 +396,30 @@ def config_from_dict(
         outputs=outputs,
         substeps=cfg.system.substeps,
         steps_per_sample=None if cfg.system.steps_per_sample == "auto" else cfg.system.steps_per_sample,
+        notes=notes,
+    )
+
+
+#: [inference] keys that only some methods read (the others ignore them): key -> those methods
+_METHOD_KEYS = {
+    "particles": ("pgas",),
+    "state_every": ("pgas",),
+    "mh_steps": ("pgas",),
+    "proposal": ("pgas",),
+    "kalman": ("kalman", "kalman-mcmc", "kalman-nuts"),
+}
+
+
+def _unused_inference_keys(inf, method: str) -> tuple[str, ...]:
+    """A warning for each ``[inference]`` key given in the file that ``method`` does not read (a user who
+    switched methods and thinks the key still applies gets told)."""
+    unused = [k for k, methods in _METHOD_KEYS.items() if k in inf.model_fields_set and method not in methods]
+    if not unused:
+        return ()
+    which = "; ".join(f"{k} ({' / '.join(_METHOD_KEYS[k])} only)" for k in unused)
+    return (
+        f"[inference] sets {', '.join(unused)}, which method {method!r} does not use: {which}. They were ignored; "
+        "remove them, or choose a method that uses them.",
     )
 
 

@@ -241,6 +241,11 @@ def _from_validation_error(source: str, exc: ValidationError) -> LatentForceErro
             f'{source}: [inference].iterations{shown}: give a whole number of draws per chain (1 or more) or "auto" '
             "(lower case: sample until converged, the default)."
         )
+    if loc[:2] == ("system", "steps_per_sample"):
+        return LatentForceError(
+            f"{source}: [system].steps_per_sample{shown}: give a whole number of model steps per sample, 1 to 8, "
+            'or "auto" (lower case, the default: checked on hysteretic records).'
+        )
     if loc[:2] == ("inference", "particles"):
         return LatentForceError(
             f'{source}: [inference].particles{shown}: give a whole number of particles (2 or more) or "auto" '
