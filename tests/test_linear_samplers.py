@@ -247,7 +247,7 @@ def test_auto_warm_up_stops_at_half_of_max_time_and_a_resumed_run_keeps_the_cut(
     the next chunks adapt nothing and are kept as draws, and the warm-up run is returned (not the
     configured one). A run restored from a checkpoint written after the cut keeps it. Fixed
     ``iterations`` are never cut. (The clock is the test's: it jumps when a chunk reports.)"""
-    from latentforce.inference import kalman_mcmc
+    from latentforce.inference import convergence, kalman_mcmc
     from latentforce.priors import LogNormal
 
     class Clock:
@@ -293,6 +293,10 @@ def test_auto_warm_up_stops_at_half_of_max_time_and_a_resumed_run_keeps_the_cut(
     assert xs.shape == (2, 20, 1)
     _, xs, _, warm = sample(30)
     assert warm == 100 and adapted == [True] * 10 + [False] * 3 and xs.shape == (2, 30, 1)
+    # past half of max_time at the first chunk (a long compile): the warm-up still runs its floor
+    progress = lambda done, total, rate: setattr(clock, "now", 60.0 + done)  # noqa: E731
+    _, _, _, warm = sample(None)
+    assert warm == 20 == -(-convergence.WARM_UP_FLOOR * 100 // 10) * 10 and adapted[:3] == [True, True, False]
 
     class Saved:  # the checkpoint of the chunk boundary after the cut, kept in memory
         saved = None

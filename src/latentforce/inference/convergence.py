@@ -35,6 +35,9 @@ MONITORED_TIMES = 24
 #: the share of ``max_time`` an "auto" run's warm-up may take: at the first chunk's end past it the
 #: adaptation stops and the draws start, so that they get the rest (:func:`warm_up_cut_warning`)
 WARM_UP_SHARE = 0.5
+#: the least share of ``burn_in`` a warm-up runs however long it takes (the first chunk, the compile with
+#: it, can take half of a short ``max_time`` alone: a user sweep's pgas run kept 5 of 100 iterations)
+WARM_UP_FLOOR = 0.15
 
 
 def monitored_times(T: int, n: int = MONITORED_TIMES) -> np.ndarray:

@@ -490,8 +490,9 @@ def sample_in_chunks(
     parameters). Fixed ``iterations`` are run (rounded up to whole chunks, the
     surplus dropped); ``None`` runs until converged or ``max_time``, and its warm-up
     stops at the first chunk's end after half of ``max_time``
-    (:data:`~latentforce.inference.convergence.WARM_UP_SHARE`), so that the draws get
-    the other half: the adaptation stops there and the draws start.
+    (:data:`~latentforce.inference.convergence.WARM_UP_SHARE`; not before
+    :data:`~latentforce.inference.convergence.WARM_UP_FLOOR` of it has run), so that the
+    draws get the other half: the adaptation stops there and the draws start.
     Returns the final states, the post-warm-up draws, their stats and the warm-up
     iterations run (``burn_total`` unless it was cut).
 
@@ -546,7 +547,8 @@ def sample_in_chunks(
         if progress is not None:
             progress(done, total, float(np.mean(np.asarray(stats["accepted"]))))
         if adapt:
-            if done < burn_total and _time.perf_counter() - clock0 >= warm_up_cap:
+            floor = convergence.WARM_UP_FLOOR * burn_total
+            if floor <= done < burn_total and _time.perf_counter() - clock0 >= warm_up_cap:
                 burn_total = done  # max_time: the warm-up ends here (the chunks' keys do not depend on it)
         elif fixed_total is not None:
             finished = done >= fixed_total

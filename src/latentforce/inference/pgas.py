@@ -397,7 +397,8 @@ def run_pgas(
         t_start = time.perf_counter() - saved.elapsed_s
     # "auto": the verdict needs some draws; the first check after a tenth of the burn-in's sweeps
     first_check = sched.burn_blocks + max(20, sched.burn_blocks // 10)
-    # "auto": a warm-up still running at half of max_time stops at that segment's end (cut_warm_up)
+    # "auto": a warm-up still running at half of max_time stops at that segment's end (cut_warm_up), once
+    # it has run its floor
     warm_up_cap = convergence.WARM_UP_SHARE * max_time if auto else float("inf")
     for start, end in segments:
         off = 0 if cut is None else sched.burn_blocks - cut  # the blocks' numbers in the compiled schedule
@@ -438,7 +439,8 @@ def run_pgas(
             acc = float(np.mean(infos[-1].accept))
             progress(end * sched.state_every, (n_blocks - off) * sched.state_every, acc)
         finished = end + off >= n_blocks
-        if end + off < sched.burn_blocks and time.perf_counter() - t_start >= warm_up_cap:
+        floor = convergence.WARM_UP_FLOOR * sched.burn_blocks
+        if floor <= end + off < sched.burn_blocks and time.perf_counter() - t_start >= warm_up_cap:
             cut = end
         if auto and end + off >= first_check:
             verdict = _verdict(pm, hyper, infos, cut_warm_up(sched, cut), mpoints, target_ess, noise.names)
