@@ -265,8 +265,10 @@ def test_auto_warm_up_stops_at_half_of_max_time_and_a_resumed_run_keeps_the_cut(
         xs = rng.standard_normal((2, 10, 1))
         return states, xs, {"accepted": np.ones((2, 10)), "logdensity": -0.5 * xs[..., 0] ** 2}
 
-    def progress(done, total, rate):  # 30 s a chunk, max_time 100: the third chunk's end is past 50 s
-        clock.now = 30.0 * done / 10
+    pace = {"first": 0.0, "chunk": 30.0}  # 30 s a chunk, max_time 100: the third chunk's end is past 50 s
+
+    def progress(done, total, rate):
+        clock.now = pace["first"] + pace["chunk"] * done / 10
 
     def sample(iterations, checkpoint=None):
         adapted.clear()
@@ -293,10 +295,6 @@ def test_auto_warm_up_stops_at_half_of_max_time_and_a_resumed_run_keeps_the_cut(
     assert xs.shape == (2, 20, 1)
     _, xs, _, warm = sample(30)
     assert warm == 100 and adapted == [True] * 10 + [False] * 3 and xs.shape == (2, 30, 1)
-    # past half of max_time at the first chunk (a long compile): the warm-up still runs its floor
-    progress = lambda done, total, rate: setattr(clock, "now", 60.0 + done)  # noqa: E731
-    _, _, _, warm = sample(None)
-    assert warm == 20 == -(-convergence.WARM_UP_FLOOR * 100 // 10) * 10 and adapted[:3] == [True, True, False]
 
     class Saved:  # the checkpoint of the chunk boundary after the cut, kept in memory
         saved = None
@@ -315,6 +313,10 @@ def test_auto_warm_up_stops_at_half_of_max_time_and_a_resumed_run_keeps_the_cut(
     cp.save = lambda *a: None
     _, xs, _, warm = sample(None, cp)
     assert warm == 20 and adapted == [False] and xs.shape == (2, 20, 1)
+    # past half of max_time at the first chunk (a long compile): the warm-up still runs its floor
+    pace.update(first=60.0, chunk=10.0)
+    _, _, _, warm = sample(None)
+    assert warm == 20 == -(-convergence.WARM_UP_FLOOR * 100 // 10) * 10 and adapted[:3] == [True, True, False]
 
 
 # ----- the bounded-memory mixture ----------------------------------------------------

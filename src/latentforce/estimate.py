@@ -169,6 +169,12 @@ def _run(
             result, extras = second
             result.diagnostics["substeps_first_pass"] = used
             _, recheck_warning = substeps.recheck(problem, result, grid.dt, rerun=False)
+            result.diagnostics.setdefault("warnings", []).append(
+                f"the run was made twice: its first pass's posterior reached parameters where the structure's "
+                f"rate needs more than the {used} RK4 substeps a sample chosen at the init values, so it was "
+                f"rerun with {int(problem.model.system.substeps)} (reported here; each pass had its own "
+                "max_time). Give [system].substeps to fix the count and run once."
+            )
     result = latent_grid.on_samples(result, steps, common)
     if steps > 1 and "median_smoother" in extras:  # ekf/ukf with inferred parameters
         extras["median_smoother"] = {n: (m[::steps], s[::steps]) for n, (m, s) in extras["median_smoother"].items()}
