@@ -258,6 +258,24 @@ def test_config_builds_a_bouc_wen_system_and_refuses_invalid_values():
     prob = config_from_dict(d, source="bw.toml")
     assert prob.model.system.substeps == 8 and "beta" in prob.free
     _config_error({"nu": 0.5}, "[system].nu", "at least 1")
+    # an inferred nu's prior is truncated at 1 (a log-normal one reaches below it), for an SDOF and an element
+    import jax.numpy as jnp
+
+    from latentforce.priors import AtLeast, log_prob_coordinate, prior_from_spec
+
+    nu = {"prior": "lognormal", "mu": 0.0, "sigma": 0.3, "init": 1.1}
+    d = copy.deepcopy(BOUC_WEN_CONFIG)
+    d["system"]["nu"] = nu
+    frame = copy.deepcopy(BOUC_WEN_CONFIG)
+    frame["system"] = {"type": "linear", "masses": [1.0, 1.0], "dampings": [1.0, 1.0], "stiffnesses": [1e3, 1e3]}
+    frame["system"]["elements"] = [{"type": "bouc-wen", "dofs": [0], "alpha": 1e3, "beta": 1.0, "gamma": 1.0, "nu": nu}]
+    frame["sensors"][0]["dof"] = 0
+    for config, name in ((d, "nu"), (frame, next(iter(config_from_dict(frame, source="f.toml").free)))):
+        prior = config_from_dict(config, source="bw.toml").free[name].prior
+        assert isinstance(prior, AtLeast) and prior.base == prior_from_spec("lognormal", mu=0.0, sigma=0.3)
+        lp = log_prob_coordinate(prior, jnp.log(jnp.array([0.95, 1.0, 1.05])), "log")
+        assert lp[0] == -jnp.inf and np.all(np.isfinite(lp[1:]))
+        assert float(np.min(prior.sample(jax.random.key(0), (2000,)))) >= 1.0
     _config_error({"nu": {"prior": "lognormal", "mu": 0.0, "sigma": 0.3, "init": 0.8}}, "[system].nu", "init")
     _config_error({"m": -2.0}, "[system].m", "mass must be positive")
     _config_error({"k": -1.0}, "[system].k", "stiffness must be positive")

@@ -42,6 +42,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 __all__ = [
     "PRIOR_PARAMS",
+    "AtLeast",
     "Flat",
     "Gamma",
     "HalfNormal",
@@ -258,6 +259,35 @@ class SoftplusNormal(Prior):
 
     def default_init(self):
         return float(softplus(self.loc))
+
+
+@_register
+class AtLeast(Prior):
+    r"""``base`` truncated to :math:`\theta \ge` ``lower``: a parameter whose physics has a lower bound
+    above zero (Bouc-Wen's exponent ``nu`` >= 1, below which its rate is not Lipschitz at r = 0).
+    The samplers keep their coordinate; a proposal below the bound has log density ``-inf`` and is
+    rejected. Unnormalised (the base's mass below the bound is not divided out): the samplers need the
+    density up to a constant only."""
+
+    base: Prior
+    lower: Any
+    name: ClassVar[str] = "at-least"
+
+    def log_prob(self, theta):
+        theta = jnp.asarray(theta, dtype=float)
+        return jnp.where(theta >= self.lower, self.base.log_prob(theta), -jnp.inf)
+
+    def sample(self, key, shape=(), tries: int = 64):
+        """The first of ``tries`` draws of ``base`` at or above the bound (the bound itself where none is)."""
+        draws = self.base.sample(key, (tries, *shape))
+        ok = draws >= self.lower
+        first = jnp.argmax(ok, axis=0)
+        pick = jnp.take_along_axis(draws, first[None], axis=0)[0]
+        return jnp.where(jnp.any(ok, axis=0), pick, self.lower)
+
+    def default_init(self):
+        init = self.base.default_init()
+        return None if init is None else max(float(init), float(self.lower))
 
 
 @_register
