@@ -31,6 +31,7 @@ opens a window, and each figure is released once saved.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -84,6 +85,7 @@ _PARAM_UNITS = {
     "c": "N s/m",
     "k": "N/m",
     "k3": "N/m$^3$",
+    "alpha": "N/m",
     "force_variance": "N$^2$",
     "force_lengthscale": "s",
 }
@@ -206,8 +208,11 @@ def _hyper_terms(names) -> list[str]:
 
 
 def _param_label(name: str) -> str:
+    """``name [unit]`` where the unit is fixed: a storey's ``k_1`` as ``k``, an element's ``element0_k3`` as
+    ``k3`` (Bouc-Wen's beta and gamma have none: theirs depends on nu)."""
     m = HYPER_NAME.fullmatch(name)
-    unit = _PARAM_UNITS.get(f"force_{m.group(1)}" if m else name)
+    key = f"force_{m.group(1)}" if m else re.sub(r"^element\d+_|_\d+$", "", name)
+    unit = _PARAM_UNITS.get(key)
     return f"{name} [{unit}]" if unit else name
 
 
