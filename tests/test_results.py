@@ -260,3 +260,23 @@ def test_a_demo_case_draws_its_figures_in_the_helper_process(tmp_path):
     there = sorted(p.name for p in (tmp_path / "there" / "figures").iterdir())
     here = sorted(p.name for p in (tmp_path / "here" / "figures").iterdir())
     assert there == here and set(here) <= set(FIGURE_NAMES) and len(here) >= 6
+
+
+def test_parameter_axes_carry_their_units():
+    """A storey's, an element's and a kernel term's parameter are labelled with their base key's unit;
+    Bouc-Wen's beta and gamma (a unit that depends on nu) and noise levels (the sensor's) with none."""
+    from latentforce.plots import _param_label
+
+    labels = {n: _param_label(n) for n in ("k_1", "c_0", "element0_k3", "element1_alpha", "force_lengthscale_1")}
+    assert labels == {
+        "k_1": "k_1 [N/m]",
+        "c_0": "c_0 [N s/m]",
+        "element0_k3": "element0_k3 [N/m$^3$]",
+        "element1_alpha": "element1_alpha [N/m]",
+        "force_lengthscale_1": "force_lengthscale_1 [s]",
+    }
+    assert [_param_label(n) for n in ("beta", "element0_gamma", "noise_std_acc")] == [
+        "beta",
+        "element0_gamma",
+        "noise_std_acc",
+    ]
