@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from latentforce.models import HYPER_NAME
 
@@ -327,7 +328,14 @@ def plot_hysteresis(result: RunResult, path: Path, max_paths: int = 20) -> Path:
         # the zoom: a box around the peak a few bands high, so that the band shows
         z_span = np.ptp(loop["z"]) or 1.0
         r_half = max(8.0 * 1.645 * float(loop["s"][peak]), 0.01 * (np.ptp(loop["r"]) or 1.0))
-        axes[j, 1].set_xlim(loop["z"][peak] - 0.03 * z_span, loop["z"][peak] + 0.03 * z_span)
+        # ... and no wider than the zoomed samples reach (at the record's extreme displacement half of the
+        # box was empty), with few ticks (their long labels ran into each other)
+        near, pad = loop["z"][zoom], 0.005 * z_span
+        lo = max(loop["z"][peak] - 0.03 * z_span, float(np.min(near)) - pad)
+        hi = min(loop["z"][peak] + 0.03 * z_span, float(np.max(near)) + pad)
+        axes[j, 1].set_xlim(lo, hi)
+        for ax in axes[j]:
+            ax.xaxis.set_major_locator(MaxNLocator(5))
         axes[j, 1].set_ylim(loop["r"][peak] - r_half, loop["r"][peak] + r_half)
         axes[j, 1].set_title(f"zoom on the largest force (t = {float(result.time[peak]):.4g} s)")
         axes[j, 0].legend(loc="upper left", fontsize="small")
