@@ -560,7 +560,7 @@ def _run_kalman_sampler(
     if message:
         warnings_.append(message)
     cut = convergence.warm_up_cut_warning(settings.burn_in, out.warmup, settings.max_time)
-    if cut and settings.iterations is None:
+    if cut:  # only "auto" runs are cut
         warnings_.append(cut)
     if warnings_:
         diagnostics["warnings"] = warnings_
