@@ -104,6 +104,25 @@ def test_a_point_where_the_optimiser_stopped_short_is_no_mode():
     assert len(record["rejected"]) == 1 and not record["rejected"][0]["hessian_definite"]
 
 
+def test_a_mode_at_a_large_coordinate_is_found_and_its_laplace_covariance_is_right():
+    """A softplus coordinate is the parameter itself when that is large (a cubic stiffness of 1e9 N/m^3):
+    from a start at half the mode, with a posterior sd of 3e7 beside a unit-scale coordinate, the optimiser
+    reaches the mode and the Hessian's steps (a fixed 1e-4 was round-off at x = 5e8) give its covariance.
+    Before both were scaled, a user sweep's ukf run stayed at k3's init (4.99999980e8 +- 129, truth 1e9)."""
+
+    def logdensity(x):
+        return -0.5 * ((x[0] - 1e9) / 3e7) ** 2 - 0.5 * ((x[1] - 0.3) / 0.2) ** 2 - 0.1 * (x[1] - 0.3) ** 4
+
+    modes, record = laplace.find_modes(logdensity, np.array([[5e8, 0.0]]))
+    (mode,) = modes
+    assert mode.laplace_ok and record["rejected"] == []
+    np.testing.assert_allclose(mode.x, [1e9, 0.3], rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(np.sqrt(np.diag(mode.cov)), [3e7, 0.2], rtol=1e-3)
+    # a flat direction of a large coordinate gets a variance of its scale, not of 1
+    cov, ok = laplace._laplace_cov(np.diag([0.0, -25.0]), laplace.coordinate_scale(np.array([5e8, 0.3])))
+    assert not ok and np.allclose(np.diag(cov), [5e7**2, 0.04])
+
+
 def test_the_laplace_covariance_factors_when_curvatures_span_many_decades():
     """A rough likelihood gave curvatures of 1e15-1e18 beside flat and saddle
     directions; the covariance handed to the chain starts must still factor

@@ -96,7 +96,8 @@ def find_modes(
         if i not in laplaces:
             # The Hessian by central differences of the (forward-mode) gradient: one compiled
             # program serves both, where forward-over-forward took seconds more to compile.
-            laplaces[i] = _laplace_cov(_hessian(value_and_grad, xs[i], args))
+            scale = coordinate_scale(xs[i])
+            laplaces[i] = _laplace_cov(_hessian(value_and_grad, xs[i], args, scale), scale)
         return laplaces[i]
 
     def stop_in_known_basin(x):
@@ -111,7 +112,14 @@ def find_modes(
         # magnitude, and L-BFGS from a dispersed start crawls along the valley (frame, T = 2e4:
         # 145 evaluations to reach the first mode's region). An affine change of variables moves
         # no optimum.
-        shift, L = (known[0].x, np.linalg.cholesky(known[0].cov)) if known else (np.zeros(p), np.eye(p))
+        # Before it, scaled by the start's own magnitudes (coordinate_scale): a softplus coordinate is the
+        # value itself for a large parameter (a cubic stiffness of 5e8), whose gradient per unit then
+        # fell below the optimiser's tolerance at once and every start stayed where it began.
+        shift, L = (
+            (known[0].x, np.linalg.cholesky(known[0].cov))
+            if known
+            else (starts[i], np.diag(coordinate_scale(starts[i])))
+        )
 
         def fun(u, shift=shift, L=L):
             f, g = objective(shift + L @ u)
@@ -182,21 +190,35 @@ def _as_mode(
     return Mode(x.copy(), float(f), cov, ok, log_mass), decrement
 
 
-def _hessian(value_and_grad: Callable, x: np.ndarray, args: tuple) -> np.ndarray:
-    """Central differences of the gradient, step 1e-4 per unconstrained coordinate."""
-    h = 1e-4
+def coordinate_scale(x: np.ndarray) -> np.ndarray:
+    """A typical scale of each unconstrained coordinate at ``x``: 1, or a tenth of its magnitude where that is
+    larger (a softplus coordinate is the parameter itself when it is large: k3 = 5e8 is x = 5e8, and a
+    step of 1e-4 there is lost in the round-off of x, 6e-8)."""
+    return np.maximum(1.0, 0.1 * np.abs(np.asarray(x, dtype=float)))
+
+
+def _hessian(value_and_grad: Callable, x: np.ndarray, args: tuple, scale=None) -> np.ndarray:
+    """Central differences of the gradient, step 1e-4 of each coordinate's ``scale`` (default 1)."""
+    scale = np.ones(x.size) if scale is None else np.asarray(scale, dtype=float)
     cols = []
     for j in range(x.size):
         e = np.zeros_like(x)
-        e[j] = h
+        e[j] = h = 1e-4 * scale[j]
         g_plus = np.asarray(value_and_grad(jnp.asarray(x + e), *args)[1])
         g_minus = np.asarray(value_and_grad(jnp.asarray(x - e), *args)[1])
         cols.append((g_plus - g_minus) / (2 * h))
     return np.stack(cols, axis=1)
 
 
-def _laplace_cov(H: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Inverse of the negative Hessian; where it is not definite, unit variance in the flat directions."""
+def _laplace_cov(H: np.ndarray, scale=None) -> tuple[np.ndarray, bool]:
+    """Inverse of the negative Hessian; where it is not definite, a variance of ``scale`` squared (default 1)
+    in the flat directions (found in the coordinates divided by ``scale``)."""
+    scale = np.ones(H.shape[0]) if scale is None else np.asarray(scale, dtype=float)
+    cov, ok = _laplace_cov_unit(H * scale[:, None] * scale[None, :])
+    return cov * scale[:, None] * scale[None, :], ok
+
+
+def _laplace_cov_unit(H: np.ndarray) -> tuple[np.ndarray, bool]:
     H = 0.5 * (H + H.T)
     if not np.all(np.isfinite(H)):
         return np.eye(H.shape[0]), False
