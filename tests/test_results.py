@@ -280,3 +280,20 @@ def test_parameter_axes_carry_their_units():
         "element0_gamma",
         "noise_std_acc",
     ]
+
+
+def test_scores_by_column_name_each_dof_as_nmse_does():
+    """coverage_3sd and nmse_median_smoother score every column (an MDOF structure's DOFs, its forces),
+    keyed as summary.json's nmse: a badly covered upper floor is no longer hidden behind DOF 0's score."""
+    from latentforce.results import by_column, coverage
+
+    t = np.linspace(0.0, 1.0, 100)
+    truth = {"velocity": np.stack([t, t, t], axis=1), "force": t, "displacement": t}
+    mean = {"velocity": np.stack([t, t, t + 1.0], axis=1), "force": t[:, None]}
+    sd = {"velocity": np.full((100, 3), 0.1), "force": np.full((100, 1), 0.1)}
+    assert by_column(coverage, truth, mean, sd) == {
+        "velocity_0": 1.0,
+        "velocity_1": 1.0,
+        "velocity_2": 0.0,
+        "force": 1.0,
+    }

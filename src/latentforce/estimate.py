@@ -566,12 +566,12 @@ def _run_kalman_sampler(
         diagnostics["warnings"] = warnings_
     truth = common["truth"]
     if truth:
-        from latentforce.results import coverage, nmse
+        from latentforce.results import by_column, coverage, nmse
 
-        diagnostics["nmse_median_smoother"] = {k: nmse(truth[k][:, 0], mom_median[k][0][:, 0]) for k in truth}
-        diagnostics["coverage_3sd"] = {
-            k: coverage(truth[k][:, 0], mix.moments[k][0][:, 0], mix.moments[k][1][:, 0]) for k in truth
-        }
+        median = {k: m for k, (m, _) in mom_median.items()}
+        diagnostics["nmse_median_smoother"] = by_column(nmse, truth, median)
+        means, sds = ({k: v[j] for k, v in mix.moments.items()} for j in (0, 1))
+        diagnostics["coverage_3sd"] = by_column(coverage, truth, means, sds)
     # Parameters at the same iterations as the trajectories, so both share (chain, draw).
     return RunResult(
         method=settings.method,

@@ -338,11 +338,9 @@ def _run_pgas(
         diagnostics.setdefault("warnings", []).append(cut)
     truth = common["truth"]
     if truth:
-        from latentforce.results import coverage
+        from latentforce.results import by_column, coverage
 
-        diagnostics["coverage_3sd"] = {
-            name: coverage(truth[name][:, 0], out.state_mean[name][:, 0], out.state_sd[name][:, 0]) for name in truth
-        }
+        diagnostics["coverage_3sd"] = by_column(coverage, truth, out.state_mean, out.state_sd)
     return RunResult(
         method="pgas",
         state_mean=state_mean,

@@ -23,6 +23,7 @@ import xarray as xr
 __all__ = [
     "RunResult",
     "nmse",
+    "by_column",
     "coverage",
     "summarise_parameters",
     "summary_columns",
@@ -128,6 +129,21 @@ def coverage(truth: np.ndarray, mean: np.ndarray, sd: np.ndarray, k: float = 3.0
     if not ok.any():
         return float("nan")
     return float(np.mean(np.abs(x[ok] - m[ok]) <= k * s[ok]))
+
+
+def by_column(score, truth: dict, *estimates: dict) -> dict[str, float]:
+    """``score(truth, *estimates)`` (:func:`nmse`, :func:`coverage`) of every column of each state in
+    ``truth`` (``(T,)`` or ``(T, width)``), keyed as ``summary.json``'s ``nmse``: ``displacement`` for one
+    column, ``displacement_0``, ``displacement_1`` ... for several (an MDOF structure's DOFs, its forces)."""
+    out = {}
+    for name, x in truth.items():
+        if any(name not in e for e in estimates):
+            continue
+        cols = [np.asarray(a, dtype=float).reshape(np.shape(a)[0], -1) for a in (x, *(e[name] for e in estimates))]
+        width = cols[0].shape[1]
+        for i in range(width):
+            out[name if width == 1 else f"{name}_{i}"] = score(*(c[:, i] for c in cols))
+    return out
 
 
 @contextmanager
