@@ -168,3 +168,9 @@ def test_a_negative_cubic_stiffness_is_named_where_a_model_overflowed():
     assert "[system].k3 = -2e+05" in hint and "[[system.elements]][1].k3 = -1" in hint
     assert "[[system.elements]][0]" not in hint and hint.startswith("; here a cubic stiffness is negative")
     assert softening_hint({"k3": 4e4, "element0_k3": np.array([1.0, 2.0]), "k": -1.0}) == ""
+
+
+def test_a_failing_r_hat_is_never_printed_as_passing():
+    record = {"converged": False, "max_r_hat": 1.0104, "r_hat_max": 1.01, "min_ess_bulk": 500.0, "target_ess": 400.0}
+    assert "R-hat 1.0104 (need <= 1.01)" in convergence.warning_message(record, "ekf")
+    assert "R-hat 1.340 (need" in convergence.warning_message({**record, "max_r_hat": 1.34}, "ekf")

@@ -224,8 +224,11 @@ def warning_message(record: dict, method: str, hint: str = "") -> str | None:
             "units and that no prior reaches values the structure cannot have (a negative stiffness, an "
             f"unstable structure){hint}"
         )
+    r_hat = record["max_r_hat"]
+    # four decimals where three would read as passing (1.0104 is not <= 1.01, but "1.010" looks it)
+    shown = f"{r_hat:.4f}" if round(r_hat, 3) <= record["r_hat_max"] < r_hat else f"{r_hat:.3f}"
     return (
-        f"NOT CONVERGED{why}: worst max R-hat {record['max_r_hat']:.3f} (need <= {record['r_hat_max']}), "
+        f"NOT CONVERGED{why}: worst max R-hat {shown} (need <= {record['r_hat_max']}), "
         f"min bulk ESS {record['min_ess_bulk']:.0f} (need >= {record['target_ess']:.0f}); worst "
         f"quantities: {worst}. The posterior summaries and bands may be wrong: {advice}."
     )
