@@ -77,6 +77,17 @@ def test_simulate_out_a_folder_an_extension_or_a_new_folder(workdir):
     assert code == 0 and (workdir / "new" / "deep" / "x.csv").is_file(), out
 
 
+def test_simulate_refuses_a_structure_that_runs_away(workdir):
+    """A softening spring pushed past its turning point: the motion overflows, and simulate says so (when
+    and why) and writes nothing, where it wrote a file of NaN from there on and exited 0 (user sweep 42)."""
+    text = (workdir / "lf.toml").read_text().replace('type = "linear"', 'type = "duffing"')
+    text = text.replace("k = 10.0", "k = 10.0\nk3 = -1.0e4").replace('method = "kalman"', 'method = "ukf"')
+    (workdir / "soft.toml").write_text(text)
+    code, out = invoke("simulate", "soft.toml", "--out", "soft.csv", "--duration", "10", "--sample-rate", "20")
+    assert code == 1 and "grew without bound" in out and "negative k3" in out and "Traceback" not in out, out
+    assert not (workdir / "soft.csv").exists()
+
+
 def test_simulate_estimate_report(workdir):
     code, out = invoke("estimate", "lf.toml", "--out", "res")
     assert code == 0, out

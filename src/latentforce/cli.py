@@ -269,6 +269,7 @@ def simulate(
     starts at rest, or from a draw of ``[initial]`` where the config has one.
     """
     import jax
+    import numpy as np
 
     from latentforce.io.channels import sensor_unit_keys, sensor_unit_scales
     from latentforce.io.config import initial_params, load_config
@@ -304,6 +305,15 @@ def simulate(
     # at least 8 RK4 steps a sample, more where the structure's rate needs them (latentforce.substeps)
     fine = 8 if problem.model.system.is_linear else max(8, needed_substeps(problem.model, params, 1.0 / rate))
     sim = simulate_fn(key_force, problem.model, params, n, 1.0 / rate, initial=problem.initial, substeps=fine)
+    blown = ~np.all(np.isfinite(np.reshape(np.asarray(sim.displacement), (n, -1))), axis=1)
+    if blown.any():  # the structure ran away (a softening spring past its turning point, an unstable system)
+        t_bad = float(np.asarray(sim.time)[int(np.argmax(blown))])
+        raise LatentForceError(
+            f"{config}: the simulated structure's motion grew without bound (not finite from t = {t_bad:.4g} s of "
+            f"{duration:g} s): with these parameters and this force it is unstable, e.g. a softening spring "
+            "(negative k3) pushed past the displacement where its stiffness turns negative. Use a hardening or "
+            "smaller k3, a smaller force variance, or a shorter --duration. Nothing was written."
+        )
     # A sensor with a unit key: noise_std and the written channel in that unit, the model in SI.
     scales = sensor_unit_scales(problem)
     sensors = [s._replace(noise_std=s.noise_std * f) for s, f in zip(problem.model.sensors, scales)]
