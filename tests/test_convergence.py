@@ -174,3 +174,19 @@ def test_a_failing_r_hat_is_never_printed_as_passing():
     record = {"converged": False, "max_r_hat": 1.0104, "r_hat_max": 1.01, "min_ess_bulk": 500.0, "target_ess": 400.0}
     assert "R-hat 1.0104 (need <= 1.01)" in convergence.warning_message(record, "ekf")
     assert "R-hat 1.340 (need" in convergence.warning_message({**record, "max_r_hat": 1.34}, "ekf")
+
+
+def test_chains_stuck_apart_are_not_told_to_run_longer():
+    """A worst R-hat of 3e16 (proposals never accepted, chains at their starts) is printed as "> 100" and
+    the advice is about the model, not about running longer."""
+    record = {
+        "converged": False,
+        "max_r_hat": 3.2e16,
+        "r_hat_max": 1.01,
+        "min_ess_bulk": 2.0,
+        "target_ess": 400.0,
+        "worst": [{"name": "k3", "r_hat": 3.2e16, "ess_bulk": 2.0}],
+    }
+    message = convergence.warning_message(record, "pgas")
+    assert "R-hat > 100 (need" in message and "k3 (R-hat > 100," in message and "3.2e" not in message
+    assert "running longer will not help" in message and "run longer" not in message.replace("running longer", "")

@@ -35,6 +35,9 @@ MONITORED_TIMES = 24
 #: the share of ``max_time`` an "auto" run's warm-up may take: at the first chunk's end past it the
 #: adaptation stops and the draws start, so that they get the rest (:func:`warm_up_cut_warning`)
 WARM_UP_SHARE = 0.5
+#: a worst R-hat from which chains count as stuck apart, not slowly mixing (:func:`warning_message`: a user
+#: sweep's run whose proposals were never accepted printed 32151935721977916 and advised running longer)
+STUCK_R_HAT = 100.0
 #: the least share of ``burn_in`` a warm-up runs however long it takes (the first chunk, the compile with
 #: it, can take half of a short ``max_time`` alone: a user sweep's pgas run kept 5 of 100 iterations)
 WARM_UP_FLOOR = 0.15
@@ -205,7 +208,10 @@ def warning_message(record: dict, method: str, hint: str = "") -> str | None:
     if record.get("converged", False):
         return None
     worst = ", ".join(
-        f"{w['name']} (R-hat {w['r_hat']:.3f}, bulk ESS {w['ess_bulk']:.0f})" for w in record.get("worst", [])[:3]
+        f"{w['name']} (R-hat {w['r_hat']:.3f}, bulk ESS {w['ess_bulk']:.0f})"
+        if w["r_hat"] < STUCK_R_HAT
+        else f"{w['name']} (R-hat > {STUCK_R_HAT:g}, bulk ESS {w['ess_bulk']:.0f})"
+        for w in record.get("worst", [])[:3]
     )
     why = f" ({record['reason']})" if "reason" in record else ""
     advice = {
@@ -217,6 +223,13 @@ def warning_message(record: dict, method: str, hint: str = "") -> str | None:
         "kalman-nuts": 'run longer (iterations = "auto" with a larger max_time); check '
         "diagnostics.start.modes for a posterior with several modes",
     }.get(method, "run longer")
+    if not record.get("max_r_hat", 0.0) < STUCK_R_HAT:  # (NaN too)
+        advice = (
+            "the chains sit apart and hardly move (R-hat this large is no slow mixing), so running longer will "
+            "not help: the model probably cannot follow the data near where the chains started. Check its "
+            'parameters, units and sensor noise against the data (a fit with method = "ekf" or "ukf" '
+            "at fixed parameters shows quickly where it fails)"
+        )
     if record.get("diverged_chains"):
         advice = (
             "running longer does not help where a chain diverged: the model's step overflowed at the values "
@@ -227,6 +240,7 @@ def warning_message(record: dict, method: str, hint: str = "") -> str | None:
     r_hat = record["max_r_hat"]
     # four decimals where three would read as passing (1.0104 is not <= 1.01, but "1.010" looks it)
     shown = f"{r_hat:.4f}" if round(r_hat, 3) <= record["r_hat_max"] < r_hat else f"{r_hat:.3f}"
+    shown = shown if r_hat < STUCK_R_HAT else f"> {STUCK_R_HAT:g}"
     return (
         f"NOT CONVERGED{why}: worst max R-hat {shown} (need <= {record['r_hat_max']}), "
         f"min bulk ESS {record['min_ess_bulk']:.0f} (need >= {record['target_ess']:.0f}); worst "
