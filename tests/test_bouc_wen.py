@@ -276,6 +276,9 @@ def test_config_builds_a_bouc_wen_system_and_refuses_invalid_values():
         lp = log_prob_coordinate(prior, jnp.log(jnp.array([0.95, 1.0, 1.05])), "log")
         assert lp[0] == -jnp.inf and np.all(np.isfinite(lp[1:]))
         assert float(np.min(prior.sample(jax.random.key(0), (2000,)))) >= 1.0
+    frame["system"]["elements"][0]["nu"] = {**nu, "init": 0.8}  # an element's init below 1: refused as the SDOF's
+    with pytest.raises(LatentForceError, match=r"\[\[system.elements\]\]\[0\].nu: init must be at least 1"):
+        config_from_dict(frame, source="f.toml")
     _config_error({"nu": {"prior": "lognormal", "mu": 0.0, "sigma": 0.3, "init": 0.8}}, "[system].nu", "init")
     _config_error({"m": -2.0}, "[system].m", "mass must be positive")
     _config_error({"k": -1.0}, "[system].k", "stiffness must be positive")

@@ -6,9 +6,8 @@ one-paragraph error naming the key for every physically invalid value."""
 from __future__ import annotations
 
 from latentforce.io.matrices import _check_psd, _matrix
-from latentforce.io.params import ParamSpec, _split
+from latentforce.io.params import _split
 from latentforce.io.schema import _did_you_mean, _Fail, _SystemSection
-from latentforce.priors import AtLeast
 from latentforce.systems import (
     DEFAULT_BOUC_WEN_SUBSTEPS,
     ELEMENT_KEYS,
@@ -38,13 +37,6 @@ SCALAR_RULES = {
     "gamma": "any",
     "nu": "exponent",
 }
-
-
-def exponent_prior(spec: ParamSpec) -> ParamSpec:
-    """An inferred Bouc-Wen exponent's prior truncated to ``nu >= 1`` (:class:`~latentforce.priors.AtLeast`):
-    a log-normal prior reaches below 1, where the rate is not Lipschitz at r = 0, and a user sweep's ukf run
-    drew 64 % of its nu there (a fixed nu or an init below 1 is refused outright)."""
-    return spec._replace(prior=AtLeast(spec.prior, 1.0))
 
 
 def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
@@ -84,10 +76,6 @@ def _system(fail: _Fail, s: _SystemSection, fixed: dict, free: dict):
     def scalars(names):
         for n in names:
             _split(fail, f"[system].{n}", n, getattr(s, n), SCALAR_RULES[n], fixed, free)
-        if "nu" in free and not free["nu"].init >= 1:
-            raise fail("[system].nu", f"init must be at least 1 (the Bouc-Wen exponent), got {free['nu'].init!r}.")
-        if "nu" in free:
-            free["nu"] = exponent_prior(free["nu"])
 
     matrix_keys = ("M", "C", "K", "masses", "dampings", "stiffnesses", "force_dofs")
     if s.elements is not None and s.type != "linear":
@@ -199,10 +187,6 @@ def _with_elements(fail: _Fail, s: _SystemSection, base, fixed: dict, free: dict
                 raise fail(f"{where}.{key}", f"is required for a {el.type} element (keys: {', '.join(keys)}).")
             name = element_param(e, key)
             _split(fail, f"{where}.{key}", name, value, SCALAR_RULES[key], fixed, free)
-            if key == "nu" and name in free and not free[name].init >= 1:
-                raise fail(f"{where}.nu", f"init must be at least 1 (the Bouc-Wen exponent), got {free[name].init!r}.")
-            if key == "nu" and name in free:
-                free[name] = exponent_prior(free[name])
         elements.append(Element(el.type, tuple(el.dofs)))
     hysteretic = any(e.kind == "bouc-wen" for e in elements)
     substeps = s.substeps or (DEFAULT_BOUC_WEN_SUBSTEPS if hysteretic else 1)
