@@ -1237,10 +1237,8 @@ def test_fit_draws_halves_the_stored_paths_and_doubles_the_stride():
     np.testing.assert_array_equal(np.asarray(st.draws)[1, 2:, 0, 0], 0.0)
 
 
-def test_auto_runs_until_converged_and_matches_the_exact_smoother():
-    """iterations=None: the run stops when R-hat and ESS over the hyperparameters and the
-    monitored states say converged, well before the cap; the stored paths are thinned on the
-    fly to at most thin_draws; the posterior is the exact smoother's."""
+def _auto_linear_run(progress=None):
+    """``(out, ks)``: an "auto" pgas run on a linear SDOF (Matérn-3/2, missing samples) and its exact smoother."""
     prob = linear_problem(T=100, missing=True, kernel=Matern(1))
     pm = smc.ParticleModel(prob["model"], prob["params"], prob["dt"])
     A_d, Q_d, H, m0, P0 = pm.linear_discrete(pm.transition(1.0, 0.5))
@@ -1260,7 +1258,16 @@ def test_auto_runs_until_converged_and_matches_the_exact_smoother():
         thin_draws=50,
         max_time=600,
         max_iterations=20_000,
+        progress=progress,
     )
+    return out, ks
+
+
+def test_auto_runs_until_converged_and_matches_the_exact_smoother():
+    """iterations=None: the run stops when R-hat and ESS over the hyperparameters and the
+    monitored states say converged, well before the cap; the stored paths are thinned on the
+    fly to at most thin_draws; the posterior is the exact smoother's."""
+    out, ks = _auto_linear_run()
     d = out.diagnostics
     assert d["stopped"] == "converged" and d["convergence"]["converged"], d["convergence"]
     assert d["convergence"]["max_r_hat"] <= 1.01 and d["convergence"]["min_ess_bulk"] >= 400
@@ -1279,11 +1286,7 @@ def test_auto_warm_up_stops_at_half_of_max_time_and_the_draws_after_it_are_the_p
     (the compiled block, built for the configured burn-in, then sees each later block numbered past it:
     no adaptation, draws stored from the first slot): the draws after the cut are the exact smoother's
     posterior, and the run reports the warm-up it ran. The test's clock jumps when a segment reports;
-    the settings are the test above's, so its compiled programs serve."""
-    prob = linear_problem(T=100, missing=True, kernel=Matern(1))
-    pm = smc.ParticleModel(prob["model"], prob["params"], prob["dt"])
-    A_d, Q_d, H, m0, P0 = pm.linear_discrete(pm.transition(1.0, 0.5))
-    ks = kalman_smoother(A_d, Q_d, H, pm.R, m0, P0, prob["y"], prob["mask"])
+    the run is the test above's, so its compiled programs serve."""
 
     class Clock:
         now = 0.0
@@ -1298,23 +1301,7 @@ def test_auto_warm_up_stops_at_half_of_max_time_and_the_draws_after_it_are_the_p
         reports.append((done, total))
         clock.now = 400.0 if done < 1_100 else 700.0
 
-    out = pgas.run_pgas(
-        jax.random.key(3),
-        prob["model"],
-        prob["params"],
-        {},
-        prob["y"],
-        prob["mask"],
-        prob["dt"],
-        particles=32,
-        iterations=None,
-        burn_in=200,
-        chains=4,
-        thin_draws=50,
-        max_time=600,
-        max_iterations=20_000,
-        progress=progress,
-    )
+    out, ks = _auto_linear_run(progress)
     d = out.diagnostics
     assert reports[0] == (100, 20_200) and reports[1] == (200, 20_100)  # cut at the first segment's end
     assert d["burn_in_run"] == 100 and d["stopped"] in ("converged", "max_time")
