@@ -474,3 +474,36 @@ def test_chains_stuck_apart_are_not_called_weakly_identified():
     r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, draws, {}, {}, [], 0.0, {})
     estimate._weak_identification_warning(problem, r)
     assert "warnings" not in r.diagnostics
+
+
+def test_unconverged_run_whose_start_found_no_mode_says_so():
+    """The start's mode search (kalman_mcmc.start_chains) on a log posterior flat along one parameter
+    finds no definite maximum; an unconverged run with that start is warned about it, a converged one
+    and a start with a definite mode are not."""
+    from latentforce.inference.kalman_mcmc import start_chains
+    from latentforce.priors import Flat, LogNormal
+    from latentforce.results import RunResult
+
+    def logpost(x, y):  # x[0]: identified (mode at the data's mean); x[1]: the data say nothing, a flat prior
+        return -0.5 * ((x[0] - jnp.mean(y)) / 0.1) ** 2 + 0.0 * x[1]
+
+    def logpost_ok(x, y):
+        return -0.5 * ((x[0] - jnp.mean(y)) / 0.1) ** 2 - 0.5 * (x[1] - 1.0) ** 2
+
+    priors, inits = (LogNormal(0.0, 1.0), Flat()), np.array([1.0, 2.0])
+    data = (jnp.full(50, 1.5),)
+    _, _, flat, _ = start_chains(jax.random.key(0), logpost, data, inits, priors, 4)
+    _, _, definite, _ = start_chains(jax.random.key(0), logpost_ok, data, inits, priors, 4)
+    assert estimate.start_failed(flat) and not estimate.start_failed(definite)
+    assert not estimate.start_failed({"method": "init"})  # no search made (use_modes off)
+    assert estimate.start_failed({"laplace_ok": False}) and not estimate.start_failed({"laplace_ok": True})  # pgas
+
+    def run_with(start, converged):
+        r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, {}, {}, {}, [], 0.0, {})
+        r.diagnostics["start"], r.convergence = start, {"converged": converged}
+        estimate._start_warning(r)
+        return r.diagnostics.get("warnings", [])
+
+    (msg,) = run_with(flat, False)
+    assert "found no definite maximum" in msg and "diagnostics.start" in msg
+    assert run_with(flat, True) == [] and run_with(definite, False) == []

@@ -190,6 +190,7 @@ def _run(
         result.diagnostics["substeps"] = int(problem.model.system.substeps)
     _mass_warning(problem, result)
     _weak_identification_warning(problem, result)
+    _start_warning(result)
     _sampling_rate_warning(problem, params0, dataset.dt, result)
     # the force spectrum's draws (kalman) from their own key, apart from the method's
     key_psd = jax.random.fold_in(key, 0x5D)
@@ -216,6 +217,33 @@ def _mass_warning(problem: Problem, result: RunResult) -> None:
             "twice as large on a mass twice as large gives much the same response), so the mass and "
             "the force's scale are set by their priors. Add a load cell channel to identify the mass."
         )
+
+
+def start_failed(start: dict | None) -> bool:
+    """Whether a sampler's start (``diagnostics.start``) searched for the posterior's mode and found no
+    definite maximum: ``pgas``'s filter mode (``laplace_ok``), or the Kalman samplers' optimiser (no
+    finite optimum, or no mode with a negative definite Hessian)."""
+    if not start:
+        return False
+    if "laplace_ok" in start:  # pgas (pgas_mode.mode_start)
+        return not start["laplace_ok"]
+    if start.get("method") == "laplace":
+        return not any(m.get("laplace_ok") for m in start.get("modes", []))
+    return "optimiser" in start  # searched, and fell back to the init values
+
+
+def _start_warning(result: RunResult) -> None:
+    """An unconverged run whose start found no definite mode: say so, since the chains then began at
+    the best point reached with a generic proposal shape, and the usual cure is the model's, not time."""
+    if (result.convergence or {}).get("converged", True) or not start_failed(result.diagnostics.get("start")):
+        return
+    result.diagnostics.setdefault("warnings", []).append(
+        "the start's search for the posterior's mode found no definite maximum (diagnostics.start: the "
+        "log posterior's Hessian at the best point reached is not negative definite, or no finite optimum "
+        "was found), so the chains began there with a generic proposal shape. A parameter the data do not "
+        "constrain (a flat prior on it, or no sensor that sees it) or an init far from the data's values "
+        "does this: give it a proper prior or an init nearer the truth, or fix it."
+    )
 
 
 def natural_frequencies(problem: Problem, params: dict) -> np.ndarray:
