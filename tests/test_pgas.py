@@ -1317,6 +1317,20 @@ def test_auto_warm_up_stops_at_half_of_max_time_and_the_draws_after_it_are_the_p
         assert np.mean(np.abs(sd / np.sqrt(kv[:, i]) - 1.0)) < 0.1, name
 
 
+def test_first_check_after_a_warm_up_cut_waits_only_the_floor():
+    """An uncut "auto" run first checks a tenth of its burn-in's sweeps (at least 20) after it; one whose
+    warm-up max_time cut (half of it spent) checks 20 draw sweeps after the cut, so that with a burn-in of
+    3 000 it can stop 280 sweeps sooner (in the compiled numbering, past the configured burn-in)."""
+    from latentforce.inference.pgas_schedule import first_check, schedule
+
+    sched = schedule(3000, 10_000)
+    assert first_check(sched, None) == 3000 + 300 and first_check(sched, 3000) == 3300  # a "cut" at the end: none
+    assert first_check(sched, 450) == 3000 + 20
+    short = schedule(100, 1000)
+    assert first_check(short, None) == first_check(short, 50) == 120
+    assert first_check(schedule(600, 1000, state_every=3), None) == 200 + 20  # in blocks, not iterations
+
+
 @pytest.mark.slow  # its own compile (50 s under load); tests/test_cli.py's twin runs in CI
 def test_auto_stops_at_max_time_and_says_so():
     prob = linear_problem(T=50, missing=False, kernel=Matern(1))

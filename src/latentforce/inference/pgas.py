@@ -81,6 +81,7 @@ from latentforce.inference.pgas_defaults import (  # noqa: F401 (re-exported)
     default_window,
 )
 from latentforce.inference.pgas_output import PGASOutput, _assemble, _verdict, convergence_diagnostics  # noqa: F401 (re-exported)
+from latentforce.inference.pgas_schedule import first_check
 from latentforce.inference.pgas_start import extended_kalman_smoother, init_chains
 from latentforce.inference.resume import pgas_loop_state, pgas_restore
 from latentforce.models import hyper_names
@@ -395,8 +396,6 @@ def run_pgas(
         states, infos, ref_q, done, finished, stopped, cut = pgas_restore(saved, states, BlockInfo)
         data = data._replace(ref_q=ref_q)
         t_start = time.perf_counter() - saved.elapsed_s
-    # "auto": the verdict needs some draws; the first check after a tenth of the burn-in's sweeps
-    first_check = sched.burn_blocks + max(20, sched.burn_blocks // 10)
     # "auto": a warm-up still running at half of max_time stops at that segment's end (cut_warm_up), once
     # it has run its floor
     warm_up_cap = convergence.WARM_UP_SHARE * max_time if auto else float("inf")
@@ -442,7 +441,7 @@ def run_pgas(
         floor = convergence.WARM_UP_FLOOR * sched.burn_blocks
         if floor <= end + off < sched.burn_blocks and time.perf_counter() - t_start >= warm_up_cap:
             cut = end
-        if auto and end + off >= first_check:
+        if auto and end + off >= first_check(sched, cut):
             verdict = _verdict(pm, hyper, infos, cut_warm_up(sched, cut), mpoints, target_ess, noise.names)
             if verdict["converged"] or time.perf_counter() - t_start > max_time:
                 stopped = "converged" if verdict["converged"] else "max_time"

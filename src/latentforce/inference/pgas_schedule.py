@@ -54,6 +54,23 @@ def cut_warm_up(sched: Schedule, cut: int | None) -> Schedule:
     )
 
 
+#: the fewest draw sweeps before an "auto" run's first convergence check
+FIRST_CHECK_SWEEPS = 20
+
+
+def first_check(sched: Schedule, cut: int | None) -> int:
+    """The block (in the compiled numbering of :func:`cut_warm_up`) from whose end on an "auto" run checks
+    its convergence and ``max_time``: the verdict needs some draws, a tenth of the burn-in's sweeps and at
+    least :data:`FIRST_CHECK_SWEEPS`; after a warm-up cut, when half of ``max_time`` is spent already,
+    the floor alone, so that a run past ``max_time`` stops at its next segment's end."""
+    after = (
+        FIRST_CHECK_SWEEPS
+        if cut is not None and cut < sched.burn_blocks
+        else max(FIRST_CHECK_SWEEPS, sched.burn_blocks // 10)
+    )
+    return sched.burn_blocks + after
+
+
 def reshape_chunks(
     n_blocks: int, burn_blocks: int, chunk_blocks: int, nonlinear: bool
 ) -> tuple[int, list[tuple[int, int]], tuple[int, ...]]:
