@@ -9,7 +9,7 @@ import pytest
 from test_kalman import dense_gaussian
 
 import latentforce  # noqa: F401  (enables float64)
-from latentforce import estimate
+from latentforce import estimate, run_checks
 from latentforce.errors import LatentForceError
 from latentforce.inference.kalman import kalman_smoother
 from latentforce.inference.kalman_mcmc import linear_gaussian
@@ -366,7 +366,7 @@ def test_mass_warning_without_a_force_channel():
         }
         problem = config_from_dict(d, source="c.toml")
         r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, {}, {}, {}, [], 0.0, {})
-        estimate._mass_warning(problem, r)
+        run_checks.mass_warning(problem, r)
         return r.diagnostics.get("warnings", [])
 
     acc = {"column": "a", "quantity": "acceleration", "noise_std": 0.1}
@@ -391,7 +391,7 @@ def test_no_mass_warning_for_a_mass_carried_from_a_calibration(tmp_path):
     problem = config_from_dict(d, source="c.toml")
     for carried, expected in (({"[system].m": {}}, 0), ({"[system].c": {}}, 1)):
         r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, {}, {}, {}, [], 0.0, {})
-        estimate._mass_warning(problem._replace(carried=carried), r)
+        run_checks.mass_warning(problem._replace(carried=carried), r)
         assert len(r.diagnostics.get("warnings", [])) == expected, carried
 
 
@@ -452,11 +452,11 @@ def test_a_weakly_identified_parameter_is_named():
     # c: draws from its prior (the data said nothing); k: a posterior 10x narrower than its prior
     draws = {"c": np.exp(-1.0 + 0.5 * rng.normal(size=(4, 500))), "k": np.exp(2.3 + 0.1 * rng.normal(size=(4, 500)))}
     r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, draws, {}, {}, [], 0.0, {})
-    estimate._weak_identification_warning(problem, r)
+    run_checks.weak_identification_warning(problem, r)
     (msg,) = r.diagnostics["warnings"]
     assert "weakly identified: c (posterior sd" in msg and "k (" not in msg
     r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, {"k": draws["k"]}, {}, {}, [], 0.0, {})
-    estimate._weak_identification_warning(problem, r)
+    run_checks.weak_identification_warning(problem, r)
     assert "warnings" not in r.diagnostics
 
 
@@ -472,7 +472,7 @@ def test_chains_stuck_apart_are_not_called_weakly_identified():
     centres = np.exp(np.array([0.5, 2.0, 3.5, 5.0]))[:, None]
     draws = {"k": centres * np.exp(0.05 * rng.normal(size=(4, 500)))}
     r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, draws, {}, {}, [], 0.0, {})
-    estimate._weak_identification_warning(problem, r)
+    run_checks.weak_identification_warning(problem, r)
     assert "warnings" not in r.diagnostics
 
 
@@ -494,14 +494,14 @@ def test_unconverged_run_whose_start_found_no_mode_says_so():
     data = (jnp.full(50, 1.5),)
     _, _, flat, _ = start_chains(jax.random.key(0), logpost, data, inits, priors, 4)
     _, _, definite, _ = start_chains(jax.random.key(0), logpost_ok, data, inits, priors, 4)
-    assert estimate.start_failed(flat) and not estimate.start_failed(definite)
-    assert not estimate.start_failed({"method": "init"})  # no search made (use_modes off)
-    assert estimate.start_failed({"laplace_ok": False}) and not estimate.start_failed({"laplace_ok": True})  # pgas
+    assert run_checks.start_failed(flat) and not run_checks.start_failed(definite)
+    assert not run_checks.start_failed({"method": "init"})  # no search made (use_modes off)
+    assert run_checks.start_failed({"laplace_ok": False}) and not run_checks.start_failed({"laplace_ok": True})  # pgas
 
     def run_with(start, converged):
         r = RunResult("kalman-mcmc", np.zeros(1), 1, 1, {}, {}, {}, {}, {}, [], 0.0, {})
         r.diagnostics["start"], r.convergence = start, {"converged": converged}
-        estimate._start_warning(r)
+        run_checks.start_warning(r)
         return r.diagnostics.get("warnings", [])
 
     (msg,) = run_with(flat, False)

@@ -14,7 +14,7 @@ from typing import Callable
 import jax
 import numpy as np
 
-from latentforce import latent_grid, substeps
+from latentforce import latent_grid, run_checks, substeps
 from latentforce.compile import call, numbers, require_x64
 from latentforce.errors import LatentForceError
 from latentforce.estimate_particles import (  # noqa: F401
@@ -188,126 +188,16 @@ def _run(
             result.diagnostics.setdefault("warnings", []).append(warning)
     if not problem.model.system.is_linear:
         result.diagnostics["substeps"] = int(problem.model.system.substeps)
-    _mass_warning(problem, result)
-    _weak_identification_warning(problem, result)
-    _start_warning(result)
-    _sampling_rate_warning(problem, params0, dataset.dt, result)
+    run_checks.mass_warning(problem, result)
+    run_checks.weak_identification_warning(problem, result)
+    run_checks.start_warning(result)
+    run_checks.sampling_rate_warning(problem, params0, dataset.dt, result)
     # the force spectrum's draws (kalman) from their own key, apart from the method's
     key_psd = jax.random.fold_in(key, 0x5D)
     result.force_psd = force_spectrum(
         key_psd, problem, result, params0, y, mask, dataset.dt, initial, grid=(y_grid, mask_grid, steps)
     )
     return result, extras
-
-
-def _mass_warning(problem: Problem, result: RunResult) -> None:
-    """Force and mass trade off (``u/m`` is what motion sensors see): inferring a mass
-    without a load cell leans on its prior alone for the scale of the force. A mass whose prior
-    is carried from an earlier run (``prior = "posterior"``, e.g. a calibration with a load cell)
-    is that run's identification: no warning."""
-    carried = set()
-    for key in problem.carried or {}:  # "[system].m", "[system].masses[2]"
-        tail = key.rsplit(".", 1)[-1]
-        carried.add("m_" + tail[len("masses[") : -1] if tail.startswith("masses[") else tail)
-    masses = [n for n in problem.free if (n == "m" or (n.startswith("m_") and n[2:].isdigit())) and n not in carried]
-    if masses and not any(s.quantity == "force" for s in problem.model.sensors):
-        result.diagnostics.setdefault("warnings", []).append(
-            f"the mass ({', '.join(masses)}) is inferred but no sensor measures the force "
-            '(quantity = "force"): with only motion measured, force and mass trade off (a force '
-            "twice as large on a mass twice as large gives much the same response), so the mass and "
-            "the force's scale are set by their priors. Add a load cell channel to identify the mass."
-        )
-
-
-def start_failed(start: dict | None) -> bool:
-    """Whether a sampler's start (``diagnostics.start``) searched for the posterior's mode and found no
-    definite maximum: ``pgas``'s filter mode (``laplace_ok``), or the Kalman samplers' optimiser (no
-    finite optimum, or no mode with a negative definite Hessian)."""
-    if not start:
-        return False
-    if "laplace_ok" in start:  # pgas (pgas_mode.mode_start)
-        return not start["laplace_ok"]
-    if start.get("method") == "laplace":
-        return not any(m.get("laplace_ok") for m in start.get("modes", []))
-    return "optimiser" in start  # searched, and fell back to the init values
-
-
-def _start_warning(result: RunResult) -> None:
-    """An unconverged run whose start found no definite mode: say so, since the chains then began at
-    the best point reached with a generic proposal shape, and the usual cure is the model's, not time."""
-    if (result.convergence or {}).get("converged", True) or not start_failed(result.diagnostics.get("start")):
-        return
-    result.diagnostics.setdefault("warnings", []).append(
-        "the start's search for the posterior's mode found no definite maximum (diagnostics.start: the "
-        "log posterior's Hessian at the best point reached is not negative definite, or no finite optimum "
-        "was found), so the chains began there with a generic proposal shape. A parameter the data do not "
-        "constrain (a flat prior on it, or no sensor that sees it) or an init far from the data's values "
-        "does this: give it a proper prior or an init nearer the truth, or fix it."
-    )
-
-
-def natural_frequencies(problem: Problem, params: dict) -> np.ndarray:
-    """The structure's natural frequencies (Hz) at ``params``, linearised about rest: the
-    oscillatory eigenvalues of its mechanical state matrix, ``|lambda| / 2 pi``."""
-    model = problem.model
-    F, _ = model.continuous(numbers(params), linear_part=True)
-    mech = model.layout.mech
-    lam = np.linalg.eigvals(np.asarray(F, dtype=float)[mech, mech])
-    return np.sort(np.abs(lam[np.abs(lam.imag) > 1e-9 * np.abs(lam)]) / (2 * np.pi))
-
-
-def _sampling_rate_warning(problem: Problem, params: dict, dt: float, result: RunResult) -> None:
-    """A structure whose natural frequency is above the data's Nyquist frequency: the sample rate
-    or the time column's unit is likely wrong (time in ms gave finite, meaningless answers)."""
-    try:
-        freqs = natural_frequencies(problem, params)
-    except (TypeError, ValueError, np.linalg.LinAlgError):
-        return
-    nyquist = 0.5 / dt
-    above = freqs[freqs > nyquist]
-    if above.size:
-        result.diagnostics.setdefault("warnings", []).append(
-            f"the structure's natural frequencies {', '.join(f'{f:.4g}' for f in np.unique(above.round(6)))} Hz "
-            f"(at the parameters' fixed or init values) are above the data's Nyquist frequency, "
-            f"{nyquist:.4g} Hz (a time step of {dt:.4g} s): the record cannot resolve those modes, and the "
-            "force and states at those frequencies are aliased. Check [data].sample_rate, or that the time "
-            "column is in seconds (not milliseconds), and the system's masses and stiffnesses."
-        )
-
-
-#: A posterior whose sd (in the samplers' softplus space) is at least this share of its
-#: prior's: the data carry at most ~36 % of its precision (1 - 0.8^2), the prior the rest.
-WEAK_SD_RATIO = 0.8
-
-
-def _weak_identification_warning(problem: Problem, result: RunResult) -> None:
-    """Name every sampled parameter whose posterior is barely narrower than its (proper) prior."""
-    from latentforce.priors import Flat, to_coordinate
-
-    weak = []
-    for i, (name, spec) in enumerate(problem.free.items()):
-        draws = result.param_draws.get(name)
-        if draws is None or isinstance(spec.prior, Flat) or np.size(draws) < 20:
-            continue
-        sample = spec.prior.sample(jax.random.fold_in(jax.random.key(7), i), (4000,))
-        prior = np.asarray(to_coordinate(spec.prior, sample))
-        post = np.asarray(to_coordinate(spec.prior, np.asarray(draws, dtype=float)))
-        post = post.reshape(-1, post.shape[-1]) if post.ndim > 1 else post[None]
-        ok = np.isfinite(prior)
-        # the sd within chains: chains stuck apart (not converged, reported as such) would make the
-        # pooled sd many times the prior's (measured: 83x on a frame whose chains disagreed, R-hat 3.2)
-        within = float(np.sqrt(np.mean(np.var(post, axis=1))))
-        ratio = within / float(np.std(prior[ok])) if ok.sum() > 100 else float("nan")
-        if np.isfinite(ratio) and ratio >= WEAK_SD_RATIO:
-            weak.append(f"{name} (posterior sd {ratio:.2f} of the prior's)")
-    if weak:
-        result.diagnostics.setdefault("warnings", []).append(
-            f"weakly identified: {', '.join(weak)}, in the samplers' space (softplus^-1 of the value; "
-            "a parameter of either sign: its value). "
-            "The data say little about them: their posteriors are mostly their priors, and so is what "
-            "depends on them. Fix them at known values, narrow their priors from other evidence, or add a "
-            "sensor that sees them."
-        )
 
 
 def _dispatch(

@@ -153,7 +153,7 @@ def choose(problem, params0: dict, dataset: Dataset) -> tuple[int, dict | None]:
         return k, ({"steps_per_sample": k, "chosen": "config"} if k > 1 else None)
     if not model.layout.n_internal:
         return 1, None
-    from latentforce.estimate import natural_frequencies
+    from latentforce.run_checks import natural_frequencies
 
     try:
         omega_dt = 2.0 * math.pi * float(np.max(natural_frequencies(problem, params0), initial=0.0)) * dataset.dt
