@@ -188,6 +188,28 @@ def test_no_overwrite_without_force_then_force_keeps_foreign_files(tmp_path):
     assert json.loads((out / "summary.json").read_text())["seed"] == 1
 
 
+def test_summary_json_is_written_last_so_an_unfinished_folder_has_none(tmp_path, monkeypatch):
+    """While the figures are drawn (the slowest part, where a kill left a "converged" summary beside 3 of
+    9 figures) the folder holds no summary.json, a replaced run's old one included; a figure that fails
+    still leaves the summary, and its error."""
+    from latentforce import result_files
+
+    out = tmp_path / "out"
+    write_results(out, _result(), figures=False)
+    seen = []
+
+    def figures(out_dir, result):
+        seen.append((out_dir / "summary.json").exists())
+        assert (out_dir / "summary.csv").exists() and (out_dir / "posterior.nc").exists()
+        raise RuntimeError("a figure failed")
+
+    monkeypatch.setattr(result_files, "write_figures", figures)
+    with pytest.raises(RuntimeError, match="a figure failed"):
+        write_results(out, _result(seed=1), overwrite=True)
+    assert seen == [False]
+    assert json.loads((out / "summary.json").read_text())["seed"] == 1
+
+
 def test_read_results_round_trip_and_redraw(written, tmp_path):
     out, result = written
     back = read_results(out)

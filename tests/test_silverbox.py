@@ -76,7 +76,14 @@ def test_the_configs_are_valid():
         assert {s.quantity for s in problem.model.sensors} == {"force", "displacement"}
     mon = sb.monitoring_config("../calibration/", False, seed=0)
     assert mon["system"]["k3"] == {"prior": "posterior", "from": "../calibration/"}
-    assert mon["sensors"][0]["noise_std"]["param"] == "noise_std_y"
+    assert mon["sensors"][0]["noise_std"]["param"] == "noise_std_y" and "initial" not in mon
+    # an arrow window starts in motion: given its output, the Duffing's first state is wide
+    y = 0.1 * np.sin(2 * np.pi * 70.0 * np.arange(512) / sb.FS)
+    mon = sb.monitoring_config("../calibration/", False, seed=0, y=y)
+    assert mon["initial"]["sd"][0] == pytest.approx(3 * 0.1 / np.sqrt(2), rel=0.01)
+    # (the velocity by central differences: 8 % low at 70 Hz against 610 Hz)
+    assert mon["initial"]["sd"][1] == pytest.approx(3 * 0.1 * 2 * np.pi * 70.0 / np.sqrt(2), rel=0.1)
+    assert "initial" not in sb.monitoring_config("../calibration-linear/", True, seed=0, y=y)
 
 
 @pytest.fixture(scope="module")
@@ -101,6 +108,7 @@ def test_the_quick_demo_calibrates_then_recovers_the_measured_input(quick_demo):
     assert set(mon["diagnostics"]["carried_priors"]) >= {"[system].m", "[system].k3"}
     assert "force" in mon["nmse"]  # scored against the measured input
     assert not any("no sensor measures the force" in w for w in mon["diagnostics"].get("warnings", []))
+    assert not any("start in motion" in w for w in mon["diagnostics"].get("warnings", []))  # [initial] given
     table = (out / "silverbox.md").read_text()
     for row in ("Duffing, ukf", "linear, kalman-mcmc", "inversion, FFT derivatives"):
         assert row in table

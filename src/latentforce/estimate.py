@@ -149,6 +149,7 @@ def _run(
     common = shared(dataset)
     common_grid = common if grid is dataset else shared(grid)
     y_grid, mask_grid = np.asarray(grid.values, dtype=float), np.asarray(grid.mask, dtype=bool)
+    start_check, motion_warning = run_checks.start_in_motion(problem, params0, y_grid, mask_grid, grid.time)
     result, extras = _dispatch(
         key, problem, grid, params0, y_grid, mask_grid, initial, common_grid, progress, t0, channels, checkpoint
     )
@@ -183,7 +184,10 @@ def _run(
         result.diagnostics["grid_check"] = grid_record
     unit_warning = override_warning(getattr(dataset, "units", None))
     notes = (*problem.notes, *getattr(dataset, "notes", ()))
-    for warning in (*notes, unit_warning, substeps_warning, recheck_warning, latent_grid.warning(grid_record)):
+    if start_check is not None:
+        result.diagnostics["start_check"] = start_check
+    warnings_ = (motion_warning, unit_warning, substeps_warning, recheck_warning, latent_grid.warning(grid_record))
+    for warning in (*notes, *warnings_):
         if warning:
             result.diagnostics.setdefault("warnings", []).append(warning)
     if not problem.model.system.is_linear:
@@ -191,6 +195,7 @@ def _run(
     run_checks.mass_warning(problem, result)
     run_checks.weak_identification_warning(problem, result)
     run_checks.start_warning(result)
+    run_checks.gaussian_approximation_warning(problem, result)
     run_checks.sampling_rate_warning(problem, params0, dataset.dt, result)
     # the force spectrum's draws (kalman) from their own key, apart from the method's
     key_psd = jax.random.fold_in(key, 0x5D)

@@ -111,13 +111,21 @@ def write_results(out_dir: Path, result: RunResult, *, overwrite: bool = False, 
     check_out_dir(out_dir, overwrite)
     out_dir.mkdir(parents=True, exist_ok=True)
     tree = _to_datatree(result)
+    text = _summary_json_text(result)  # before anything is written: its checks come first
+    # summary.json is written last, so that a folder without it is unfinished: a run killed while it drew
+    # its figures (SIGTERM, 2026-12-04) left a summary.json saying "converged" beside 3 of its 9 figures.
+    # A replaced run's summary goes first for the same reason.
+    (out_dir / "summary.json").unlink(missing_ok=True)
     _replace(out_dir / "posterior.nc", lambda p: tree.to_netcdf(p, engine=_ENGINE))
-    _write_summaries(out_dir, result)
-    if figures:
-        # matplotlib's state (pyplot, the mathtext parser) is not thread-safe, and the
-        # demos write their cases from two threads
-        with FIGURE_LOCK:
-            write_figures(out_dir, result)
+    try:
+        _write_tables(out_dir, result)
+        if figures:
+            # matplotlib's state (pyplot, the mathtext parser) is not thread-safe, and the
+            # demos write their cases from two threads
+            with FIGURE_LOCK:
+                write_figures(out_dir, result)
+    finally:  # a figure that fails still leaves the run's summary (the error is reported)
+        _replace(out_dir / "summary.json", lambda p: p.write_text(text, encoding="utf-8"))
 
 
 def check_out_dir(out_dir: Path, overwrite: bool) -> None:
@@ -151,13 +159,22 @@ def _replace(path: Path, write) -> None:
             tmp.unlink()
 
 
-def _write_summaries(out_dir: Path, result: RunResult) -> None:
+def _summary_json_text(result: RunResult) -> str:
+    return json.dumps(_summary_json(result), indent=2, allow_nan=False) + "\n"
+
+
+def _write_tables(out_dir: Path, result: RunResult) -> None:
+    """summary.csv and the force spectrum's table."""
     _replace(out_dir / "summary.csv", lambda p: _write_summary_csv(p, result))
     if result.force_psd:
         from latentforce.io.extra_results import FORCE_PSD, write_force_psd
 
         _replace(out_dir / FORCE_PSD, lambda p: write_force_psd(p, result.force_psd))
-    text = json.dumps(_summary_json(result), indent=2, allow_nan=False) + "\n"
+
+
+def _write_summaries(out_dir: Path, result: RunResult) -> None:
+    _write_tables(out_dir, result)
+    text = _summary_json_text(result)
     _replace(out_dir / "summary.json", lambda p: p.write_text(text, encoding="utf-8"))
 
 

@@ -120,3 +120,87 @@ def weak_identification_warning(problem: Problem, result: RunResult) -> None:
             "depends on them. Fix them at known values, narrow their priors from other evidence, or add a "
             "sensor that sees them."
         )
+
+
+#: the first window's mean normalised innovation squared (per observed channel) above which, and above
+#: :data:`START_RATIO` times the record's median window, a nonlinear record is taken to start in motion
+START_LIMIT = 4.0
+START_RATIO = 4.0
+
+
+def innovation_windows(nis, nobs, width: int) -> np.ndarray:
+    """Mean normalised innovation squared per observed channel over consecutive windows of ``width``
+    steps (1 where the filter's Gaussian is right; NaN for a window without observations)."""
+    nis, nobs = np.asarray(nis, dtype=float), np.asarray(nobs, dtype=float)
+    n = max(1, len(nis) // width)
+    sums = np.add.reduceat(nis[: n * width], np.arange(0, n * width, width))
+    counts = np.add.reduceat(nobs[: n * width], np.arange(0, n * width, width))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, sums / counts, np.nan)
+
+
+def start_window(problem: Problem, params: dict, dt: float, T: int) -> int:
+    """Steps in one period of the structure's lowest natural frequency (linearised about rest at
+    ``params``), at least 10 and at most a quarter of the record: how long a wrong start takes to show
+    in the predictions and to be corrected by the data."""
+    try:
+        freqs = natural_frequencies(problem, params)
+    except (TypeError, ValueError, np.linalg.LinAlgError):
+        freqs = np.zeros(0)
+    width = round(1.0 / (float(freqs[0]) * dt)) if freqs.size and freqs[0] > 0 else T // 20
+    return int(min(max(10, width), max(10, T // 4)))
+
+
+def start_in_motion(problem: Problem, params: dict, y, mask, time) -> tuple[dict | None, str | None]:
+    """``(record, warning)``: does a nonlinear record seem to start in motion, against the default prior
+    of its first state (near rest, :meth:`latentforce.models.LatentForceModel.default_initial`)? The
+    extended Kalman filter from that prior at ``params``: where its one-step predictions over the first
+    period (:func:`start_window`) miss the data by far more than their predicted spread, and far more
+    than over the rest of the record, the start is the misfit (a record cut from motion), not the model.
+    ``(None, None)`` where it does not apply: a linear system (its default start is stationary), an
+    ``[initial]`` given, a method other than ``pgas``/``ekf``/``ukf``, or a record shorter than two windows."""
+    model, method = problem.model, problem.inference.method
+    if model.system.is_linear or problem.initial is not None or method not in ("pgas", "ekf", "ukf"):
+        return None, None
+    from latentforce.compile import call
+    from latentforce.estimate_particles import gaussian_for
+    from latentforce.inference.gaussian import innovations_of
+
+    time = np.asarray(time, dtype=float)
+    dt = float(time[1] - time[0])
+    width = start_window(problem, params, dt, len(time))
+    if len(time) < 2 * width:
+        return None, None
+    loglik, _ = gaussian_for(problem, params, dt, "ekf")
+    y0 = np.where(mask, y, 0.0)
+    nis = np.asarray(call(innovations_of(loglik), numbers(params), y0, np.asarray(mask, dtype=bool)))
+    windows = innovation_windows(nis, np.sum(mask, axis=1), width)
+    first, rest = windows[0], np.nanmedian(windows[1:]) if np.any(np.isfinite(windows[1:])) else np.nan
+    record = {"window_s": width * dt, "first": float(first), "median_rest": float(rest)}
+    if not (np.isfinite(first) and np.isfinite(rest)) or first <= max(START_LIMIT, START_RATIO * rest):
+        return record, None
+    return record, (
+        f"the record seems to start in motion: over its first {width * dt:.3g} s (one period of the structure) "
+        f"the data miss the one-step predictions of the extended Kalman filter, started from the default "
+        f"first state, by {np.sqrt(first):.3g} times their predicted spread (rms), against {np.sqrt(rest):.3g} "
+        "over the rest of the record (diagnostics.start_check). The default prior of a nonlinear system's "
+        "first state is near rest (docs/config.md, [initial]); for a record cut from motion the estimates "
+        "near its start, and possibly beyond, are then wrong or unconverged. Give an [initial] section (the "
+        "displacements' and velocities' mean and sd, or cov, at the first sample), or start the record "
+        "before the motion."
+    )
+
+
+def gaussian_approximation_warning(problem: Problem, result: RunResult) -> None:
+    """``ekf``/``ukf`` on a nonlinear system: its bands are a Gaussian approximation's and may be too
+    narrow, which no convergence check can show (a user sweep, 2026-12-04: acceleration only, a softening
+    Duffing under ``ekf``, the truth inside ±1 / ±3 sd on 30 / 97 % of the samples; a strongly stiffening
+    one 52 / 93 %; ``ukf`` on the first 53 / 78 %)."""
+    if problem.inference.method not in ("ekf", "ukf") or problem.model.system.is_linear:
+        return
+    result.diagnostics.setdefault("warnings", []).append(
+        f"method {problem.inference.method!r} is a Gaussian approximation of a nonlinear model: its bands "
+        "can be too narrow where the nonlinearity is strong against what the sensors pin down (measured on "
+        "acceleration-only Duffing records: the truth inside ±3 sd on 93-97 % of the samples, ±1 sd on "
+        '30-53 %; docs/nonlinear.md). method = "pgas" samples the exact posterior: run it to check.'
+    )

@@ -67,6 +67,9 @@ class GaussianSmoother(NamedTuple):
     output_means: Float[Array, "T k"]
     output_vars: Float[Array, "T k"]
     output_path: Float[Array, "T k"]
+    #: each step's normalised innovation squared, :math:`v^T S^{-1} v` over the observed channels (a
+    #: chi-squared with as many degrees of freedom where the filter's Gaussian is right; 0 where none is)
+    nis: Float[Array, " T"]
 
 
 def model_functions(pm: particle_model.ParticleModel, tr: particle_model.Transition):
@@ -125,7 +128,8 @@ def _linearised(kind: str, fn: Callable, m, P):
 
 
 def _update(m, P, y_hat, S_h, C, R, y, mask):
-    """Joint Gaussian update on the observed channels; returns ``(m_f, P_f, log-likelihood term)``."""
+    """Joint Gaussian update on the observed channels; returns ``(m_f, P_f, log-likelihood term, normalised
+    innovation squared)``."""
     mf = mask.astype(m.dtype)
     v = jnp.where(mask, y - y_hat, 0.0)
     # unit variance on the missing channels keeps S invertible; their rows and columns are cut
@@ -135,8 +139,9 @@ def _update(m, P, y_hat, S_h, C, R, y, mask):
     m_f = m + K @ v
     P_f = symmetrise(P - K @ S @ K.T)
     alpha = cho_solve(L, v)
-    ll = -0.5 * (v @ alpha + 2.0 * jnp.sum(jnp.log(jnp.diagonal(L))) + jnp.sum(mf) * _LOG_2PI)
-    return m_f, P_f, ll
+    nis = v @ alpha
+    ll = -0.5 * (nis + 2.0 * jnp.sum(jnp.log(jnp.diagonal(L))) + jnp.sum(mf) * _LOG_2PI)
+    return m_f, P_f, ll, nis
 
 
 def _smoother_gain(P_p, C):
@@ -148,17 +153,18 @@ def _smoother_gain(P_p, C):
 
 
 def _filter_pass(kind, f, h, Q, R, m1, P1, y, mask):
-    """The forward pass: filtered and predicted moments, cross-covariances, log-likelihood terms."""
+    """The forward pass: filtered and predicted moments, cross-covariances, log-likelihood terms and
+    normalised innovations squared."""
     y = jnp.where(mask, y, 0.0)
 
     def _filter(carry, inputs):
         m_p, P_p = carry
         y_t, mask_t = inputs
         y_hat, S_h, C = _linearised(kind, h, m_p, P_p)
-        m_f, P_f, ll = _update(m_p, P_p, y_hat, S_h, C, R, y_t, mask_t)
+        m_f, P_f, ll, nis = _update(m_p, P_p, y_hat, S_h, C, R, y_t, mask_t)
         m_next, P_fx, C_next = _linearised(kind, f, m_f, P_f)
         P_next = symmetrise(P_fx + Q)
-        return (m_next, P_next), (m_f, P_f, m_next, P_next, C_next, ll)
+        return (m_next, P_next), (m_f, P_f, m_next, P_next, C_next, ll, nis)
 
     _, out = jax.lax.scan(_filter, (m1, P1), (y, mask))
     return out
@@ -170,8 +176,18 @@ def gaussian_log_likelihood(
     r"""The filter's approximate :math:`\log p(y)` alone (no smoothing pass)."""
     f, h, Q, m1, P1 = model_functions(pm, tr)
     R = pm.R if R is None else R
-    lls = _filter_pass(kind, f, h, Q, R, m1, P1, jnp.asarray(y, dtype=float), jnp.asarray(mask, dtype=bool))[-1]
+    lls = _filter_pass(kind, f, h, Q, R, m1, P1, jnp.asarray(y, dtype=float), jnp.asarray(mask, dtype=bool))[5]
     return jnp.sum(lls)
+
+
+def innovations(
+    kind: str, pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None
+) -> Float[Array, " T"]:
+    r"""The filter's normalised innovations squared, :math:`v_t^T S_t^{-1} v_t` per step (no smoothing pass;
+    :attr:`GaussianSmoother.nis`)."""
+    f, h, Q, m1, P1 = model_functions(pm, tr)
+    R = pm.R if R is None else R
+    return _filter_pass(kind, f, h, Q, R, m1, P1, jnp.asarray(y, dtype=float), jnp.asarray(mask, dtype=bool))[6]
 
 
 def for_parameters(kind: str, model, dt: float, discretisation: str = "rk4", initial=None, outputs=()):
@@ -210,6 +226,17 @@ def _loglik(static, numbers, params, y, mask):
     return gaussian_log_likelihood(static[0], pm, tr, y, mask, R)
 
 
+def _innovations(static, numbers, params, y, mask):
+    pm, tr, R = _build(static, numbers, params)
+    return innovations(static[0], pm, tr, y, mask, R)
+
+
+def innovations_of(loglik: Bound) -> Bound:
+    """The normalised innovations squared (:func:`innovations`) of the filter whose ``loglik``
+    :func:`for_parameters` made, as a :class:`Bound` of ``(params, y, mask)``."""
+    return Bound(_innovations, loglik.static, loglik.numbers)
+
+
 def _smoother(static, numbers, params, y, mask, key=None):
     from latentforce.outputs import output_function
 
@@ -243,7 +270,7 @@ def gaussian_smoother(
     R = pm.R if R is None else R
     y = jnp.asarray(y, dtype=float)
     mask = jnp.asarray(mask, dtype=bool)
-    mf, Pf, mp, Pp, Cs, lls = _filter_pass(kind, f, h, Q, R, m1, P1, y, mask)
+    mf, Pf, mp, Pp, Cs, lls, nis = _filter_pass(kind, f, h, Q, R, m1, P1, y, mask)
     # gains G_t = C_{t,t+1} P_p(t+1)^{-1}, t < T-1, solved on the correlation scale: P_p's
     # variances span ~15 orders (the force's highest derivative against the within-step
     # displacement noise)
@@ -281,4 +308,4 @@ def gaussian_smoother(
         o_mean, o_cov, _ = jax.vmap(lambda m, P: _linearised(kind, out_fn, m, P))(means, covs)
         o_var = jnp.clip(jnp.diagonal(o_cov, axis1=-2, axis2=-1), 0.0, None)
         o_path = jax.vmap(out_fn)(path) if key is not None else jnp.zeros_like(o_mean)
-    return GaussianSmoother(means, covs, jnp.sum(lls), path, first_nonfinite, o_mean, o_var, o_path)
+    return GaussianSmoother(means, covs, jnp.sum(lls), path, first_nonfinite, o_mean, o_var, o_path, nis)
