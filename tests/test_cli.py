@@ -294,6 +294,8 @@ def test_every_sampling_method_writes_a_result_folder_with_its_verdict(workdir, 
         assert "pairs.png" in figures  # (k3 and the force variance)
         chains = tree.parameter_chains
         assert chains.sizes["draw"] > tree.posterior.sizes["draw"]
+        acceptance = tree.sample_stats["acceptance"]  # the parameters' MH acceptance, per chain
+        assert acceptance.dims == ("chain",) and np.allclose(acceptance.values, summary["acceptance"])
         # ... from which the file gives summary.json's numbers (the thinned draws do not)
         table = az.summary(tree, group="parameter_chains", var_names=["force_variance", "k3"], round_to="none")
         for name in ("force_variance", "k3"):

@@ -348,7 +348,13 @@ def _run_pgas(
         param_draws=param_draws,
         param_chains={n: np.asarray(v) for n, v in out.theta.items()},
         path_draws=paths,
-        sample_stats={"log_likelihood": ll, "switch_rate": out.switch_rate, "ess_per_particle": out.ess},
+        sample_stats={
+            "log_likelihood": ll,
+            "switch_rate": out.switch_rate,
+            "ess_per_particle": out.ess,
+            # the parameters' Metropolis acceptance, per chain (INTERFACE: sample_stats holds the acceptance)
+            "acceptance": np.asarray(out.acceptance, dtype=float),
+        },
         acceptance=[float(a) for a in out.acceptance],
         log_likelihood=float(np.mean(ll[:, -max(1, ll.shape[1] // 10) :])) if ll.size else float("nan"),
         point_estimate=point,

@@ -60,7 +60,7 @@ class RunResult:
     state_sd: dict[str, np.ndarray]  # state -> (T, ndof|nforce)
     param_draws: dict[str, np.ndarray]  # name -> (chains, draws); empty for kalman
     path_draws: dict[str, np.ndarray]  # state -> (chains, path_draws, T, ndof|nforce)
-    sample_stats: dict[str, np.ndarray]  # name -> (chains, draws)
+    sample_stats: dict[str, np.ndarray]  # name -> (chains, draws), or (chains,) for a per-chain rate
     acceptance: list[float]  # per chain; empty for kalman
     log_likelihood: float  # exact for kalman, at the point estimate otherwise
     observed: dict[str, np.ndarray]  # column -> (T,), NaN where missing
