@@ -1,6 +1,8 @@
 """Checks a run makes of the user's model and data, each adding a warning to the result's diagnostics
 where it finds something a user should know: a mass traded against the force, a parameter the data
-barely identify, a start that found no mode, natural frequencies past the Nyquist frequency."""
+barely identify, a sampler's start that found no mode, natural frequencies past the Nyquist frequency,
+a nonlinear record that starts in motion against the default near-rest start, and the Gaussian
+approximation of ``ekf``/``ukf`` on a nonlinear system."""
 
 from __future__ import annotations
 
