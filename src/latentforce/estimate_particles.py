@@ -352,8 +352,9 @@ def _run_pgas(
             "log_likelihood": ll,
             "switch_rate": out.switch_rate,
             "ess_per_particle": out.ess,
-            # the parameters' Metropolis acceptance, per chain (INTERFACE: sample_stats holds the acceptance)
-            "acceptance": np.asarray(out.acceptance, dtype=float),
+            # the parameters' Metropolis acceptance, per chain (INTERFACE: sample_stats holds the acceptance);
+            # none where no parameter is sampled
+            **({"acceptance": np.asarray(out.acceptance, dtype=float)} if np.size(out.acceptance) else {}),
         },
         acceptance=[float(a) for a in out.acceptance],
         log_likelihood=float(np.mean(ll[:, -max(1, ll.shape[1] // 10) :])) if ll.size else float("nan"),
