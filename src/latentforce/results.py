@@ -2,7 +2,7 @@
 parameter summaries, and the layout names of its columns.
 
 Every inference method returns a :class:`RunResult`. Writing it as the result
-folder and reading one back is :mod:`latentforce.result_files` (the folder's
+folder is :mod:`latentforce.result_files` and reading one back :mod:`latentforce.result_reader` (the folder's
 layout is described there); its ``write_results``, ``read_results``,
 ``check_out_dir``, ``redraw``, ``write_figures`` and ``FIGURE_LOCK`` are also
 reachable from here, loaded on first use (the file layer imports this module,
@@ -142,7 +142,7 @@ def by_column(score, truth: dict, *estimates: dict) -> dict[str, float]:
         cols = [np.asarray(a, dtype=float).reshape(np.shape(a)[0], -1) for a in (x, *(e[name] for e in estimates))]
         width = cols[0].shape[1]
         for i in range(width):
-            out[name if width == 1 else f"{name}_{i}"] = score(*(c[:, i] for c in cols))
+            out[_component_label(name, i, width)] = score(*(c[:, i] for c in cols))
     return out
 
 
@@ -262,13 +262,17 @@ def summary_columns(result: RunResult) -> list[str]:
     return columns
 
 
-#: names served by :mod:`latentforce.result_files`, imported on first use (no import cycle)
-_FILE_API = ("write_results", "read_results", "check_out_dir", "redraw", "write_figures", "FIGURE_LOCK")
+#: names served by :mod:`latentforce.result_files` and :mod:`latentforce.result_reader`, imported on first
+#: use (no import cycle)
+_FILE_API = {
+    **dict.fromkeys(("write_results", "check_out_dir", "redraw", "write_figures", "FIGURE_LOCK"), "result_files"),
+    "read_results": "result_reader",
+}
 
 
 def __getattr__(name: str):
     if name in _FILE_API:
-        from latentforce import result_files
+        import importlib
 
-        return getattr(result_files, name)
+        return getattr(importlib.import_module(f"latentforce.{_FILE_API[name]}"), name)
     raise AttributeError(f"module 'latentforce.results' has no attribute {name!r}")
