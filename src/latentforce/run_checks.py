@@ -197,7 +197,7 @@ def gaussian_approximation_warning(problem: Problem, result: RunResult) -> None:
     """``ekf``/``ukf`` on a nonlinear system: its bands are a Gaussian approximation's and may be too
     narrow, which no convergence check can show (a user sweep, 2026-12-04: acceleration only, a softening
     Duffing under ``ekf``, the truth inside ±1 / ±3 sd on 30 / 97 % of the samples; a strongly stiffening
-    one 52 / 93 %; ``ukf`` on the first 53 / 78 %)."""
+    one 52 / 93 % at Matérn-1/2 and 53 / 96 % at Matérn-5/2)."""
     if problem.inference.method not in ("ekf", "ukf") or problem.model.system.is_linear:
         return
     result.diagnostics.setdefault("warnings", []).append(
