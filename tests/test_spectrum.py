@@ -15,7 +15,7 @@ from latentforce.kernels import Matern
 from latentforce.models import LatentForceModel, Sensor
 from latentforce.results import read_results, write_results
 from latentforce.simulate import gp_force
-from latentforce.spectrum import kalman_force_samples, prior_psd, welch_psd
+from latentforce.spectrum import prior_psd, welch_psd
 from latentforce.systems import LinearSystem
 
 
@@ -48,23 +48,6 @@ def test_welch_of_a_long_matern_sample_matches_the_prior_psd(p):
     # and the wrong lengthscale does not fit
     wrong = prior_psd(kernel, 2.5, 0.6, freq[band])
     assert np.mean(np.abs(np.log(psd[band] / wrong))) > 0.15
-
-
-def test_ffbs_force_samples_have_the_smoothers_moments():
-    model = LatentForceModel(LinearSystem(), Matern(1), [Sensor("acceleration", 0, 0.2)])
-    params = dict(m=1.0, c=0.4, k=10.0, force_variance=1.0, force_lengthscale=0.5)
-    from latentforce.inference.kalman_mcmc import smooth
-
-    T, dt = 50, 0.05
-    y = np.asarray(np.random.default_rng(0).normal(size=(T, 1)))
-    mask = np.ones((T, 1), bool)
-    s = kalman_force_samples(jax.random.key(2), model, params, y, mask, dt, n=400)
-    assert s.shape == (400, T, 1)
-    sm = smooth(model, params, y, mask, dt)
-    f = model.force_index()[0]
-    mean, sd = np.asarray(sm.means)[:, f], np.sqrt(np.asarray(sm.covs)[:, f, f])
-    assert np.all(np.abs(s[:, :, 0].mean(0) - mean) < 5 * sd / np.sqrt(400))
-    assert np.all(np.abs(s[:, :, 0].std(0) / sd - 1) < 0.25)
 
 
 def test_force_psd_csv_and_figure(tmp_path):

@@ -25,6 +25,7 @@ from latentforce.estimate_particles import (  # noqa: F401
     softening_hint,
 )
 from latentforce.inference.kalman_mcmc import Initial, run_kalman_mcmc, smooth_compiled, state_moments
+from latentforce.inference.smoother_draws import gaussian_paths, kalman_paths
 from latentforce.io.channels import channel_units, noise_in_si
 from latentforce.io.config import Problem
 from latentforce.io.data import Dataset
@@ -120,8 +121,6 @@ def _run(
     settings = problem.inference
     seed = settings.seed if seed is None else seed
     key = jax.random.key(seed)
-    y = np.asarray(dataset.values, dtype=float)
-    mask = np.asarray(dataset.mask, dtype=bool)
     initial = None if problem.initial is None else Initial(*problem.initial)
     params0 = dict(problem.fixed)
     for name, spec in problem.free.items():
@@ -197,11 +196,7 @@ def _run(
     run_checks.start_warning(result)
     run_checks.gaussian_approximation_warning(problem, result)
     run_checks.sampling_rate_warning(problem, params0, dataset.dt, result)
-    # the force spectrum's draws (kalman) from their own key, apart from the method's
-    key_psd = jax.random.fold_in(key, 0x5D)
-    result.force_psd = force_spectrum(
-        key_psd, problem, result, params0, y, mask, dataset.dt, initial, grid=(y_grid, mask_grid, steps)
-    )
+    result.force_psd = force_spectrum(problem, result, params0, dataset.dt)
     return result, extras
 
 
@@ -245,7 +240,9 @@ def _dispatch(
             state_mean=state_mean,
             state_sd=state_sd,
             param_draws={},
-            path_draws={},
+            path_draws=kalman_paths(
+                key, model, params0, y, mask, dataset.dt, initial, problem.outputs, settings.kalman
+            ),
             sample_stats={},
             acceptance=[],
             log_likelihood=float(sm.log_likelihood),
@@ -335,7 +332,7 @@ def _run_gaussian(
         state_mean=state_mean,
         state_sd=state_sd,
         param_draws={},
-        path_draws={},
+        path_draws=gaussian_paths(key, problem.model, smoother, params0, y, mask, problem.outputs),
         sample_stats={},
         acceptance=[],
         log_likelihood=float(sm.log_likelihood),

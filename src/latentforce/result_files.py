@@ -19,8 +19,11 @@ Result folder layout
         ``path_draw`` and the parameters keep ``draw``. MDOF systems add a
         trailing ``dof`` dim to displacement and velocity; several latent
         forces add a trailing ``force_index`` dim to force.
-        For ``method = "kalman"`` nothing is sampled: the group holds the
-        smoother's ``displacement_mean``, ``displacement_sd``,
+        For ``method = "kalman"`` (and ``ekf``/``ukf`` with every parameter
+        fixed) nothing is sampled: the trajectories are one chain of
+        independent draws from the smoother's Gaussian
+        (:mod:`latentforce.inference.smoother_draws`), and the group also
+        holds the smoother's ``displacement_mean``, ``displacement_sd``,
         ``velocity_mean``, ... with dims ``(time[, dof|force_index])``.
     ``parameter_chains``
         Where ``posterior`` holds only the parameter draws stored beside the
@@ -205,8 +208,10 @@ def _to_datatree(result: RunResult) -> xr.DataTree:
     posterior = xr.Dataset(coords=time_coord)
     for name, draws in result.param_draws.items():
         posterior[name] = (("chain", "draw"), _as_chain_draw(name, draws))
-    if not result.param_draws and not result.path_draws:
-        # Nothing sampled (kalman; ekf/ukf with every parameter fixed): the smoother's marginals.
+    # Nothing sampled (kalman; ekf/ukf with every parameter fixed): the smoother's marginals beside
+    # the paths drawn from it (inference/smoother_draws.py).
+    marginals = not result.param_draws and result.method in ("kalman", "ekf", "ukf")
+    if marginals:
         for state in _ordered_states(result.state_mean):
             width = _width(result, state, result.state_mean[state])
             dims = ("time",) if width == 1 else ("time", _component_dim(state))
@@ -237,7 +242,7 @@ def _to_datatree(result: RunResult) -> xr.DataTree:
         if width > 1:
             dims += (_component_dim(state),)
         posterior[state] = (dims, a[..., 0] if width == 1 else a, {"units": _unit(result, state)})
-    if result.method != "kalman":  # the virtual sensors' per-time summaries beside their paths
+    if not marginals:  # the virtual sensors' per-time summaries beside their paths
         for name in result.outputs:
             for kind, source in (("mean", result.state_mean), ("sd", result.state_sd)):
                 if name in source:

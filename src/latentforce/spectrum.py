@@ -13,43 +13,32 @@ with :math:`S(\omega)` the kernel's two-sided density in angular frequency
 The posterior spectrum is the Welch estimate (Hann window, segments of
 ``nperseg`` samples, half overlap, the mean removed per segment) of each
 posterior sample path of the force; its mean and 5 % / 95 % quantiles over
-the paths are reported per frequency. The sample paths are the samplers'
-stored trajectories (``kalman-mcmc``, ``kalman-nuts``, ``pgas``, ``ekf``/``ukf`` with inferred
-parameters), or, under ``kalman``, draws from the exact smoothing distribution by forward
-filtering, backward sampling (Carter & Kohn 1994;
-:func:`latentforce.inference.kalman.sample_smoothed_trajectory`) from a
-seeded key, and under ``ekf``/``ukf`` at fixed parameters the same from their Gaussian smoother
-(:func:`gaussian_force_samples`). The prior's density is drawn at the posterior median of the
-force hyperparameters (the fixed values under ``kalman``).
+the paths are reported per frequency. The sample paths are the run's stored
+trajectories: the samplers' draws (``kalman-mcmc``, ``kalman-nuts``,
+``pgas``, ``ekf``/``ukf`` with inferred parameters), or, under ``kalman``
+and ``ekf``/``ukf`` at fixed parameters, draws from their smoother's
+Gaussian by forward filtering, backward sampling
+(:mod:`latentforce.inference.smoother_draws`). The prior's density is drawn
+at the posterior median of the force hyperparameters (the fixed values under
+``kalman``).
 """
 
 from __future__ import annotations
 
-import functools
-
-import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.signal import welch
 
-from latentforce.compile import jit
 from latentforce.kernels import KernelParams
 from latentforce.models import hyper_names
 
 __all__ = [
-    "PSD_SAMPLES",
     "force_psd_table",
     "force_spectrum",
-    "gaussian_force_samples",
-    "kalman_force_samples",
     "prior_psd",
     "welch_psd",
 ]
 
-#: smoothing-distribution draws the ``kalman`` spectrum is estimated from
-PSD_SAMPLES = 64
-#: samples x draws of the ``kalman`` spectrum's backward passes at most (but 16 draws at least)
-PATH_SAMPLE_BUDGET = 2_000_000
 #: Welch segment length at most (scipy's default); shorter records use the whole record
 NPERSEG = 256
 
@@ -106,57 +95,6 @@ def force_psd_table(
     return table
 
 
-def kalman_force_samples(
-    key, model, params: dict, y, mask, dt: float, initial=None, n: int = PSD_SAMPLES
-) -> np.ndarray:
-    """``n`` force paths ``(n, T, nforce)`` from the exact smoothing distribution (FFBS)."""
-    from latentforce.compile import numbers
-
-    y = jnp.asarray(np.where(mask, y, 0.0))
-    return np.asarray(
-        _force_draws(
-            numbers(model.complete(params)),
-            initial,
-            jax.random.split(key, n),
-            y,
-            jnp.asarray(mask),
-            model=model,
-            dt=float(dt),
-        )
-    )
-
-
-@functools.partial(jit, static_argnames=("model", "dt"))
-def _force_draws(params, initial, keys, y, mask, *, model, dt):
-    from latentforce.inference.kalman import kalman_filter, sample_smoothed_trajectory
-    from latentforce.inference.kalman_mcmc import linear_gaussian
-
-    idx = jnp.asarray(model.layout.force)
-    A, Q, H, R, m0, P0 = linear_gaussian(model, params, dt, initial)
-    filt = kalman_filter(A, Q, H, R, m0, P0, y, mask)
-    # one path at a time: only its force columns are kept
-    return jax.lax.map(lambda k: sample_smoothed_trajectory(k, A, Q, filt)[:, idx], keys)
-
-
-def gaussian_force_samples(key, problem, params: dict, y, mask, dt: float, n: int = PSD_SAMPLES) -> np.ndarray:
-    """``n`` force paths ``(n, T, nforce)`` drawn from the ``ekf``/``ukf`` smoother's Gaussian at
-    ``params`` (its forward-filtering, backward-sampling pass; ``problem.inference.method``'s kind)."""
-    from latentforce.compile import call, numbers
-    from latentforce.estimate_particles import gaussian_for
-
-    model = problem.model
-    _, smoother = gaussian_for(problem, params, dt)
-    mask = np.asarray(mask, dtype=bool)
-    keys = jax.random.split(key, n)
-    paths = call(_gaussian_paths, smoother, numbers(params), np.where(mask, y, 0.0), mask, keys)
-    return np.asarray(paths)[..., model.layout.force]
-
-
-def _gaussian_paths(smoother, params, y, mask, keys):
-    # one path at a time (each a filter and a backward sampling pass)
-    return jax.lax.map(lambda k: smoother(params, y, mask, k).path, keys)
-
-
 def hyperparameters(result, fixed: dict, model) -> tuple:
     """The force variance and lengthscale at which the prior is drawn: the posterior median of a
     sampled one, else its fixed value (for a kernel sum, arrays with one entry per term)."""
@@ -175,23 +113,14 @@ def hyperparameters(result, fixed: dict, model) -> tuple:
     return (var[0], ls[0]) if len(var) == 1 else (np.array(var), np.array(ls))
 
 
-def force_spectrum(key, problem, result, params: dict, y, mask, dt: float, initial=None, grid=None) -> dict | None:
-    """The ``force_psd.csv`` table of a run (module doc); ``None`` where no force path exists.
-    ``grid``: ``(y, mask, steps)`` of the run's model grid (:mod:`latentforce.latent_grid`), where
-    ``ekf``/``ukf`` at fixed parameters draw their paths."""
+def force_spectrum(problem, result, params: dict, dt: float) -> dict | None:
+    """The ``force_psd.csv`` table of a run from its stored force paths (module doc); ``None`` where
+    none exist."""
     model = problem.model
-    # 64 draws, fewer on long records (each is a backward pass over the record), at least 16
-    n = int(np.clip(PATH_SAMPLE_BUDGET // max(len(y), 1), 16, PSD_SAMPLES))
-    if result.method == "kalman":
-        paths = kalman_force_samples(key, model, params, y, mask, dt, initial, n=n)
-    elif result.method in ("ekf", "ukf") and not result.path_draws:  # fixed parameters: no stored paths
-        y_grid, mask_grid, steps = grid if grid is not None else (y, mask, 1)
-        paths = gaussian_force_samples(key, problem, params, y_grid, mask_grid, dt / steps, n)[:, ::steps]
-    else:
-        f = result.path_draws.get("force")
-        if f is None or np.size(f) == 0:
-            return None
-        f = np.asarray(f, dtype=float)
-        paths = f.reshape(-1, f.shape[2], f.shape[3])
+    f = result.path_draws.get("force")
+    if f is None or np.size(f) == 0:
+        return None
+    f = np.asarray(f, dtype=float)
+    paths = f.reshape(-1, f.shape[2], f.shape[3])
     variance, lengthscale = hyperparameters(result, params, model)
     return force_psd_table(paths, dt, model.kernel, variance, lengthscale, truth=result.truth.get("force"))

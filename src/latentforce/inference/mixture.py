@@ -51,6 +51,14 @@ class Mixture(NamedTuple):
     point: tuple | None  # (moments, log-likelihood) of the smoother at ``point``
 
 
+def path_columns(model: LatentForceModel, outputs: tuple = ()) -> tuple[tuple, dict]:
+    """``(names, {name: columns})``: the states a stored path holds and their columns in the state
+    vector, the ``outputs`` (virtual sensors) after it at ``n_state + i``."""
+    index = {q: model.layout.index(q) for q in model.layout.states}
+    index.update({o.name: np.array([model.n_state + i]) for i, o in enumerate(outputs)})
+    return model.layout.states + tuple(o.name for o in outputs), index
+
+
 def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int) -> tuple[int, int]:
     """``(draws mixed per chain, paths stored per chain)`` for a record of ``T`` samples.
 
@@ -149,9 +157,7 @@ def mixture_posterior(
     outputs = tuple(outputs)
     chains, n_iter = next(iter(draws.values())).shape
     T, n = np.shape(y)[0], model.n_state
-    index = {q: model.layout.index(q) for q in model.layout.states}
-    index.update({o.name: np.array([n + i]) for i, o in enumerate(outputs)})
-    states = model.layout.states + tuple(o.name for o in outputs)
+    states, index = path_columns(model, outputs)
     width = sum(len(ix) for ix in index.values())
     per_chain, n_paths = mixture_size(T, chains, n_iter, thin_draws, width)
     idx = np.linspace(0, n_iter - 1, per_chain).round().astype(int)
