@@ -76,10 +76,14 @@ def _agree(paths: dict, exact: dict, n: int) -> None:
         assert np.all(np.abs(ratio - 1.0) < 0.2), (name, ratio.min(), ratio.max())
 
 
-@pytest.mark.parametrize("order,ndof", [(0, 1), (1, 1), (2, 1), (3, 1), (1, 2)])
-def test_kalman_paths_have_the_exact_smoothers_moments(order, ndof):
+@pytest.mark.parametrize(
+    "order,ndof,kalman",
+    [(0, 1, "auto"), (1, 1, "auto"), (2, 1, "auto"), (3, 1, "auto"), (1, 2, "auto"), (2, 1, "parallel")],
+)
+def test_kalman_paths_have_the_exact_smoothers_moments(order, ndof, kalman):
+    """Every Matérn order, one and two DOFs, the sequential and the parallel-scan recursions."""
     model, params, y, mask, outputs = _case(order, ndof)
-    paths = kalman_paths(jax.random.key(5), model, params, y, mask, DT, outputs=outputs, n=N)
+    paths = kalman_paths(jax.random.key(5), model, params, y, mask, DT, outputs=outputs, kalman=kalman, n=N)
     _agree(paths, _exact(model, params, y, mask, outputs), N)
 
 
