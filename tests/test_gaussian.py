@@ -399,3 +399,44 @@ def test_a_nonlinear_record_cut_from_motion_is_named_and_one_from_rest_is_not(tm
     (tmp_path / "given.toml").write_text(text + "sd = [0.5, 2.0, 2.0, 10.0]\n")
     out, diag = run("cut.csv", "given.toml")
     assert "start in motion" not in out and "start_check" not in diag
+
+
+def test_a_blow_beyond_the_force_prior_in_the_first_period_is_named_with_its_time(tmp_path, monkeypatch):
+    """A stiffening Duffing at rest hit at t = 0.1 s by a 20 ms half-sine blow of 100 N, acceleration only,
+    under a force prior of sd 10 N: the first period misfits as a record cut from motion does (the
+    same warning), but the message also names the blow's case, and the worst sample is the blow's; with
+    a prior wide enough for the blow (sd 50 N) nothing is said."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from latentforce.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    fs, T, t_hit = 100.0, 400, 0.1
+    model = LatentForceModel(Duffing(), Matern(0), [Sensor("acceleration", 0, 0.1)])
+    params = dict(m=1.0, c=2.0, k=400.0, k3=4e4, force_variance=1.0, force_lengthscale=0.05)
+
+    def blow(t):
+        inside = (t >= t_hit) & (t < t_hit + 0.02)
+        return (100.0 * np.where(inside, np.sin(np.pi * (t - t_hit) / 0.02), 0.0))[:, None]
+
+    sim = simulate(jax.random.key(0), model, params, T, 1 / fs, force=blow)
+    acc = np.asarray(sim.acceleration)[:, 0]
+    noise = 0.02 * np.std(acc)
+    acc = acc + noise * np.random.default_rng(1).normal(size=T)
+    np.savetxt("data.csv", np.c_[np.arange(T) / fs, acc], delimiter=",", header="time,acc", comments="")
+    config = (
+        '[data]\npath = "data.csv"\ntime_column = "time"\n[system]\ntype = "duffing"\nm = 1.0\nc = 2.0\n'
+        'k = 400.0\nk3 = 40000.0\n[force]\nkernel = "matern12"\nvariance = {var}\nlengthscale = 0.05\n'
+        '[[sensors]]\ncolumn = "acc"\nquantity = "acceleration"\nnoise_std = {noise}\n[inference]\nmethod = "ekf"\n'
+    )
+    runner = CliRunner()
+    for var, warned in ((100.0, True), (2500.0, False)):
+        (tmp_path / "run.toml").write_text(config.format(var=var, noise=noise))
+        r = runner.invoke(app, ["estimate", "run.toml", "--out", f"out{var:g}"])
+        assert r.exit_code == 0, r.output
+        check = json.loads((tmp_path / f"out{var:g}" / "summary.json").read_text())["diagnostics"]["start_check"]
+        assert ("seems to start in motion" in r.output) is warned, (var, check)
+        if warned:
+            assert "an impact" in r.output and check["peak_s"] == pytest.approx(t_hit + 0.01, abs=0.015)

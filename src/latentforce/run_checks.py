@@ -176,20 +176,32 @@ def start_in_motion(problem: Problem, params: dict, y, mask, time) -> tuple[dict
     loglik, _ = gaussian_for(problem, params, dt, "ekf")
     y0 = np.where(mask, y, 0.0)
     nis = np.asarray(call(innovations_of(loglik), numbers(params), y0, np.asarray(mask, dtype=bool)))
-    windows = innovation_windows(nis, np.sum(mask, axis=1), width)
+    nobs = np.sum(mask, axis=1)
+    windows = innovation_windows(nis, nobs, width)
     first, rest = windows[0], np.nanmedian(windows[1:]) if np.any(np.isfinite(windows[1:])) else np.nan
-    record = {"window_s": width * dt, "first": float(first), "median_rest": float(rest)}
+    # where in the first window the misfit is largest: a record cut from motion misfits over much of it
+    # (the filter's near-rest belief is contradicted for tens of samples, 2026-12-04 probe); an impact
+    # far beyond the force prior (the same warning) at the time of the blow, for a sample or two
+    peak = int(np.argmax(np.where(nobs[:width] > 0, nis[:width] / np.maximum(nobs[:width], 1), -np.inf)))
+    record = {
+        "window_s": width * dt,
+        "first": float(first),
+        "median_rest": float(rest),
+        "peak_s": float(time[peak] - time[0]),
+    }
     if not (np.isfinite(first) and np.isfinite(rest)) or first <= max(START_LIMIT, START_RATIO * rest):
         return record, None
     return record, (
         f"the record seems to start in motion: over its first {width * dt:.3g} s (one period of the structure) "
         f"the data miss the one-step predictions of the extended Kalman filter, started from the default "
         f"first state, by {np.sqrt(first):.3g} times their predicted spread (rms), against {np.sqrt(rest):.3g} "
-        "over the rest of the record (diagnostics.start_check). The default prior of a nonlinear system's "
-        "first state is near rest (docs/config.md, [initial]); for a record cut from motion the estimates "
-        "near its start, and possibly beyond, are then wrong or unconverged. Give an [initial] section (the "
-        "displacements' and velocities' mean and sd, or cov, at the first sample), or start the record "
-        "before the motion."
+        f"over the rest of the record, most at t = {record['peak_s']:.3g} s (diagnostics.start_check). The "
+        "default prior of a nonlinear system's first state is near rest (docs/config.md, [initial]); for a "
+        "record cut from motion the estimates near its start, and possibly beyond, are then wrong or "
+        "unconverged. Give an [initial] section (the displacements' and velocities' mean and sd, or cov, at "
+        "the first sample), or start the record before the motion. If the structure was at rest there, a "
+        "force far beyond the [force] prior in that period (an impact, a step) misfits the same way: widen "
+        "the prior's variance."
     )
 
 
