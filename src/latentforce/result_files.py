@@ -86,9 +86,9 @@ from latentforce.results import (
     _as_chain_draw,
     _as_time_width,
     _component_dim,
-    _component_label,
     _ordered_states,
     _width,
+    by_column,
     nmse,
     summarise_parameters,
     summary_columns,
@@ -365,17 +365,15 @@ def _write_summary_csv(path: Path, result: RunResult) -> None:
 
 
 def _nmse_by_state(result: RunResult) -> dict[str, float]:
+    """``summary.json``'s ``nmse``: the states in order, their shapes checked, then :func:`by_column`."""
     T = np.asarray(result.time).size
-    scores = {}
+    truth, mean = {}, {}
     for state in _ordered_states(result.truth):
-        if state not in result.state_mean:
-            continue
-        width = _width(result, state, result.truth[state])
-        x = _as_time_width(result.truth[state], T, width, f"truth[{state!r}]")
-        xhat = _as_time_width(result.state_mean[state], T, width, f"state_mean[{state!r}]")
-        for i in range(width):
-            scores[_component_label(state, i, width)] = nmse(x[:, i], xhat[:, i])
-    return scores
+        if state in result.state_mean:
+            width = _width(result, state, result.truth[state])
+            truth[state] = _as_time_width(result.truth[state], T, width, f"truth[{state!r}]")
+            mean[state] = _as_time_width(result.state_mean[state], T, width, f"state_mean[{state!r}]")
+    return by_column(nmse, truth, mean)
 
 
 def _summary_json(result: RunResult) -> dict:
