@@ -180,16 +180,6 @@ def gaussian_log_likelihood(
     return jnp.sum(lls)
 
 
-def innovations(
-    kind: str, pm: particle_model.ParticleModel, tr: particle_model.Transition, y, mask, R=None
-) -> Float[Array, " T"]:
-    r"""The filter's normalised innovations squared, :math:`v_t^T S_t^{-1} v_t` per step (no smoothing pass;
-    :attr:`GaussianSmoother.nis`)."""
-    f, h, Q, m1, P1 = model_functions(pm, tr)
-    R = pm.R if R is None else R
-    return _filter_pass(kind, f, h, Q, R, m1, P1, jnp.asarray(y, dtype=float), jnp.asarray(mask, dtype=bool))[6]
-
-
 def for_parameters(kind: str, model, dt: float, discretisation: str = "rk4", initial=None, outputs=()):
     """``(loglik, smoother)``: ``loglik(params, y, mask)`` and ``smoother(params, y, mask, key=None)``
     of the ``kind`` filter with every number taken from ``params`` (jittable, differentiable: the
@@ -224,17 +214,6 @@ def _build(static, numbers, params):
 def _loglik(static, numbers, params, y, mask):
     pm, tr, R = _build(static, numbers, params)
     return gaussian_log_likelihood(static[0], pm, tr, y, mask, R)
-
-
-def _innovations(static, numbers, params, y, mask):
-    pm, tr, R = _build(static, numbers, params)
-    return innovations(static[0], pm, tr, y, mask, R)
-
-
-def innovations_of(loglik: Bound) -> Bound:
-    """The normalised innovations squared (:func:`innovations`) of the filter whose ``loglik``
-    :func:`for_parameters` made, as a :class:`Bound` of ``(params, y, mask)``."""
-    return Bound(_innovations, loglik.static, loglik.numbers)
 
 
 def _smoother(static, numbers, params, y, mask, key=None):
