@@ -147,6 +147,12 @@ def test_output_config_errors():
     _bad(two_dof_config([drift, dict(drift)]), "[[outputs]][1].name", "'drift'", "already used by output 0")
     _bad(two_dof_config([{"name": "force", "force": [1.0]}]), "[[outputs]][0].name", "'force'", "taken")
     _bad(two_dof_config([{"name": "displacement_1", "force": [1.0]}]), "[[outputs]][0].name", "taken")
+    _bad(two_dof_config([{"name": "hysteretic_force", "force": [1.0]}]), "[[outputs]][0].name", "taken")
+    # a parameter's name, fixed or sampled (a sweep found an output "k_0" stored over the stiffness's draws)
+    _bad(two_dof_config([{"name": "force_variance", "force": [1.0]}]), "[[outputs]][0].name", "taken by a parameter")
+    sampled = two_dof_config([{"name": "force_lengthscale", "force": [1.0]}], method="kalman-mcmc")
+    sampled["force"]["lengthscale"] = {"prior": "lognormal", "mu": 0.0, "sigma": 1.0, "init": 0.6}
+    _bad(sampled, "[[outputs]][0].name", "'force_lengthscale'", "taken by a parameter")
     _bad(
         two_dof_config([{"name": "drift", "displacement": [1.0]}]),
         "[[outputs]][0].displacement",

@@ -273,7 +273,7 @@ def config_from_dict(
         check_sensor(fail, i, sen, system)
         sensors.append(_sensor(fail, i, sen, free, noise_names))
     model = LatentForceModel(system, kernel, sensors)
-    outputs = validate_outputs(fail, [o.model_dump() for o in cfg.outputs], model)
+    outputs = validate_outputs(fail, [o.model_dump() for o in cfg.outputs], model, {*fixed, *free})
 
     initial = None
     if cfg.initial is not None:

@@ -51,14 +51,18 @@ def check_sensor(fail: Callable, i: int, sen, system) -> None:
 
 def _reserved(model) -> set[str]:
     """Names an output may not take: ``time``, the states and their per-component labels."""
-    names = {"time", *_STATES}
-    for state, width in (("displacement", model.ndof), ("velocity", model.ndof), ("force", model.nforce)):
+    names = {"time", *_STATES, "hysteretic_force"}
+    widths = (("displacement", model.ndof), ("velocity", model.ndof), ("force", model.nforce))
+    for state, width in (*widths, ("hysteretic_force", model.layout.n_internal)):
         names.update(f"{state}_{j}" for j in range(width))
     return names
 
 
-def validate_outputs(fail: Callable, tables: list[dict], model) -> tuple[OutputSpec, ...]:
-    """``[[outputs]]`` tables (already shape-checked) as :class:`~latentforce.outputs.OutputSpec`."""
+def validate_outputs(fail: Callable, tables: list[dict], model, parameters=()) -> tuple[OutputSpec, ...]:
+    """``[[outputs]]`` tables (already shape-checked) as :class:`~latentforce.outputs.OutputSpec`;
+    ``parameters``: the model's parameter names (``k``, ``k_0``, ``force_variance`` ...), which an
+    output may not take either (posterior.nc holds both under their names: a user sweep, 2026-12-05,
+    found an output ``k_0`` stored over the sampled stiffness's draws)."""
     widths = {"displacement": model.ndof, "velocity": model.ndof, "acceleration": model.ndof, "force": model.nforce}
     reserved = _reserved(model)
     seen: dict[str, int] = {}
@@ -79,6 +83,12 @@ def validate_outputs(fail: Callable, tables: list[dict], model) -> tuple[OutputS
                 f"{what}: the name is taken by a state or a summary "
                 f"column ({', '.join(sorted(reserved))}, *_mean, *_sd); "
                 "choose another.",
+            )
+        if name in parameters:
+            raise fail(
+                f"[[outputs]][{i}].name",
+                f"{what}: the name is taken by a parameter of the model (posterior.nc and summary.json "
+                "hold parameters and outputs under their names); choose another.",
             )
         if name in seen:
             raise fail(f"[[outputs]][{i}].name", f"{what}: the name is already used by output {seen[name]}.")
