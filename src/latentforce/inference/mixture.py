@@ -59,6 +59,13 @@ def path_columns(model: LatentForceModel, outputs: tuple = ()) -> tuple[tuple, d
     return model.layout.states + tuple(o.name for o in outputs), index
 
 
+def split_columns(paths: np.ndarray, states: tuple, index: dict) -> dict:
+    """Stored paths ``(..., kept)``, their columns those of :func:`path_columns` in ``states`` order,
+    as ``{state: (..., width)}``."""
+    offsets = np.cumsum([0] + [len(index[s]) for s in states])
+    return {s: paths[..., offsets[i] : offsets[i + 1]] for i, s in enumerate(states)}
+
+
 def mixture_size(T: int, chains: int, n_draws: int, thin_draws: int, width: int) -> tuple[int, int]:
     """``(draws mixed per chain, paths stored per chain)`` for a record of ``T`` samples.
 
@@ -231,8 +238,7 @@ def mixture_posterior(
                 paths[part[:, 0], slot] = path[:k][..., kept]
     mean, var = acc.result()
     moments = {s: (mean[:, ix], np.sqrt(np.clip(var[:, ix], 0.0, None))) for s, ix in index.items()}
-    offsets = np.cumsum([0] + [len(index[s]) for s in states])
-    sampled = {s: paths[..., offsets[i] : offsets[i + 1]] for i, s in enumerate(states)}
+    sampled = split_columns(paths, states, index)
     point_result = None
     if point is not None:
         th = jnp.repeat(jnp.asarray([[float(point[nm]) for nm in names]]), batch, axis=0)

@@ -22,7 +22,7 @@ import numpy as np
 
 from latentforce.compile import call, jit, numbers
 from latentforce.inference.kalman_choice import kalman_filter_for, sample_smoothed_trajectory_for
-from latentforce.inference.mixture import PATH_BUDGET_BYTES, path_columns
+from latentforce.inference.mixture import PATH_BUDGET_BYTES, path_columns, split_columns
 
 __all__ = ["DRAWS", "SAMPLE_BUDGET", "draw_count", "gaussian_paths", "kalman_paths"]
 
@@ -45,10 +45,7 @@ def kalman_paths(
     ``params`` (outputs included, :func:`latentforce.inference.mixture.path_columns`); ``kalman``
     the filter's kind (:mod:`latentforce.inference.kalman_choice`)."""
     outputs = tuple(outputs)
-    states, index = path_columns(model, outputs)
-    kept = np.concatenate([index[s] for s in states])
-    T = np.shape(y)[0]
-    n = draw_count(T, kept.size) if n is None else int(n)
+    states, index, kept, n = _columns(model, outputs, np.shape(y)[0], n)
     paths = _kalman_draws(
         numbers(model.complete(params)),
         initial,
@@ -61,7 +58,15 @@ def kalman_paths(
         outputs=outputs,
         kalman=kalman,
     )
-    return _named(np.asarray(paths), states, index)
+    return split_columns(np.asarray(paths)[None], states, index)  # one chain
+
+
+def _columns(model, outputs: tuple, T: int, n) -> tuple:
+    """``(states, index, kept, n)``: what a path stores (:func:`path_columns`), its columns in the
+    state vector, and how many paths (:func:`draw_count` unless ``n`` is given)."""
+    states, index = path_columns(model, outputs)
+    kept = np.concatenate([index[s] for s in states])
+    return states, index, kept, draw_count(T, kept.size) if n is None else int(n)
 
 
 @functools.partial(jit, static_argnames=("model", "dt", "outputs", "kalman"))
@@ -87,14 +92,11 @@ def _kalman_draws(params, initial, keys, y, mask, kept, *, model, dt, outputs, k
 def gaussian_paths(key, model, smoother, params: dict, y, mask, outputs: tuple = (), n=None) -> dict:
     """Paths ``{state: (1, n, T, width)}`` from an ``ekf``/``ukf`` smoother's Gaussian at ``params``
     (``smoother``: :func:`latentforce.inference.gaussian.for_parameters`, made with ``outputs``)."""
-    states, index = path_columns(model, tuple(outputs))
-    kept = np.concatenate([index[s] for s in states])
-    T = np.shape(y)[0]
-    n = draw_count(T, kept.size) if n is None else int(n)
+    states, index, kept, n = _columns(model, tuple(outputs), np.shape(y)[0], n)
     mask = np.asarray(mask, dtype=bool)
     keys = jax.random.split(key, n)
     paths = call(_gaussian_draws, smoother, numbers(params), np.where(mask, y, 0.0), mask, keys, jnp.asarray(kept))
-    return _named(np.asarray(paths), states, index)
+    return split_columns(np.asarray(paths)[None], states, index)  # one chain
 
 
 def _gaussian_draws(smoother, params, y, mask, keys, kept):
@@ -103,9 +105,3 @@ def _gaussian_draws(smoother, params, y, mask, keys, kept):
         return jnp.concatenate([sm.path, sm.output_path], axis=-1)[:, kept]
 
     return jax.lax.map(one, keys)
-
-
-def _named(paths: np.ndarray, states: tuple, index: dict) -> dict:
-    """``(n, T, kept)`` columns as ``{state: (1, n, T, width)}`` (one chain)."""
-    offsets = np.cumsum([0] + [len(index[s]) for s in states])
-    return {s: paths[None, :, :, offsets[i] : offsets[i + 1]] for i, s in enumerate(states)}
