@@ -70,7 +70,7 @@ def main(argv=None) -> int:
     latentforce.enable_x64()
     from nonlinear_calibration import Case, case_config, simulate
 
-    from latentforce.inference import latent, particle_model, path_moves, pgas_start
+    from latentforce.inference import latent, particle_model, path_moves, pgas_start, smoother_move
     from latentforce.inference.latent import predicted_observations
     from latentforce.inference.path_moves import _regression, _value_gains
     from latentforce.io.config import config_from_dict
@@ -101,6 +101,7 @@ def main(argv=None) -> int:
     jac_e = jax.jit(jax.jacrev(res_e))
 
     def levenberg_marquardt(e, iters=60):
+        # damped: the chains' paths are far from the mode, where plain Gauss-Newton can overshoot
         lam, f = 1e-3, float(obj_e(e))
         for _ in range(iters):
             r, J = res_e(e), jac_e(e)
@@ -119,10 +120,12 @@ def main(argv=None) -> int:
                     break
         return e, f
 
+    # the mode: the smoother move's own centre (Gauss-Newton from the extended Kalman smoother)
     eks = jax.jit(lambda: pgas_start.extended_kalman_smoother(pm, tr, y, mask))()
-    mode, f_mode = levenberg_marquardt(latent.whiten(tr, pm.latent(eks)).reshape(-1))
-    mode_path = pm.path(latent.colour(tr, mode.reshape(T, nl)))
-    print(f"mode from the extended Kalman smoother: -log p {f_mode:.3f} (+ const)")
+    mode_path = jax.jit(lambda p: smoother_move.iterated_centre(pm, tr, od, p, iterations=12))(eks)
+    mode = latent.whiten(tr, pm.latent(mode_path)).reshape(-1)
+    f_mode = float(obj_e(mode))
+    print(f"mode (Gauss-Newton from the extended Kalman smoother): -log p {f_mode:.3f} (+ const)")
 
     if args.modes:
         from latentforce.inference.pgas import run_pgas
