@@ -26,12 +26,14 @@ noise, seed 0), hyperparameters at the truth.
 3. NUTS (blackjax) in the flat coordinates, preconditioned by the Laplace
    there (stage 1, unit mass), then (stage 2) with a mass matrix adapted
    from stage 1's draws: the identity plus the eigen-directions of their
-   covariance wider than 1.5 (low rank), 4 chains from stage 1's ends.
+   covariance wider than 1.5 (low rank), 4 chains from stage 1's ends;
+   ``--stages N`` repeats that, each stage's mass from the one before.
 
 Usage::
 
     PYTHONPATH=src python benchmarks/flat_coordinates_probe.py --order 2 --modes 8
     PYTHONPATH=src python benchmarks/flat_coordinates_probe.py --order 2 --warmup 200 --draws 300
+    PYTHONPATH=src python benchmarks/flat_coordinates_probe.py --order 2 --stages 4
 
 Measured numbers: ``benchmarks/results/flat_coordinates_probe.md`` and docs/nonlinear.md.
 """
@@ -57,6 +59,7 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", type=int, default=0, metavar="CHAINS", help="run the mode search from pgas chains")
     ap.add_argument("--warmup", type=int, default=200, help="NUTS warm-up iterations a stage (0: no NUTS)")
     ap.add_argument("--draws", type=int, default=300, help="NUTS draws a stage and chain")
+    ap.add_argument("--stages", type=int, default=2, help="NUTS stages, each adapting its mass to the last's draws")
     args = ap.parse_args(argv)
 
     import arviz as az
@@ -260,7 +263,7 @@ def main(argv=None) -> int:
         return " / ".join(f"{100 * np.mean(np.abs(t - m) < k * s):.1f}" for k in (1, 2, 3))
 
     inv_mass, z0 = jnp.ones(n), jax.random.normal(jax.random.key(11), (4, n))
-    for stage in (1, 2):
+    for stage in range(1, args.stages + 1):
         t0 = time.perf_counter()
         (disp, force, steps, pos), h = run(jax.random.split(jax.random.key(5 + stage), 4), z0, inv_mass)
         disp, force = np.asarray(disp), np.asarray(force)
