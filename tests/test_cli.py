@@ -284,6 +284,8 @@ def test_every_sampling_method_writes_a_result_folder_with_its_verdict(workdir, 
         rates, accepted = summary["diagnostics"]["switch_rate"], summary["diagnostics"]["acceptance_smoother"]
         low = sum(rates) / len(rates) < LOW_SWITCH_RATE and sum(accepted) / len(accepted) < LOW_SMOOTHER_ACCEPTANCE
         assert ("hardly renewed the path" in " ".join(summary["diagnostics"]["warnings"])) == low
+        # a displacement channel is measured here: no advice to add one
+        assert "which no sensor measures" not in " ".join(summary["diagnostics"]["warnings"])
     header = (workdir / "res" / "summary.csv").read_text().splitlines()[0].split(",")
     assert header[:3] == ["time", "displacement_mean", "displacement_sd"] and "force_sd" in header
     figures = {p.name for p in (workdir / "res" / "figures").iterdir()}

@@ -126,6 +126,28 @@ def test_a_pgas_warning_names_a_sweep_that_hardly_switched():
     assert "coarsely" in low_switch_advice(0.06, 0.003, displacement_measured=True, smooth_force=False)
 
 
+def test_a_pgas_warning_names_an_unmeasured_displacement_when_it_is_the_slowest():
+    """An unconverged pgas run whose worst quantity is a displacement, with no displacement or strain
+    channel, gets the advice to add one (velocity alone at Matérn-5/2: the smoother move accepts, so the
+    low-switch advice says nothing); a measured displacement, another worst quantity, a converged run or
+    a diverged chain get nothing."""
+    from latentforce.estimate_particles import unmeasured_displacement_advice
+
+    def record(*names, **extra):
+        return {"converged": False, "worst": [{"name": n, "r_hat": 1.2, "ess_bulk": 15.0} for n in names], **extra}
+
+    slow = record("displacement[t=0.44]", "force[t=0.33]")
+    text = unmeasured_displacement_advice(slow, False)
+    assert "displacement (or strain) sensor" in text and "ukf" in text and "\n" not in text
+    assert unmeasured_displacement_advice(record("displacement_1[t=2]"), False) == text  # MDOF names
+    assert unmeasured_displacement_advice(slow, True) == ""  # measured: the cause is elsewhere
+    assert unmeasured_displacement_advice(record("force[t=0.33]", "displacement[t=0.44]"), False) == ""
+    assert unmeasured_displacement_advice(record("force_variance"), False) == ""
+    assert unmeasured_displacement_advice(record(), False) == ""
+    assert unmeasured_displacement_advice({**slow, "converged": True}, False) == ""
+    assert unmeasured_displacement_advice(record("displacement[t=1]", diverged_chains=[2]), False) == ""
+
+
 def test_smooth_force_reads_the_kernels_terms():
     from latentforce.estimate_particles import kernel_is_smooth
     from latentforce.kernels import Matern

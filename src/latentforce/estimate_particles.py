@@ -118,6 +118,31 @@ _TIME_INDEX = re.compile(r"\[t=(\d+)\]")
 START_SHARE = 0.05
 
 
+def unmeasured_displacement_advice(record: dict, displacement_measured: bool) -> str:
+    """What an unconverged pgas run's warning adds when its slowest quantity is a displacement and no
+    displacement or strain channel is measured ("" if not; a diverged chain's advice is the model's).
+
+    With velocity or acceleration alone the displacement's slow content is seen only through the
+    structure's nonlinearity and the force's prior, and the chains wander along it although the
+    smoother move accepts its proposals (so :func:`low_switch_advice` says nothing): a stiffening
+    Duffing with velocity alone (``benchmarks/results/nonlinear_calibration_vel.md``) converged in 41 s
+    at Matérn-3/2 but ended at R-hat 1.21, bulk ESS 15 at Matérn-5/2 after 180 s (smoother move 17-29 %
+    accepted), its worst quantities displacements, while with a displacement channel our Duffing
+    records converged at every order in 28-40 s (docs/nonlinear.md)."""
+    if displacement_measured or record.get("converged", False) or record.get("diverged_chains"):
+        return ""
+    worst = record.get("worst", [])
+    if not worst or not str(worst[0]["name"]).startswith("displacement"):
+        return ""
+    return (
+        " The slowest quantity is the displacement, which no sensor measures: its slow content is seen "
+        "only through the structure's nonlinearity and the force's prior, so the chains wander along it "
+        "and running longer gains slowly. Add a displacement (or strain) sensor where one can be had (with "
+        "one, our 256-sample Duffing records converged at every Matérn order in under a minute), and compare with "
+        'method = "ukf".'
+    )
+
+
 def hysteretic_start_advice(record: dict, has_hysteresis: bool, initial_given: bool, T: int) -> str:
     """What an unconverged pgas run's warning adds when its slowest quantities sit at the record's start
     on a system with hysteretic states and no ``[initial]`` was given ("" if not). ``record``: the
@@ -331,7 +356,10 @@ def _run_pgas(
             smoother = out.diagnostics.get("acceptance_smoother")
             smoother = float(np.mean(smoother)) if smoother else float("nan")
             measured = any(s.quantity in DISPLACEMENT_CHANNELS for s in model.sensors)
-            advice = low_switch_advice(switch, smoother, measured, kernel_is_smooth(model.kernel)) + start_advice
+            advice = (
+                low_switch_advice(switch, smoother, measured, kernel_is_smooth(model.kernel))
+                or unmeasured_displacement_advice(record, measured)
+            ) + start_advice
         diagnostics.setdefault("warnings", []).append(message + advice)
     cut = convergence.warm_up_cut_warning(settings.burn_in, burn_in, settings.max_time)
     if cut:
