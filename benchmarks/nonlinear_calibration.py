@@ -276,10 +276,20 @@ def virgin_initial(problem) -> dict:
 
 
 def estimate_case(
-    case: Case, method: str, seed: int, max_time: float, *, window=None, wide_initial=False, cache=None, inference=None
+    case: Case,
+    method: str,
+    seed: int,
+    max_time: float,
+    *,
+    window=None,
+    profile_steps=None,
+    wide_initial=False,
+    cache=None,
+    inference=None,
 ):
     """``(result, truth, share)``: the case's record simulated at ``seed`` and run through ``estimate.run`` as a
-    user runs it. ``window``: the window move's width forced (a probe; 0: off; None: its rule); ``wide_initial``:
+    user runs it. ``window``: the window move's width forced (a probe; 0: off; None: its rule);
+    ``profile_steps``: the profile move's steps a block forced (a probe; None: its default); ``wide_initial``:
     the linearised system's joint stationary prior as ``[initial]``; ``cache``: a persistent compilation cache
     directory; ``inference``: more ``[inference]`` keys (fixed counts: ``iterations``, ``burn_in``)."""
     import latentforce
@@ -294,6 +304,10 @@ def estimate_case(
         import latentforce.inference.pgas as pg
 
         pg.default_window = lambda *args, width=int(window): width
+    if profile_steps is not None:
+        import latentforce.inference.profile_move as pmv
+
+        pmv.PROFILE_STEPS = int(profile_steps)
     y, truth, noise_sd, share = simulate(case, seed)
     cfg = case_config(case, method, max_time)
     cfg["inference"].update(inference or {})
@@ -330,6 +344,7 @@ def worker(job_path: str, out_path: str) -> None:
         job["seed"],
         job["max_time"],
         window=job.get("window"),
+        profile_steps=job.get("profile_steps"),
         wide_initial=bool(job.get("wide_initial")),
         cache=job["cache"],
     )
@@ -365,6 +380,7 @@ def run_job(case: Case, method: str, args, tmp: Path) -> dict:
                 "cache": str(tmp / "cache"),
                 "wide_initial": bool(args.wide_initial),
                 "window": args.window,
+                "profile_steps": args.profile_steps,
             }
         )
     )
@@ -441,7 +457,8 @@ def report(rows: list[tuple[Case, str, dict]], args, total_s: float) -> str:
                 else "."
             )
         )
-        + ("" if args.window is None else f" Window move forced to width {args.window} (`--window`)."),
+        + ("" if args.window is None else f" Window move forced to width {args.window} (`--window`).")
+        + ("" if args.profile_steps is None else f" Profile move: {args.profile_steps} steps a block."),
         "",
         "| case | nonlinear share | method | force ±1/±2/±3 sd % | displacement ±1/±2/±3 sd % "
         "| hysteretic force ±1/±2/±3 sd % | force NMSE % "
@@ -501,6 +518,9 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--window", type=int, default=None, help="probe: the window move's width forced (0: off; default: its rule)"
+    )
+    parser.add_argument(
+        "--profile-steps", type=int, default=None, help="probe: the profile move's steps a block (default: its own)"
     )
     parser.add_argument("--system", default="duffing", choices=tuple(QUICK_CASES), help="quick mode's system")
     parser.add_argument("--out", type=Path, default=None)

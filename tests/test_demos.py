@@ -40,3 +40,6 @@ def test_a_quick_demo_writes_its_result_folders(tmp_path, monkeypatch, name):
     if name == "bouc-wen":  # the internal states' start-up move runs (fixed system parameters; 0.60-0.63)
         moved = json.loads((tmp_path / "d" / "summary.json").read_text())["diagnostics"]["acceptance_internal"]
         assert len(moved) >= 2 and min(moved) > 0.05, moved
+        # and the profile move (profile_move)
+        prof = json.loads((tmp_path / "d" / "summary.json").read_text())["diagnostics"]["acceptance_profile"]
+        assert len(prof) >= 2 and min(prof) > 0.05, prof

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from test_internal_move import BENCH, GP, INITIAL, SENSORS
+from test_profile_move import _record
 from test_smc import linear_problem
 
 from latentforce.inference import latent, smc
@@ -42,15 +43,6 @@ def _bouc_wen(order: int):
         LatentForceModel(BoucWen(), Matern(order), SENSORS), {**BENCH, **GP}, 1.0 / 750.0, initial=INITIAL
     )
     return pm, pm.transition(GP["force_variance"], GP["force_lengthscale"])
-
-
-def _record(key, pm, tr, T):
-    k_path, k_obs = jax.random.split(key)
-    path = pm.path(latent.gp_prior_path(k_path, tr, T))
-    clean = jax.vmap(lambda x: pm._observe(x[: pm.nm], x[pm.nm :]))(path)
-    noise = jnp.asarray([s.noise_std for s in SENSORS])
-    y = clean + noise * jax.random.normal(k_obs, clean.shape)
-    return path, latent.observation_density(pm, y, jnp.ones(y.shape, bool))
 
 
 def test_the_directions_are_the_linearised_posteriors_regression_lines():

@@ -154,7 +154,9 @@ def hysteretic_start_advice(record: dict, has_hysteresis: bool, initial_given: b
     benchmark's Matérn-5/2 record (450 samples, acc + disp, 180 s cap) the default start ended at R-hat
     1.83, bulk ESS 6, while [initial] with r0's sd 1.3 N (1 % of its peak) converged in 76-113 s over
     three records, and at Matérn-7/2 in 70 s (docs/nonlinear.md, "A start known to be virgin";
-    ``benchmarks/results/nonlinear_calibration_bouc_wen_virgin.md``)."""
+    ``benchmarks/results/nonlinear_calibration_bouc_wen_virgin.md``). Since the profile move
+    (:mod:`latentforce.inference.profile_move`) the default start converges there too (104-107 s), so
+    this text is for records still slow at their start, where a known start is the faster answer."""
     if not has_hysteresis or initial_given or record.get("converged", False):
         return ""
     first = max(1, int(np.ceil(START_SHARE * T)))
@@ -168,8 +170,8 @@ def hysteretic_start_advice(record: dict, has_hysteresis: bool, initial_given: b
         "trades against the force (the acceleration fixes their difference, so the data hardly narrow its "
         "prior). If the structure was at rest in a virgin state when the record began, say so: [initial] "
         "with a small sd on the hysteretic force (about 1 % of its expected peak; docs/config.md, "
-        '"[initial]"). On our Bouc-Wen benchmark at Matérn-5/2 that turned a run stuck at R-hat 1.8 into '
-        "one converged in 76 s."
+        '"[initial]"). On our Bouc-Wen benchmark at Matérn-5/2 it converged in 74-113 s over three records '
+        "(from the default start: 104-107 s)."
     )
 
 

@@ -52,13 +52,18 @@ import numpy as np
 from jaxtyping import Array
 
 from latentforce.compile import jit
-from latentforce.inference import convergence, internal_move, noise_gibbs, particle_model, pgas_mode, smoother_move
+from latentforce.inference import (
+    convergence,
+    internal_move,
+    noise_gibbs,
+    particle_model,
+    pgas_mode,
+    profile_move,
+    smoother_move,
+)
 from latentforce.inference.hyper_moves import Hyper
 from latentforce.inference.latent import observation_density
-from latentforce.inference.path_moves import (
-    ResidualMove,
-    lowfreq_basis,
-)
+from latentforce.inference.path_moves import ResidualMove, lowfreq_basis
 from latentforce.inference.pgas_block import (  # noqa: F401 (re-exported: callers use pgas.make_block ...)
     BlockData,
     BlockInfo,
@@ -122,6 +127,7 @@ def run_pgas(
     joint_steps: int = 3,
     system_steps: int = 5,
     internal_steps: int = 10,
+    profile_steps: int | None = None,
     joint_recentre: int = smoother_move.JOINT_RECENTRE,
     channels=None,
     target_ess: float = 400.0,
@@ -166,7 +172,9 @@ def run_pgas(
     system parameter is sampled, ``internal_steps`` steps of their start-up move
     follow (:mod:`latentforce.inference.internal_move`; 0 disables: their
     initial values stepped with the displacements, velocities and
-    accelerometer residuals held); where system parameters are sampled, the
+    accelerometer residuals held), then ``profile_steps`` steps of the profile
+    move (:mod:`latentforce.inference.profile_move`; 0 disables; None: its
+    default); where system parameters are sampled, the
     system move's walk carries those initial values instead (0 disables that
     too: :func:`~latentforce.inference.pgas_block.system_internal`), and each
     chain starts from a path of its own model (Gauss-Newton at its dispersed
@@ -291,6 +299,8 @@ def run_pgas(
     rm = ResidualMove(pm, T, residual_modes, np.sqrt(np.diagonal(np.asarray(tr0.Q))[pm.latent_layout.noise]))
     if smoother_steps is None:
         smoother_steps = default_smoother_steps(pm)
+    if profile_steps is None:
+        profile_steps = profile_move.PROFILE_STEPS
     if residual_steps is None:
         residual_steps = default_residual_steps(pm, smoother_steps)
     if window is None:
@@ -315,6 +325,8 @@ def run_pgas(
         # the start-up move where the initial prior leaves the internal states free (internal_move.free;
         # a negative count is make_block's error)
         internal_steps=int(internal_steps) if int(internal_steps) < 0 or internal_move.free(pm) else 0,
+        # the profile move likewise (profile_move; a negative count is make_block's error)
+        profile_steps=int(profile_steps) if int(profile_steps) < 0 or internal_move.free(pm) else 0,
         recentre=int(joint_recentre),
     )
     make_block(pm, hyper, sched, rm, basis, tpoints, mpoints, noise=noise, **block_settings)

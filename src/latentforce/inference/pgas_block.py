@@ -69,6 +69,15 @@ move their initial values with the displacements, velocities and accelerometer r
 (the system move's map at fixed parameters; the force takes up the change); a fixed kernel, no
 adaptation; random numbers from :data:`~latentforce.inference.internal_move.INTERNAL_STREAM`.
 
+**The profile move.** Where the start-up move would run (and a centre is carried), then
+``profile_steps`` Metropolis-Hastings steps of :func:`latentforce.inference.profile_move.profile_move`:
+the internal states' initial values stepped with the whole path re-drawn from the linearised
+posterior re-centred at each value (Gauss-Newton with them pinned, from ``state.centre``) and
+conditioned on it; accepted on the linearised marginal likelihood, the conditioned Gaussian's
+marginal density of the initial values and the smoother move's weight (exact for any system). A
+fixed kernel within the block; random numbers from
+:data:`~latentforce.inference.profile_move.PROFILE_STREAM`.
+
 **System parameters with the measured motion held.** Where system parameters are sampled
 and some channel sees the force, after the path moves ``system_steps`` Metropolis steps
 (:func:`latentforce.inference.system_moves.system_move`) move them with the path's
@@ -124,6 +133,7 @@ from latentforce.inference import (
     mcmc,
     noise_gibbs,
     particle_model,
+    profile_move,
     smc,
     smoother_move,
     system_moves,
@@ -199,6 +209,7 @@ def make_block(
     joint_steps: int = 1,
     system_steps: int = 0,
     internal_steps: int = 0,
+    profile_steps: int = 0,
     recentre: int = smoother_move.JOINT_RECENTRE,
     noise: noise_gibbs.NoiseLevels = noise_gibbs.NoiseLevels(),
 ) -> Callable:
@@ -315,6 +326,11 @@ def make_block(
     if int(internal_steps) < 0:
         raise ValueError(f"internal_steps must be non-negative, got {internal_steps}")
     n_int = int(internal_steps) if internal_move.applies(pm_base, rm) and not n_sys else 0
+    # the profile move (profile_move): the internal states' initial values with the path re-drawn
+    # about a Gaussian re-centred at each; where no system parameter is sampled, about the centre
+    if int(profile_steps) < 0:
+        raise ValueError(f"profile_steps must be non-negative, got {profile_steps}")
+    n_prof = int(profile_steps) if profile_move.applies(pm_base) and not n_sys else 0
 
     lf_reshape = jnp.asarray((-1,))
     n_noise = len(noise.channels)
@@ -385,6 +401,11 @@ def make_block(
             k_int = jax.random.fold_in(state.key, internal_move.INTERNAL_STREAM)
             path, accs_int = internal_move.internal_move(k_int, rm, pm, od, tr, path, n_int)
             acc_int = jnp.mean(accs_int.astype(float))
+        acc_prof = not_run
+        if n_prof and state.centre is not None:
+            k_prof = jax.random.fold_in(state.key, profile_move.PROFILE_STREAM)
+            path, accs_prof = profile_move.profile_move(k_prof, pm, tr, od, state.centre, path, n_prof)
+            acc_prof = jnp.mean(accs_prof.astype(float))
         rwm_sys, acc_sys = state.rwm_sys, not_run
         if n_sysrp and rwm_sys is not None:
             rwm_sys, path, tr, accs_sys = system_moves.system_move(
@@ -522,6 +543,7 @@ def make_block(
             acc_sys,
             acc_int,
             acc_win,
+            acc_prof,
         )
         return new, info
 

@@ -143,6 +143,7 @@ def _assemble(
         "acceptance_joint": _move_rate(info.accept_joint, burn_blocks),
         "acceptance_system": system_rate,
         "acceptance_internal": _move_rate(info.accept_internal, burn_blocks),
+        "acceptance_profile": _move_rate(info.accept_profile, burn_blocks),
     }
     if noise_names:  # per chain, per inferred channel: the independence sampler's acceptance
         diag["acceptance_noise"] = {

@@ -77,6 +77,8 @@ class BlockInfo(NamedTuple):
     accept_internal: Float[Array, ""] | None = None
     # the window move (window_move; NaN where it is not made)
     accept_window: Float[Array, ""] | None = None
+    # the profile move (profile_move; NaN where it is not made)
+    accept_profile: Float[Array, ""] | None = None
 
 
 class BlockData(NamedTuple):
