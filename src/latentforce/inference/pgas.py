@@ -87,7 +87,7 @@ from latentforce.inference.pgas_defaults import (  # noqa: F401 (re-exported)
 )
 from latentforce.inference.pgas_output import PGASOutput, _assemble, _verdict, convergence_diagnostics  # noqa: F401 (re-exported)
 from latentforce.inference.pgas_schedule import first_check
-from latentforce.inference.pgas_start import extended_kalman_smoother, init_chains
+from latentforce.inference.pgas_start import _start_transitions, extended_kalman_smoother, init_chains
 from latentforce.inference.resume import pgas_loop_state, pgas_restore
 from latentforce.models import hyper_names
 
@@ -501,18 +501,6 @@ def run_pgas(
 @jit
 def _observation_density(pm, y, mask, R):
     return observation_density(pm, y, mask, R)
-
-
-@functools.partial(jit, static_argnames=("chains",))
-def _start_transitions(k, x0, spread, pm, hyper, *, chains):
-    """The chains' dispersed starts x_0 + spread eps in the joint coordinates (theta_0 exp(0.5 eps)
-    by default; about the filter's mode where system parameters are sampled, pgas_mode), and the
-    transitions at x_0 and at those, from one place in the program (each place compiles its own
-    matrix exponentials: they dominated the compile time)."""
-    p = len(hyper.names)
-    xs = x0 + jax.random.normal(k, (chains, len(hyper.joint_names))) @ spread.T
-    trs = jax.vmap(lambda x: hyper.model_at(pm, x[p:]).transition(*hyper.values(x)))(jnp.concatenate([x0[None], xs]))
-    return xs, jax.tree_util.tree_map(lambda a: a[0], trs), jax.tree_util.tree_map(lambda a: a[1:], trs)
 
 
 @jit

@@ -218,3 +218,15 @@ def init_chains(
         )
 
     return jax.vmap(_init_chain)(jax.random.split(k_chains, chains), xs0, trs0, lfs, rps, centres, start)
+
+
+@functools.partial(jit, static_argnames=("chains",))
+def _start_transitions(k, x0, spread, pm, hyper, *, chains):
+    """The chains' dispersed starts x_0 + spread eps in the joint coordinates (theta_0 exp(0.5 eps)
+    by default; about the filter's mode where system parameters are sampled, pgas_mode), and the
+    transitions at x_0 and at those, from one place in the program (each place compiles its own
+    matrix exponentials: they dominated the compile time)."""
+    p = len(hyper.names)
+    xs = x0 + jax.random.normal(k, (chains, len(hyper.joint_names))) @ spread.T
+    trs = jax.vmap(lambda x: hyper.model_at(pm, x[p:]).transition(*hyper.values(x)))(jnp.concatenate([x0[None], xs]))
+    return xs, jax.tree_util.tree_map(lambda a: a[0], trs), jax.tree_util.tree_map(lambda a: a[1:], trs)
