@@ -129,26 +129,35 @@ class _Conditioned:
         return -0.5 * jnp.sum(z**2) - jnp.sum(jnp.log(jnp.diagonal(self.L))) - 0.5 * z.shape[0] * jnp.log(2 * jnp.pi)
 
 
-def pinned_centre(pm, tr, od: ObservationDensity, start, r0, iterations: int = ITERATIONS):
-    """Gauss-Newton from ``start`` with the internal states' initial values pinned at ``r0``."""
-    idx = jnp.asarray(internal_indices(pm))
+def expanded(pm, tr, od: ObservationDensity, centre):
+    """``(prep, cond)``: the linearised model about ``centre`` and its :math:`r_0` functional there."""
+    prep = sm.prepare(pm, tr, od, centre)
+    return prep, _Conditioned(pm, tr, od, prep, jnp.asarray(internal_indices(pm)))
 
-    def one(cen, _):
-        prep = sm.prepare(pm, tr, od, cen)
-        cond = _Conditioned(pm, tr, od, prep, idx)
-        return sm.linear_path(pm, prep.lin, colour(tr, cond.condition(prep.eps_hat, r0))), None
 
-    cen, _ = jax.lax.scan(one, start, None, length=int(iterations))
+def pinned_centre(pm, tr, od: ObservationDensity, start, r0, iterations: int = ITERATIONS, first=None):
+    """Gauss-Newton from ``start`` with the internal states' initial values pinned at ``r0``;
+    ``first``: :func:`expanded` at ``start``, where the caller already has it (the move's steps
+    share one fixed start)."""
+
+    def shift(prep, cond):
+        return sm.linear_path(pm, prep.lin, colour(tr, cond.condition(prep.eps_hat, r0)))
+
+    cen = shift(*(expanded(pm, tr, od, start) if first is None else first))
+
+    def one(c, _):
+        return shift(*expanded(pm, tr, od, c)), None
+
+    cen, _ = jax.lax.scan(one, cen, None, length=int(iterations) - 1)
     return cen
 
 
-def log_target(key, pm, tr, od: ObservationDensity, start, r0, path=None, iterations: int = ITERATIONS):
+def log_target(key, pm, tr, od: ObservationDensity, start, r0, path=None, iterations: int = ITERATIONS, first=None):
     """``(L, path)`` at ``r0`` (module doc): ``path=None`` a proposed point, its path drawn with
-    ``key``; else the current point, whose path is ``path`` (its :math:`r_0` must be ``r0``)."""
-    idx = jnp.asarray(internal_indices(pm))
-    prep = sm.prepare(pm, tr, od, pinned_centre(pm, tr, od, start, r0, iterations))
+    ``key``; else the current point, whose path is ``path`` (its :math:`r_0` must be ``r0``).
+    ``first``: :func:`expanded` at ``start`` (:func:`pinned_centre`)."""
+    prep, cond = expanded(pm, tr, od, pinned_centre(pm, tr, od, start, r0, iterations, first))
     lin, gains, eps_hat = prep
-    cond = _Conditioned(pm, tr, od, prep, idx)
     _, v = sm._filter_means(pm, lin, gains, od.y)
     base = sm._log_marginal(gains, v) + cond.log_density(r0)
     if path is None:
@@ -159,13 +168,12 @@ def log_target(key, pm, tr, od: ObservationDensity, start, r0, path=None, iterat
     return base + lw, path
 
 
-def step_factors(pm, tr, od: ObservationDensity, centre) -> Float[Array, "s k k"]:
+def step_factors(pm, cond: _Conditioned) -> Float[Array, "s k k"]:
     """The steps' factors :math:`A_j` (module doc): :data:`PRIOR_SCALES` times the initial prior's
     Cholesky factor of the internal states, then :data:`GAUSSIAN_SCALE` times that of the linearised
-    posterior's marginal at ``centre``."""
+    posterior's marginal ``cond`` at the fixed centre."""
     idx = internal_indices(pm)
     prior = particle_model._chol(jnp.asarray(pm.mech0_cov)[np.ix_(idx, idx)])
-    cond = _Conditioned(pm, tr, od, sm.prepare(pm, tr, od, centre), jnp.asarray(idx))
     return jnp.stack([s * prior for s in PRIOR_SCALES] + [GAUSSIAN_SCALE * cond.L])
 
 
@@ -183,15 +191,16 @@ def profile_move(
     chain's fixed ``centre``, at the transition ``tr``. Returns the path (the input when nothing was
     accepted) and each step's acceptance."""
     idx = jnp.asarray(internal_indices(pm))
-    factors = step_factors(pm, tr, od, centre)
-    L0, _ = log_target(None, pm, tr, od, centre, path[0, idx], path, iterations)
+    first = expanded(pm, tr, od, centre)  # shared by every step's Gauss-Newton
+    factors = step_factors(pm, first[1])
+    L0, _ = log_target(None, pm, tr, od, centre, path[0, idx], path, iterations, first)
 
     def _one(carry, inp):
         L, x = carry
         k, j = inp
         k_step, k_draw, k_acc = jax.random.split(k, 3)
         r0 = x[0, idx] + factors[j % factors.shape[0]] @ jax.random.normal(k_step, idx.shape)
-        L_p, x_p = log_target(k_draw, pm, tr, od, centre, r0, None, iterations)
+        L_p, x_p = log_target(k_draw, pm, tr, od, centre, r0, None, iterations, first)
         ok = jnp.isfinite(L_p) & (jnp.log(jax.random.uniform(k_acc)) < L_p - L)
         return (jnp.where(ok, L_p, L), jnp.where(ok, x_p, x)), ok
 
