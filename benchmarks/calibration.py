@@ -433,6 +433,26 @@ def cases() -> list[Case]:
             quick=False,
         ),
         *(
+            Case(
+                f"bouc-wen-sbc-default-start-{kernel}",
+                "duffing",
+                {
+                    **{k: v for k, v in BOUC_WEN_SBC_CONFIG.items() if k != "initial"},
+                    "system": {**BOUC_WEN_SBC_CONFIG["system"], "alpha": 5.0e4, "gamma": -1100.0},
+                    "force": {**BOUC_WEN_SBC_CONFIG["force"], "kernel": kernel},
+                },
+                65,
+                1.0 / 750.0,
+                None,
+                ("pgas",),
+                f"as bouc-wen-sbc-params-default-start with the oscillator known (alpha 5e4, gamma -1100) and a "
+                f"Matérn-{order} force: the start-up and profile moves run (they are off where system "
+                "parameters are sampled), the hysteretic force's start r0 drawn from the default prior",
+                quick=False,
+            )
+            for kernel, order in (("matern12", "1/2"), ("matern32", "3/2"), ("matern52", "5/2"), ("matern72", "7/2"))
+        ),
+        *(
             dataclasses.replace(
                 duffing,
                 name=name,

@@ -51,7 +51,7 @@ def test_the_profile_target_is_the_exact_marginal_on_a_linear_system():
     pm, tr = _model(2, beta=0.0, gamma=0.0)
     _, od = _record(jax.random.key(3), pm, tr, T)
     centre = _fixed_centre(pm, tr, od, T)
-    idx = jnp.asarray(profile_move.internal_indices(pm))
+    idx = jnp.asarray(pm.internal)
     cond = profile_move._Conditioned(pm, tr, od, sm.prepare(pm, tr, od, centre), idx)
     m, sd = float(cond.m[0]), float(jnp.sqrt(cond.S[0, 0]))
     gaps = []

@@ -64,7 +64,7 @@ TIED = 1e-8
 
 def applies(pm: particle_model.ParticleModel, rm: ResidualMove) -> bool:
     """Whether the move can run: the system has internal states and some channel sees the force."""
-    return bool(rm.applies) and pm.nm > 2 * pm.ndof
+    return bool(rm.applies) and pm.internal.size > 0
 
 
 def free(pm: particle_model.ParticleModel) -> bool:
@@ -99,7 +99,7 @@ def internal_move(
     """``n_steps`` Metropolis steps on the internal states' initial offsets (module doc), ``tr`` the
     transition of ``pm`` at the chain's hyperparameters. Returns the path (bit-for-bit the input
     when nothing was accepted) and the acceptances."""
-    internal = np.arange(2 * pm.ndof, pm.nm)
+    internal = pm.internal
     idx = jnp.asarray(rm.K * pm.nm + internal)
     build = rm.builder(pm, od, tr, path, kinematic=True)
     cP, cQ = particle_model._chol(tr.Pinf), particle_model._chol(tr.Q)

@@ -173,6 +173,8 @@ class ParticleModel:
         self.nforce = model.nforce
         self.kdim = model.kernel.dim
         self.nfx = self.layout.n_force_states
+        #: the internal (hysteretic) states' columns in a path, after the displacements and velocities
+        self.internal = np.arange(2 * self.ndof, self.nm)
         self.nl = self.latent_layout.n
         self.n_state = model.n_state
         self.n_obs = model.n_obs

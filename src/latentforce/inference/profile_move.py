@@ -82,14 +82,9 @@ PRIOR_SCALES = (0.25, 0.75)
 GAUSSIAN_SCALE = 2.4
 
 
-def internal_indices(pm: particle_model.ParticleModel) -> np.ndarray:
-    """The internal states' columns in the path (after the displacements and velocities)."""
-    return np.arange(2 * pm.ndof, pm.nm)
-
-
 def applies(pm: particle_model.ParticleModel) -> bool:
     """Whether the system has internal states to move."""
-    return pm.nm > 2 * pm.ndof
+    return pm.internal.size > 0
 
 
 class _Conditioned:
@@ -132,7 +127,7 @@ class _Conditioned:
 def expanded(pm, tr, od: ObservationDensity, centre):
     """``(prep, cond)``: the linearised model about ``centre`` and its :math:`r_0` functional there."""
     prep = sm.prepare(pm, tr, od, centre)
-    return prep, _Conditioned(pm, tr, od, prep, jnp.asarray(internal_indices(pm)))
+    return prep, _Conditioned(pm, tr, od, prep, jnp.asarray(pm.internal))
 
 
 def pinned_centre(pm, tr, od: ObservationDensity, start, r0, iterations: int = ITERATIONS, first=None):
@@ -172,7 +167,7 @@ def step_factors(pm, cond: _Conditioned) -> Float[Array, "s k k"]:
     """The steps' factors :math:`A_j` (module doc): :data:`PRIOR_SCALES` times the initial prior's
     Cholesky factor of the internal states, then :data:`GAUSSIAN_SCALE` times that of the linearised
     posterior's marginal ``cond`` at the fixed centre."""
-    idx = internal_indices(pm)
+    idx = pm.internal
     prior = particle_model._chol(jnp.asarray(pm.mech0_cov)[np.ix_(idx, idx)])
     return jnp.stack([s * prior for s in PRIOR_SCALES] + [GAUSSIAN_SCALE * cond.L])
 
@@ -190,7 +185,7 @@ def profile_move(
     """``n_steps`` Metropolis-Hastings steps of the profile move (module doc) from ``path``, about the
     chain's fixed ``centre``, at the transition ``tr``. Returns the path (the input when nothing was
     accepted) and each step's acceptance."""
-    idx = jnp.asarray(internal_indices(pm))
+    idx = jnp.asarray(pm.internal)
     first = expanded(pm, tr, od, centre)  # shared by every step's Gauss-Newton
     factors = step_factors(pm, first[1])
     L0, _ = log_target(None, pm, tr, od, centre, path[0, idx], path, iterations, first)

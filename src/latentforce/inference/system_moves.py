@@ -66,7 +66,7 @@ def _log_jacobian(rm: ResidualMove, T: int) -> Float[Array, ""]:
 
 def internal_coordinates(rm: ResidualMove, pm: particle_model.ParticleModel) -> np.ndarray:
     """The internal states' initial offsets among the residual move's coordinates."""
-    return rm.K * pm.nm + np.arange(2 * pm.ndof, pm.nm)
+    return rm.K * pm.nm + pm.internal
 
 
 def internal_offsets(
@@ -74,7 +74,7 @@ def internal_offsets(
 ) -> Float[Array, " k"]:
     """The internal states' initial values of ``path`` as offsets from the initial prior's mean, in
     the residual move's units (the prior's sds): the system move's extra coordinates."""
-    internal = np.arange(2 * pm.ndof, pm.nm)
+    internal = pm.internal
     return (path[0, internal] - pm.mech0_mean[internal]) / rm.scale_0[internal]
 
 
