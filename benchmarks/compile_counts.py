@@ -85,7 +85,7 @@ def record(problem, cfg: dict, T: int, dt: float, seed: int) -> Dataset:
     params.update(force_variance=float(cfg["force"]["variance"]), force_lengthscale=0.3)
     sim = simulate(jax.random.key(seed), problem.model, params, T, dt)
     y = measure(jax.random.key(seed + 1), sim, problem.model.sensors)
-    return Dataset(sim.time, dt, y, np.isfinite(y), ["acc"], {})
+    return Dataset.from_array(y, dt, ["acc"])
 
 
 def measure_method(method: str, quick: bool, counter: CompileCounter, T: int = 256, dt: float = 0.01) -> list[dict]:

@@ -93,14 +93,7 @@ def one_record(seed: int, start: str, n: int) -> dict:
     for sensor, sd in zip(base["sensors"], noise_sd):
         sensor["noise_std"] = float(sd)
     problem = config_from_dict(base, source="<frame twin>")
-    data = Dataset(
-        time=np.arange(n) * dt,
-        dt=dt,
-        values=y,
-        mask=np.ones_like(y, dtype=bool),
-        columns=list(problem.columns),
-        truth={},
-    )
+    data = Dataset.from_array(y, dt, problem.columns)
     result, _ = estimate.run(problem, data, seed=seed)
     out = {}
     for state, truth in (("force", sim.force[:, 0]), ("displacement", sim.displacement)):

@@ -191,14 +191,7 @@ def worker(job_path: str, out_path: str) -> None:
     problem = config_from_dict(
         case_config(job["case"], job["sampler"], job["max_time"]), source=f"<{job['case']} T={T} {job['sampler']}>"
     )
-    dataset = Dataset(
-        time=np.arange(T) * DT,
-        dt=DT,
-        values=y,
-        mask=np.ones_like(y, dtype=bool),
-        columns=list(data["columns"]),
-        truth={},
-    )
+    dataset = Dataset.from_array(y, DT, data["columns"])
     from latentforce.compile import persistent_cache
 
     with persistent_cache(job["cache"]):

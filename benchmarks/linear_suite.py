@@ -148,15 +148,7 @@ def run(case: Case, method: str, inferred: bool, y, noise_sd, seed: int, max_tim
     for sensor, sd in zip(cfg["sensors"], noise_sd):
         sensor["noise_std"] = float(sd)
     problem = config_from_dict(cfg, source=f"<{case.label} {method}>")
-    T = y.shape[0]
-    dataset = Dataset(
-        time=np.arange(T) * DT,
-        dt=DT,
-        values=y,
-        mask=np.ones_like(y, dtype=bool),
-        columns=list(problem.columns),
-        truth={},
-    )
+    dataset = Dataset.from_array(y, DT, problem.columns)
     result, _ = estimate.run(problem, dataset, seed=seed)
     return result
 

@@ -321,15 +321,7 @@ def estimate_case(
     elif case.start == "virgin":
         cfg["initial"] = virgin_initial(problem)
         problem = config_from_dict(cfg, source=f"<{case.label} {method}>")
-    T = y.shape[0]
-    dataset = Dataset(
-        time=np.arange(T) * case.dt,
-        dt=case.dt,
-        values=y,
-        mask=np.ones_like(y, dtype=bool),
-        columns=list(problem.columns),
-        truth={},
-    )
+    dataset = Dataset.from_array(y, case.dt, problem.columns)
     with persistent_cache(cache) if cache else contextlib.nullcontext():
         result, _ = estimate.run(problem, dataset, seed=seed)
     return result, truth, share

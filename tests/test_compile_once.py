@@ -67,7 +67,7 @@ def _record(cfg: dict, seed: int) -> tuple:
     params.update(force_variance=float(cfg["force"]["variance"]), force_lengthscale=0.3)
     sim = simulate(jax.random.key(seed), problem.model, params, T, DT)
     y = measure(jax.random.key(seed + 1), sim, problem.model.sensors)
-    return problem, Dataset(sim.time, DT, y, np.isfinite(y), ["acc"], {})
+    return problem, Dataset.from_array(y, DT, ["acc"])
 
 
 def _same(a, b):

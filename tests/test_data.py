@@ -7,7 +7,7 @@ import xarray as xr
 from scipy import io as sio
 
 from latentforce.errors import LatentForceError
-from latentforce.io.data import load_data
+from latentforce.io.data import Dataset, load_data
 from latentforce.io.writers import write_csv
 
 T = 50
@@ -101,6 +101,22 @@ def test_missing_skip_masks_nan_and_inf(tmp_path):
     assert not ds.mask[3, 0] and not ds.mask[7, 0] and ds.mask[:, 1].all()
     assert np.isnan(ds.values[7, 0])
     assert ds.mask.sum() == 2 * T - 2
+
+
+def test_from_array_is_the_record_a_file_gives(tmp_path):
+    # a record built in memory equals the same numbers written to a file and read back
+    sig = _signals()
+    sig["acc"][[3, 7]] = [np.nan, np.inf]
+    path = tmp_path / "gaps.csv"
+    write_csv(path, {k: sig[k] for k in ("time", "acc", "disp")})
+    read = load_data(path, ["acc", "disp"], missing="skip")
+    built = Dataset.from_array(np.column_stack([sig["acc"], sig["disp"]]), DT, ("acc", "disp"))
+    np.testing.assert_allclose(built.time, read.time, rtol=0, atol=1e-15)
+    assert built.dt == pytest.approx(read.dt, rel=1e-12)
+    np.testing.assert_array_equal(built.values, read.values)
+    np.testing.assert_array_equal(built.mask, read.mask)
+    assert built.columns == read.columns == ["acc", "disp"] and built.truth == {}
+    assert np.isinf(sig["acc"][7])  # the caller's array is not changed
 
 
 def test_truth_columns_optional_and_suffixed(tmp_path):

@@ -37,8 +37,7 @@ SDOF = {
 
 def _evidence(config: dict, y: np.ndarray) -> dict:
     problem = config_from_dict(config, source="c.toml")
-    T = len(y)
-    ds = Dataset(np.arange(T) * DT, DT, y, np.ones(y.shape, bool), ["acc"], {})
+    ds = Dataset.from_array(y, DT, ["acc"])
     result, _ = estimate.run(problem, ds, seed=0)
     return result.diagnostics["log_evidence"]
 

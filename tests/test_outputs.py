@@ -424,7 +424,7 @@ def test_outputs_and_mass_warning_through_kalman_mcmc(tmp_path):
         T,
         np.random.default_rng(3),
     )
-    ds = Dataset(np.arange(T) * dt, dt, y, np.ones((T, 1), bool), ["acc"], {})
+    ds = Dataset.from_array(y, dt, ["acc"])
     result, _ = estimate.run(problem, ds, seed=0)
     assert any("no sensor measures the force" in w for w in result.diagnostics["warnings"])
     p = result.path_draws

@@ -200,7 +200,15 @@ def adaptation_schedule(burn_in_steps: int) -> tuple[int, ...]:
 
 
 def mh_step(
-    key: Array, state: mcmc.RWMState, log_target: Callable, *, adapt: Array, reshape: Array, target: float, aux=None
+    key: Array,
+    state: mcmc.RWMState,
+    log_target: Callable,
+    *,
+    adapt: Array,
+    reshape: Array,
+    target: float,
+    aux=None,
+    adapt_density: Callable | None = None,
 ):
     """One random-walk MH step on the hyperparameters (``mcmc.step``), adaptive only where ``adapt``.
 
@@ -208,9 +216,9 @@ def mh_step(
     conditioning path changes). ``reshape``: reset the proposal shape from
     the running covariance, then restart the running moments. A non-finite
     proposed target is a rejection (never a propagated NaN). With ``aux``,
-    as :func:`mcmc.step` (the target returns ``(log density, aux)``).
+    as :func:`mcmc.step` (the target returns ``(log density, aux)``), and so ``adapt_density``.
     """
-    out = mcmc.step(key, state, log_target, adapt, reshape & adapt, target, aux)
+    out = mcmc.step(key, state, log_target, adapt, reshape & adapt, target, aux, adapt_density=adapt_density)
     restart = reshape & adapt
     state = out[0]._replace(mean=jnp.where(restart, out[0].x, out[0].mean), count=jnp.where(restart, 0.0, out[0].count))
     return (state,) + tuple(out[1:])

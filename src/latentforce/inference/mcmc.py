@@ -89,6 +89,7 @@ def step(
     target: float,
     aux=None,
     independent: independence.IndependenceProposal | None = None,
+    adapt_density: Callable | None = None,
 ):
     r"""One Metropolis step; adapts the proposal only where ``adapt`` is true.
 
@@ -105,6 +106,13 @@ def step(
     point) ``logdensity`` returns ``(log density, aux)`` and the step returns
     ``(state, info, aux of the point kept)``, so that what the density
     computed on the way (e.g. a rebuilt path) need not be computed again.
+
+    ``adapt_density`` (with ``aux``): the scale adapts on the acceptance probability of
+    ``adapt_density(aux)``, a noiseless part of the log density, instead of the step's own. For a
+    target estimated with noise (a pseudo-marginal step: a fresh random path at each proposal)
+    whose acceptance stays below ``target`` at any step size, adapting on the step's own acceptance
+    shrinks the step towards zero (:func:`latentforce.inference.smoother_move.joint_move`).
+    Adaptation only: the step accepts on ``logdensity``.
     """
     p = state.x.shape[0]
     if independent is None:
@@ -137,7 +145,12 @@ def step(
     count = state.count + adapt
     gamma = jnp.where(adapt & ~use_ind, 1.0 / jnp.maximum(count, 1.0) ** 0.6, 0.0)
     alpha = jnp.exp(jnp.where(jnp.isfinite(log_alpha), log_alpha, -jnp.inf))
-    log_scale = state.log_scale + gamma * (alpha - target)
+    alpha_adapt = alpha
+    if adapt_density is not None:
+        log_alpha_adapt = jnp.minimum(adapt_density(aux_new) - adapt_density(aux) + log_q_ratio, 0.0)
+        ok = jnp.isfinite(log_alpha_adapt) & jnp.isfinite(ld_new)
+        alpha_adapt = jnp.exp(jnp.where(ok, log_alpha_adapt, -jnp.inf))
+    log_scale = state.log_scale + gamma * (alpha_adapt - target)
     imh_accept, imh_count = state.imh_accept, state.imh_count
     if independent is not None:
         imh_count = imh_count + (adapt & use_ind)

@@ -76,6 +76,16 @@ class Dataset(NamedTuple):
     #: warnings from reading the file(s), for the run's own (a truth column left out, :func:`_truth_in_si`)
     notes: tuple[str, ...] = ()
 
+    @classmethod
+    def from_array(cls, values, dt: float, columns) -> "Dataset":
+        """A record held in memory: ``values[:, j]`` is channel ``columns[j]`` in SI units, sampled
+        every ``dt`` seconds from t = 0, observed wherever it is finite (NaN elsewhere, as a file
+        read with ``missing = "skip"``); no truth columns."""
+        values = np.array(values, dtype=float)
+        mask = np.isfinite(values)
+        values[~mask] = np.nan
+        return cls(np.arange(values.shape[0]) * dt, float(dt), values, mask, list(columns), {})
+
 
 # ----- readers: one per format, each a table of named 1-D channels -----------
 class _Table:
