@@ -430,7 +430,7 @@ class JointProposal(NamedTuple):
     log_target: Float[Array, ""]  # log p(theta) + log q(y | theta) + log w(g) (sampling coordinates)
     path: Float[Array, "T n"]
     tr: particle_model.Transition
-    base: Float[Array, ""] = None  # log p(theta) + log Z(theta): the target less the path's weight
+    base: Float[Array, ""]  # log p(theta) + log Z(theta): the target less the path's weight
 
 
 def joint_log_target(
