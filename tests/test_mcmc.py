@@ -277,3 +277,38 @@ def test_a_noisy_target_adapts_its_scale_on_the_noiseless_part():
     (the joint move's weight noise, smoother_move.joint_move)."""
     assert _pseudo_marginal_scale(False) < 0.3
     assert 1.2 < _pseudo_marginal_scale(True) < 4.0
+
+
+def _wide_proxy_walk(steps: int = 4000) -> tuple[float, float]:
+    """A 1-D walk on N(0, 1) that adapts on a noiseless part 100 times wider (a loose expansion's
+    marginal): its adapted proposal sd and the acceptance of the frozen walk after it."""
+    target = lambda x: -0.5 * jnp.sum(x**2)
+    proxy = lambda x: -0.5 * jnp.sum((x / 100.0) ** 2)
+    state = mcmc.init(jnp.zeros(1), target, jnp.ones(1))
+
+    def body(carry, inputs):
+        key, adapt = inputs
+        s, aux = carry
+        s, info, aux = mcmc.step(
+            key, s, lambda x: (target(x), proxy(x)), adapt, jnp.asarray(False), 0.44, aux, adapt_density=lambda a: a
+        )
+        return (s, aux), info.accepted
+
+    keys = jax.random.split(jax.random.key(3), 2 * steps)
+    adapt = jnp.arange(2 * steps) < steps
+    (state, _), accepted = jax.lax.scan(body, (state, proxy(state.x)), (keys, adapt))
+    return float(jnp.exp(state.log_scale) * state.chol[0, 0]), float(jnp.mean(accepted[steps:]))
+
+
+def test_a_noiseless_part_much_wider_than_the_target_does_not_size_the_step_past_the_floor(monkeypatch):
+    """Adapting on a noiseless part (``adapt_density``) sizes the step by that part's shape; where it
+    is much wider than the target the step's own acceptance collapses (measured: a step of 202 sd,
+    accepted 0.9 % of the time). The floor caps the step so that its own acceptance stays near
+    ``mcmc.ACCEPTANCE_FLOOR`` or above (measured: 64 sd, 2.5 %); the noisy case above keeps its
+    noiseless optimum (2.2)."""
+    scale, acceptance = _wide_proxy_walk()
+    assert acceptance >= 0.6 * mcmc.ACCEPTANCE_FLOOR
+    assert scale < 100.0
+    monkeypatch.setattr(mcmc, "ACCEPTANCE_FLOOR", 1e-12)  # no floor: the proxy alone sizes the step
+    scale_free, acceptance_free = _wide_proxy_walk()
+    assert scale_free > 150.0 and acceptance_free < 0.5 * acceptance

@@ -57,10 +57,19 @@ class RWMState(NamedTuple):
     imh_count: Float[Array, ""] | None = None
     #: a prior guess of the target's covariance, kept in every reshape (module doc); None: none
     cov0: Float[Array, "p p"] | None = None
+    #: the running (exponentially weighted) acceptance of the steps that adapt on
+    #: ``adapt_density`` (:func:`step`'s floor); None: never adapted so
+    acc_mean: Float[Array, ""] | None = None
 
 
 #: pseudo-draws (besides the dimension) that a state's ``cov0`` counts for in a reshape
 PRIOR_WEIGHT = 10.0
+
+#: With ``adapt_density`` (:func:`step`), the least running acceptance of the step itself: under
+#: twice this the scale's update is capped so that it shrinks the step below it.
+ACCEPTANCE_FLOOR = 0.02
+#: weight of one step in the running acceptance (about the last 50 steps)
+ACCEPTANCE_MEMORY = 0.02
 
 
 class RWMInfo(NamedTuple):
@@ -77,7 +86,9 @@ def target_acceptance(dim: int) -> float:
 def init(x: Float[Array, " p"], logdensity: Callable, proposal_sd: Float[Array, " p"]) -> RWMState:
     """Start a chain at ``x`` with a diagonal proposal ``proposal_sd``."""
     ld = logdensity(x)
-    return RWMState(x, ld, jnp.zeros(()), jnp.diag(proposal_sd), x, jnp.diag(proposal_sd**2), jnp.zeros(()))
+    return RWMState(
+        x, ld, jnp.zeros(()), jnp.diag(proposal_sd), x, jnp.diag(proposal_sd**2), jnp.zeros(()), acc_mean=jnp.ones(())
+    )
 
 
 def step(
@@ -112,7 +123,12 @@ def step(
     target estimated with noise (a pseudo-marginal step: a fresh random path at each proposal)
     whose acceptance stays below ``target`` at any step size, adapting on the step's own acceptance
     shrinks the step towards zero (:func:`latentforce.inference.smoother_move.joint_move`).
-    Adaptation only: the step accepts on ``logdensity``.
+    Adaptation only: the step accepts on ``logdensity``. A floor keeps that proxy honest: where the
+    noiseless part is much wider than the target (a loose expansion), its optimum would be a step
+    the target almost never accepts; so once the step's own running acceptance (``acc_mean``, from
+    :func:`init`) falls under twice :data:`ACCEPTANCE_FLOOR`, the update is capped at
+    :math:`(1 - \text{target})(\bar a - f)/f`, which shrinks the step until it is accepted about
+    as often as the floor :math:`f`.
     """
     p = state.x.shape[0]
     if independent is None:
@@ -145,12 +161,18 @@ def step(
     count = state.count + adapt
     gamma = jnp.where(adapt & ~use_ind, 1.0 / jnp.maximum(count, 1.0) ** 0.6, 0.0)
     alpha = jnp.exp(jnp.where(jnp.isfinite(log_alpha), log_alpha, -jnp.inf))
-    alpha_adapt = alpha
+    signal = alpha - target
+    acc_mean = state.acc_mean
     if adapt_density is not None:
         log_alpha_adapt = jnp.minimum(adapt_density(aux_new) - adapt_density(aux) + log_q_ratio, 0.0)
         ok = jnp.isfinite(log_alpha_adapt) & jnp.isfinite(ld_new)
         alpha_adapt = jnp.exp(jnp.where(ok, log_alpha_adapt, -jnp.inf))
-    log_scale = state.log_scale + gamma * (alpha_adapt - target)
+        if acc_mean is None:
+            raise ValueError("adapt_density needs a state from mcmc.init (its running acceptance, acc_mean)")
+        acc_mean = acc_mean + jnp.where(gamma > 0.0, ACCEPTANCE_MEMORY * (alpha - acc_mean), 0.0)
+        floor = (1.0 - target) * (acc_mean - ACCEPTANCE_FLOOR) / ACCEPTANCE_FLOOR
+        signal = jnp.minimum(alpha_adapt - target, floor)
+    log_scale = state.log_scale + gamma * signal
     imh_accept, imh_count = state.imh_accept, state.imh_count
     if independent is not None:
         imh_count = imh_count + (adapt & use_ind)
@@ -171,7 +193,7 @@ def step(
     chol = jnp.where(use_new, new_chol * (2.38 / jnp.sqrt(p)), state.chol)
     log_scale = jnp.where(use_new, 0.0, log_scale)
     info = RWMInfo(accepted, ld) if independent is None else RWMInfo(accepted, ld, use_ind)
-    out = RWMState(x, ld, log_scale, chol, mean, cov, count, imh_accept, imh_count, state.cov0), info
+    out = RWMState(x, ld, log_scale, chol, mean, cov, count, imh_accept, imh_count, state.cov0, acc_mean), info
     if aux is None:
         return out
     return out + (jax.tree_util.tree_map(lambda a, b: jnp.where(accepted, a, b), aux_new, aux),)

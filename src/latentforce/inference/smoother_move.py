@@ -132,7 +132,10 @@ length and shrank the step towards zero. Measured on a Bouc-Wen record with a Ma
 (T = 65, the default start): adapted on its own acceptance the walk accepted 0.19-0.21 with steps
 under 0.05 in a posterior of sd 0.36 (log variance), the four chains' means 7.62-8.00, R-hat 1.18;
 adapted on :math:`p Z` it accepts 0.08-0.09 (near the 7 % that Sherlock et al. 2015 find optimal
-for pseudo-marginal walks), the chains' means 7.905-7.910.
+for pseudo-marginal walks), the chains' means 7.905-7.910. Where :math:`Z` is much wider than the
+marginal (a loose expansion) that rule alone would size a step the target almost never accepts: a
+floor on the step's own running acceptance (:data:`~latentforce.inference.mcmc.ACCEPTANCE_FLOOR`,
+:func:`~latentforce.inference.mcmc.step`) caps it.
 """
 
 from __future__ import annotations
@@ -311,7 +314,7 @@ def _smooth(pm, lin: Linearisation, gains: _Gains, y) -> tuple[Float[Array, "T n
 
     The mean recursion of the filter, then the backward recursion
     :math:`r_{t-1} = H_t^T S_t^{-1} v_t + L_t^T r_t`, :math:`L_t = F_t(I - M_t H_t)`;
-    :math:`\hatarepsilon_1 = L_1^T r_0`, :math:`\hatarepsilon_{t+1} = L_q^T r_t`,
+    :math:`\hat\varepsilon_1 = L_1^T r_0`, :math:`\hat\varepsilon_{t+1} = L_q^T r_t`,
     :math:`\hat x_t = a_t + P_t r_{t-1}` (Durbin & Koopman 2012, Sec. 4.4-4.5). The innovations come
     out as :math:`L^T r`, never through an inverse of the (ill-conditioned) noise covariance.
     """
