@@ -31,8 +31,8 @@ def _element_params(index, values):
     return {f"element{index}_{key}": value for key, value in values.items()}
 
 
-def _frame(elements, substeps=4):
-    return NonlinearMDOF(ShearFrame(3, force_dofs=(2,)), elements, substeps=substeps)
+def _frame(elements, substeps=4, force_dofs=(2,)):
+    return NonlinearMDOF(ShearFrame(3, force_dofs=force_dofs), elements, substeps=substeps)
 
 
 def test_one_element_to_the_ground_is_the_duffing_or_bouc_wen_system():
@@ -95,13 +95,14 @@ SENSORS = [Sensor("acceleration", 0, 1.0), Sensor("acceleration", 2, 1.0), Senso
 DT = 0.01
 
 
-def _twin(order, T, seed=2):
+def _twin(order, T, seed=2, force_dofs=(2,)):
     """The frame with its elements off, and the exact smoother of the linear frame with the
-    Bouc-Wen element's alpha added to storey 1, from the nonlinear model's own start."""
-    system = _frame([Element("cubic", (2, 1)), Element("bouc-wen", (1, 0))])
+    Bouc-Wen element's alpha added to storey 1, from the nonlinear model's own start (the force's
+    mean and sd; with several ``force_dofs``, of each force: ``(T, forces)``)."""
+    system = _frame([Element("cubic", (2, 1)), Element("bouc-wen", (1, 0))], force_dofs=force_dofs)
     model = LatentForceModel(system, Matern(order), SENSORS)
     lin_params = dict(FRAME, k_1=FRAME["k_1"] + HYST["alpha"], **GP)
-    lin = LatentForceModel(ShearFrame(3, force_dofs=(2,)), Matern(order), SENSORS)
+    lin = LatentForceModel(ShearFrame(3, force_dofs=force_dofs), Matern(order), SENSORS)
     sim = simulate(jax.random.key(seed), lin, lin_params, T, DT)
     rng = np.random.default_rng(seed)
     y = np.stack([getattr(sim, s.quantity)[:, s.dof] + rng.normal(0, s.noise_std, T) for s in SENSORS], axis=1)
@@ -113,7 +114,7 @@ def _twin(order, T, seed=2):
     m0 = jnp.concatenate([pm.mech0_mean[keep], jnp.zeros(P_f.shape[0])])
     P0 = jax.scipy.linalg.block_diag(pm.mech0_cov[np.ix_(keep, keep)], P_f)
     exact = kalman_smoother(A, Q, H, R, m0, P0, jnp.asarray(y))
-    f = lin.layout.force[0]
+    f = lin.layout.force[0] if len(force_dofs) == 1 else np.asarray(lin.layout.force)
     return pm, y, np.asarray(exact.means)[:, f], np.sqrt(np.asarray(exact.covs)[:, f, f])
 
 
@@ -133,11 +134,17 @@ def test_switched_off_elements_leave_the_linear_frame():
 
 # Matérn-3/2 and 5/2 under -m slow (5/2 51 s on 2026-12-02's slow 2-core machine); the Bouc-Wen
 # oscillator's twin checks 5/2 in CI
-@pytest.mark.parametrize("order", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
-def test_extended_and_unscented_smoothers_of_the_switched_off_frame_are_exact(order):
-    pm, y, mean, sd = _twin(order, 250)
+@pytest.mark.parametrize(
+    "order, force_dofs",
+    [(0, (1, 2)), pytest.param(1, (2,), marks=pytest.mark.slow), pytest.param(2, (2,), marks=pytest.mark.slow)],
+)
+def test_extended_and_unscented_smoothers_of_the_switched_off_frame_are_exact(order, force_dofs):
+    """Against the exact smoother of the linear twin, each force (several: each its own GP, its
+    states after the mechanical ones in turn)."""
+    pm, y, mean, sd = _twin(order, 250, force_dofs=force_dofs)
+    assert pm.nforce == len(force_dofs) and mean.shape[1:] == (() if len(force_dofs) == 1 else (len(force_dofs),))
     tr = pm.transition(GP["force_variance"], GP["force_lengthscale"])
-    f = pm.nm
+    f = pm.nm if len(force_dofs) == 1 else pm.nm + pm.kdim * np.arange(len(force_dofs))
     for kind in ("ekf", "ukf"):
         out = gaussian_smoother(kind, pm, tr, jnp.asarray(y), jnp.ones(y.shape, bool))
         m = np.asarray(out.means)[:, f]

@@ -211,7 +211,7 @@ method = "{method}"
 
 def test_ekf_and_ukf_as_methods_write_result_folders(tmp_path, monkeypatch):
     """Fixed parameters: the smoother's marginals, a deterministic result (converged, no draws);
-    an inferred parameter (the damping of a Duffing system, which pgas cannot infer): random-walk
+    an inferred parameter (the damping of a Duffing system): random-walk
     Metropolis on the approximate likelihood, with its verdict and the states mixed over the draws.
     Both with virtual sensors on the nonlinear system (the acceleration through the cubic spring)."""
     import json

@@ -24,6 +24,7 @@ DUFF = dict(m=1.0, c=0.5, k=10.0, k3=1000.0)
 CASES = {
     "bouc-wen-gamma-alpha": (BoucWen(), BENCH, 0, 750.0, (2500.0, 0.01), dict(gamma=-700.0, alpha=6e4)),
     "bouc-wen-mass": (BoucWen(), BENCH, 1, 750.0, (2500.0, 0.01), dict(m=2.6)),
+    "bouc-wen-nu-beta": (BoucWen(), BENCH, 0, 750.0, (2500.0, 0.01), dict(nu=1.5, beta=600.0)),
     "duffing-c-k3": (Duffing(), DUFF, 1, 50.0, (1.0, 0.5), dict(c=0.8, k3=1500.0)),
     "duffing-matern52-mass": (Duffing(), DUFF, 2, 50.0, (1.0, 0.5), dict(m=1.3, k3=600.0)),
 }

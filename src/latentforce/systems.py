@@ -378,8 +378,8 @@ class NonlinearMDOF(System):
     Bouc-Wen element adds its hysteretic force to the stiffness ``K`` already there (so a
     storey's linear spring stays in ``K``). Parameters: the base's, then each element's keys as
     ``element<e>_<key>`` (:func:`element_param`). Linear part: :math:`K + S\,
-    \mathrm{diag}(lpha) S^T` (the hysteretic forces about rest, :math:`r = \mathrm{diag}(lpha)
-    S^T z`, as :class:`BoucWen`'s :math:`k + lpha`).
+    \mathrm{diag}(\alpha) S^T` (the hysteretic forces about rest, :math:`r = \mathrm{diag}(\alpha)
+    S^T z`, as :class:`BoucWen`'s :math:`k + \alpha`).
     """
 
     type_name = "elements"
