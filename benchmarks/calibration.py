@@ -261,6 +261,11 @@ SETTINGS = {
         "quick": dict(chains=4, burn_in=200, target_ess=100, max_time=20),
     },
 }
+# ekf / ukf with free parameters: kalman-mcmc's random walk on the filter's likelihood
+SETTINGS["ekf"] = SETTINGS["ukf"] = SETTINGS["kalman-mcmc"]
+#: the nonlinear sampler and, beside it, the Gaussian baselines (their approximate posterior's
+#: ranks show where it is too sure)
+NONLINEAR_SAMPLERS = ("pgas", "ekf", "ukf")
 
 
 def _lognormal(median: float, sigma: float, init: float) -> dict:
@@ -401,6 +406,7 @@ def cases() -> list[Case]:
                     "k3": _lognormal(1000.0, 0.3, 1000.0),
                 },
             },
+            samplers=NONLINEAR_SAMPLERS,
             description="as duffing-sbc, the damping c and cubic stiffness k3 inferred too (log-normal priors: "
             "c median 0.5 (σ 0.3), k3 1000 (0.3))",
             quick=False,
@@ -412,7 +418,7 @@ def cases() -> list[Case]:
             65,
             1.0 / 750.0,
             None,
-            ("pgas",),
+            NONLINEAR_SAMPLERS,
             "Bouc-Wen benchmark oscillator (m = 2, c = 10, k = 5e4, beta = 800, nu = 1) at 750 Hz, alpha and "
             "gamma inferred (alpha log-normal median 5e4 (σ 0.2), gamma normal -1100 ± 300), Matérn-1/2 force "
             "(σ² log-normal median 2500 (0.5), ℓ 0.01 s (0.3)), displacement (noise sd 2e-5 m) and acceleration "
@@ -486,6 +492,7 @@ def cases() -> list[Case]:
             duffing,
             name="duffing-sbc-acc",
             config={**DUFFING_SBC_CONFIG, "sensors": DUFFING_SBC_CONFIG["sensors"][1:]},
+            samplers=NONLINEAR_SAMPLERS,
             description="as duffing-sbc, acceleration only (the smooth-force case without a displacement channel)",
             quick=False,
         ),

@@ -81,8 +81,10 @@ def run(key, sampler: str, problem, y, mask, dt: float, settings: dict):
 
     from latentforce.inference.pgas import run_pgas
 
+    if sampler in ("ekf", "ukf"):
+        return run_gaussian(key, sampler, problem, y, mask, dt, settings)
     if sampler != "pgas":
-        raise ValueError(f"the Duffing family runs pgas, not {sampler!r}")
+        raise ValueError(f"the Duffing family runs pgas, ekf or ukf, not {sampler!r}")
     T = y.shape[0]
     free = {name: (spec.prior, spec.init) for name, spec in problem.free.items()}
     params = dict(problem.fixed, **{name: spec.init for name, spec in problem.free.items()})
@@ -120,3 +122,54 @@ def run(key, sampler: str, problem, y, mask, dt: float, settings: dict):
         if diag.get(key):  # [] where the move did not run
             info[name] = float(np.mean(diag[key]))
     return draws, dict(diag.get("convergence") or {}), info
+
+
+#: at most this many parameter draws per chain get a smoother pass for the force values (evenly
+#: spaced; the ranks use 99 ESS-thinned draws of them)
+GAUSSIAN_FORCE_DRAWS = 500
+
+
+def run_gaussian(key, sampler: str, problem, y, mask, dt: float, settings: dict):
+    """``ekf`` / ``ukf`` as ``estimate`` runs them with free parameters: random-walk Metropolis on the
+    filter's approximate likelihood ("auto" iterations), the force at each monitored time drawn from
+    the smoother's Gaussian at each (evenly thinned) parameter draw: a draw of the approximate
+    posterior the method reports, so its ranks show where that posterior is too sure."""
+    import jax
+    import jax.numpy as jnp
+
+    from latentforce.estimate_particles import gaussian_for
+    from latentforce.inference.kalman_mcmc import run_kalman_mcmc
+    from latentforce.inference.particle_model import ParticleModel
+
+    T = y.shape[0]
+    free = {name: (spec.prior, spec.init) for name, spec in problem.free.items()}
+    params0 = dict(problem.fixed, **{name: spec.init for name, spec in problem.free.items()})
+    loglik, smoother = gaussian_for(problem, params0, dt, kind=sampler)
+    key_mcmc, key_force = jax.random.split(key)
+    y0, mask = jnp.asarray(np.where(mask, y, 0.0)), jnp.asarray(mask)
+    out = run_kalman_mcmc(
+        key_mcmc, problem.model, dict(problem.fixed), free, y0, mask, dt, iterations=None, loglik=loglik, **settings
+    )
+    names = list(out.draws)
+    chains, n = out.draws[names[0]].shape
+    keep = np.unique(np.linspace(0, n - 1, min(n, GAUSSIAN_FORCE_DRAWS)).round().astype(int))
+    thetas = {k: jnp.asarray(v[:, keep]).reshape(-1) for k, v in out.draws.items()}
+    fixed = {k: jnp.asarray(v, dtype=float) for k, v in problem.fixed.items()}
+    nm = ParticleModel(problem.model, params0, dt).nm  # the force is the first state after the mechanical ones
+    times = jnp.asarray([int(name.split("@")[1]) for name in latent_names(T)])
+
+    @jax.jit
+    def force_draws(k, theta):
+        def one(k1, th):
+            sm = smoother({**fixed, **th}, y0, mask)
+            mean, var = sm.means[times, nm], sm.covs[times, nm, nm]
+            return mean + jnp.sqrt(jnp.maximum(var, 0.0)) * jax.random.normal(k1, mean.shape)
+
+        return jax.lax.map(lambda a: one(*a), (jax.random.split(k, len(next(iter(theta.values())))), theta))
+
+    force = np.asarray(force_draws(key_force, thetas)).reshape(chains, len(keep), -1)
+    draws = {k: np.asarray(v)[:, keep] for k, v in out.draws.items()}
+    for i, name in enumerate(latent_names(T)):
+        draws[name] = force[:, :, i]
+    info = {"acceptance": float(np.mean(out.acceptance)), "draws_per_chain": int(len(keep))}
+    return draws, dict(out.convergence), info

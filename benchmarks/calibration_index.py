@@ -285,8 +285,10 @@ def build(results: Path = RESULTS_DIR, expected: list[tuple[str, str]] | None = 
         "term the exact smoother itself puts one record's ±1 sd anywhere in 0.5-100 % and misses the "
         "±1 sd rule on 10 of the first 24 records listed in `frame_linear_twin.md`, so a bold coverage cell with "
         "the Gaussian baselines bold beside it is a record to read, not a sampler fault; not converged "
-        "is the sampler saying so. Seconds are from different runs and loads: compare within one source "
-        "file only.",
+        "is the sampler saying so. The `ekf`/`ukf` rows of the SBC table rank the Gaussian approximation's "
+        "posterior (random-walk Metropolis on its likelihood, the force from its smoother) against truths "
+        "drawn from the exact model: bold there is the approximation too sure or biased, what those rows are "
+        "for. Seconds are from different runs and loads: compare within one source file only.",
         "",
         "## Simulation-based calibration and coverage over repeated records",
         "",
