@@ -519,6 +519,8 @@ REPLICATIONS = {
         ("coverage", "kalman-mcmc"): 100,
         ("coverage", "kalman-nuts"): 50,
         ("SBC", "pgas"): 100,
+        ("SBC", "ekf"): 100,
+        ("SBC", "ukf"): 100,
     },
     "quick": {
         ("SBC", "kalman-mcmc"): 20,
@@ -526,6 +528,8 @@ REPLICATIONS = {
         ("coverage", "kalman-mcmc"): 2,
         ("coverage", "kalman-nuts"): 0,
         ("SBC", "pgas"): 1,
+        ("SBC", "ekf"): 1,
+        ("SBC", "ukf"): 1,
     },
 }
 
